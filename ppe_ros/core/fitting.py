@@ -1,0 +1,444 @@
+"""Maximum-likelihood plane fits under the radial (ray-length) noise model of PPE.
+
+A plane explains ray k (start s_k, unit direction v_k, measured length r_k) by the length at
+which the ray meets it. With the plane written as ``w . x = 1`` (``w = n / d``) in a frame whose
+origin is not on the plane, the residual of ray k is exactly
+
+    r_k - rhat_k = (w . p_k - 1) / (w . v_k),      p_k = s_k + r_k v_k,
+
+and the fit minimises the sum of squared residuals (SSE, m^2) by Gauss-Newton with step halving.
+Internally every computation runs in the frame of :class:`ppe_ros.core.scan.RayScan` (the input
+frame translated by the mean ray start); results are returned in the input frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.scan import RayScan, make_ray_scan
+
+#: Gauss-Newton stops when the SSE decreases by less than this fraction (or the step is tiny).
+FIT_RELATIVE_TOLERANCE = 1e-13
+FIT_MAX_ITERATIONS = 50
+
+
+# --------------------------------------------------------------------------------------------
+# numba kernels
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+    """Solve the symmetric positive definite 3x3 system A x = b (Jacobi-scaled Cholesky).
+
+    Returns (x0, x1, x2, ok); ok is False when A is not numerically positive definite.
+    """
+    if not (a00 > 0.0 and a11 > 0.0 and a22 > 0.0):
+        return 0.0, 0.0, 0.0, False
+    s0 = 1.0 / np.sqrt(a00)
+    s1 = 1.0 / np.sqrt(a11)
+    s2 = 1.0 / np.sqrt(a22)
+    # scaled matrix has unit diagonal
+    c01 = a01 * s0 * s1
+    c02 = a02 * s0 * s2
+    c12 = a12 * s1 * s2
+    l11 = 1.0 - c01 * c01
+    if l11 <= 1e-15:
+        return 0.0, 0.0, 0.0, False
+    l11 = np.sqrt(l11)
+    l21 = (c12 - c02 * c01) / l11
+    l22 = 1.0 - c02 * c02 - l21 * l21
+    if l22 <= 1e-15:
+        return 0.0, 0.0, 0.0, False
+    l22 = np.sqrt(l22)
+    # forward substitution L y = s*b  (L: [1,0,0],[c01,l11,0],[c02,l21,l22])
+    y0 = b0 * s0
+    y1 = (b1 * s1 - c01 * y0) / l11
+    y2 = (b2 * s2 - c02 * y0 - l21 * y1) / l22
+    # back substitution L^T z = y
+    z2 = y2 / l22
+    z1 = (y1 - l21 * z2) / l11
+    z0 = y0 - c01 * z1 - c02 * z2
+    return z0 * s0, z1 * s1, z2 * s2, True
+
+
+@nb.njit(cache=True)
+def _sse_at(endpoints, directions, idx, count, w0, w1, w2):
+    """Radial SSE (m^2) of rays idx[:count] for the plane w . x = 1 (internal frame)."""
+    sse = 0.0
+    for t in range(count):
+        k = idx[t]
+        den = w0 * directions[k, 0] + w1 * directions[k, 1] + w2 * directions[k, 2]
+        num = w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0
+        res = num / den
+        sse += res * res
+    return sse
+
+
+@nb.njit(cache=True)
+def _linear_init(endpoints, idx, count):
+    """Initial plane w: minimises sum |p|^2 (w . p - 1)^2, a range-weighted algebraic fit."""
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    b0 = b1 = b2 = 0.0
+    for t in range(count):
+        k = idx[t]
+        x = endpoints[k, 0]
+        y = endpoints[k, 1]
+        z = endpoints[k, 2]
+        wt = x * x + y * y + z * z
+        a00 += wt * x * x
+        a01 += wt * x * y
+        a02 += wt * x * z
+        a11 += wt * y * y
+        a12 += wt * y * z
+        a22 += wt * z * z
+        b0 += wt * x
+        b1 += wt * y
+        b2 += wt * z
+    return _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+
+
+@nb.njit(cache=True)
+def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
+    """Minimise the radial SSE over w from the start (w0, w1, w2).
+
+    Returns (sse, w0, w1, w2, converged). sse is inf when the fit is degenerate.
+    """
+    sse = _sse_at(endpoints, directions, idx, count, w0, w1, w2)
+    if not np.isfinite(sse):
+        return np.inf, w0, w1, w2, False
+    for _ in range(max_iterations):
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        b0 = b1 = b2 = 0.0
+        for t in range(count):
+            k = idx[t]
+            vx = directions[k, 0]
+            vy = directions[k, 1]
+            vz = directions[k, 2]
+            px = endpoints[k, 0]
+            py = endpoints[k, 1]
+            pz = endpoints[k, 2]
+            den = w0 * vx + w1 * vy + w2 * vz
+            res = (w0 * px + w1 * py + w2 * pz - 1.0) / den
+            # d res / d w = (p - res v) / (w . v)
+            g0 = (px - res * vx) / den
+            g1 = (py - res * vy) / den
+            g2 = (pz - res * vz) / den
+            a00 += g0 * g0
+            a01 += g0 * g1
+            a02 += g0 * g2
+            a11 += g1 * g1
+            a12 += g1 * g2
+            a22 += g2 * g2
+            b0 += g0 * res
+            b1 += g1 * res
+            b2 += g2 * res
+        d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        if not ok:
+            return sse, w0, w1, w2, False
+        step = 1.0
+        improved = False
+        new_sse = sse
+        for _halving in range(30):
+            n0 = w0 - step * d0
+            n1 = w1 - step * d1
+            n2 = w2 - step * d2
+            new_sse = _sse_at(endpoints, directions, idx, count, n0, n1, n2)
+            if new_sse <= sse:
+                improved = True
+                break
+            step *= 0.5
+        if not improved:
+            return sse, w0, w1, w2, True
+        decrease = sse - new_sse
+        w0, w1, w2 = n0, n1, n2
+        sse = new_sse
+        wn = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        dn = step * np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if decrease <= relative_tolerance * sse or dn <= 1e-15 * wn:
+            return sse, w0, w1, w2, True
+    return sse, w0, w1, w2, False
+
+
+@nb.njit(cache=True)
+def _fit_rays(endpoints, directions, idx, count, w_start, max_iterations, relative_tolerance):
+    """Exact fit of rays idx[:count]; starts from w_start if finite, else the algebraic fit.
+
+    Returns (sse, w0, w1, w2); sse = inf for a degenerate set (fewer than 3 independent rays).
+    """
+    if count < 3:
+        return np.inf, np.nan, np.nan, np.nan
+    if np.isfinite(w_start[0]) and np.isfinite(w_start[1]) and np.isfinite(w_start[2]):
+        w0 = w_start[0]
+        w1 = w_start[1]
+        w2 = w_start[2]
+    else:
+        w0, w1, w2, ok = _linear_init(endpoints, idx, count)
+        if not ok:
+            return np.inf, np.nan, np.nan, np.nan
+    sse, w0, w1, w2, _ = _gauss_newton(
+        endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance
+    )
+    return sse, w0, w1, w2
+
+
+@nb.njit(cache=True)
+def _gn_information(endpoints, directions, idx, count, w0, w1, w2, out):
+    """Gauss-Newton information sum g g^T at w into out[0..5] (a00 a01 a02 a11 a12 a22)."""
+    for i in range(6):
+        out[i] = 0.0
+    for t in range(count):
+        k = idx[t]
+        vx = directions[k, 0]
+        vy = directions[k, 1]
+        vz = directions[k, 2]
+        den = w0 * vx + w1 * vy + w2 * vz
+        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) / den
+        g0 = (endpoints[k, 0] - res * vx) / den
+        g1 = (endpoints[k, 1] - res * vy) / den
+        g2 = (endpoints[k, 2] - res * vz) / den
+        out[0] += g0 * g0
+        out[1] += g0 * g1
+        out[2] += g0 * g2
+        out[3] += g1 * g1
+        out[4] += g1 * g2
+        out[5] += g2 * g2
+
+
+@nb.njit(cache=True, parallel=True)
+def _fit_groups(endpoints, directions, members, starts, max_iterations, relative_tolerance, out_w, out_sse,
+                out_info):
+    """Fit every group g = members[starts[g]:starts[g+1]] exactly (parallel over groups)."""
+    n_groups = len(starts) - 1
+    for g in nb.prange(n_groups):
+        idx = members[starts[g]:starts[g + 1]]
+        w_start = np.full(3, np.nan)
+        sse, w0, w1, w2 = _fit_rays(
+            endpoints, directions, idx, len(idx), w_start, max_iterations, relative_tolerance
+        )
+        out_sse[g] = sse
+        out_w[g, 0] = w0
+        out_w[g, 1] = w1
+        out_w[g, 2] = w2
+        _gn_information(endpoints, directions, idx, len(idx), w0, w1, w2, out_info[g])
+
+
+# --------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """One maximum-likelihood plane fit, in the input frame.
+
+    Attributes:
+        normal: unit normal facing the mean ray start. offset: d with ``normal . x = d`` (m).
+        sse: radial SSE (m^2). rmse: sqrt(sse / count) (m). count: number of rays.
+        covariance: 3x3 covariance of the closest-point vector ``offset * normal`` (m^2).
+        residuals: ``(count,)`` radial residuals ``r_k - rhat_k`` (m).
+    """
+
+    normal: np.ndarray
+    offset: float
+    sse: float
+    rmse: float
+    count: int
+    covariance: np.ndarray
+    residuals: np.ndarray
+
+
+def _plane_from_w(w: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, float]:
+    """Normal facing the internal origin and offset in the input frame, from internal w."""
+    norm = np.linalg.norm(w)
+    normal = -w / norm
+    offset = float(normal @ center - 1.0 / norm)
+    return normal, offset
+
+
+def _closest_point_covariance(w: np.ndarray, center: np.ndarray, info6: np.ndarray, sse: float,
+                              count: int) -> np.ndarray:
+    """Covariance of d*n (input frame) from Cov(w) = sigma^2 (sum g g^T)^-1, sigma^2 = sse/(count-3)."""
+    info = np.array(
+        [[info6[0], info6[1], info6[2]], [info6[1], info6[3], info6[4]], [info6[2], info6[4], info6[5]]]
+    )
+    dof = max(count - 3, 1)
+    try:
+        cov_w = (sse / dof) * np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return np.full((3, 3), np.nan)
+    norm = np.linalg.norm(w)
+    normal = -w / norm
+    offset = normal @ center - 1.0 / norm
+    d_normal = -(np.eye(3) - np.outer(normal, normal)) / norm  # d n / d w (symmetric)
+    d_offset = d_normal @ center + normal / norm**2  # gradient of d w.r.t. w
+    jac = np.outer(normal, d_offset) + offset * d_normal  # d (d n) / d w
+    cov = jac @ cov_w @ jac.T
+    return 0.5 * (cov + cov.T)
+
+
+def _residuals(endpoints: np.ndarray, directions: np.ndarray, w: np.ndarray) -> np.ndarray:
+    return (endpoints @ w - 1.0) / (directions @ w)
+
+
+def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit:
+    """Maximum-likelihood plane through measured endpoints under radial noise.
+
+    Args:
+        points: ``(N, 3)`` measured endpoints (m), N >= 3, all finite.
+        origins: ray starts: None (the coordinate origin), ``(3,)`` or ``(N, 3)``.
+
+    Returns:
+        The exact minimiser of the sum of squared ray-length residuals, with its covariance.
+
+    Raises:
+        ValueError: bad shapes, non-finite points, fewer than 3 rays or a degenerate (collinear) set.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f'points must be (N, 3); got shape {pts.shape}')
+    if len(pts) < 3:
+        raise ValueError(f'a plane needs at least 3 rays; got {len(pts)}')
+    if origins is not None:
+        org = np.asarray(origins, dtype=np.float64)
+        if org.shape == (3,):
+            org = np.broadcast_to(org, pts.shape)
+        if org.shape != pts.shape:
+            raise ValueError(f'origins must be None, (3,) or (N, 3) like points; got shape {org.shape}')
+        org = org[:, None, :]
+    else:
+        org = None
+    scan = make_ray_scan(pts[:, None, :], org)
+    if not scan.valid.all():
+        raise ValueError(f'{int((~scan.valid).sum())} of {len(pts)} rays are not finite or have zero length')
+    planes, residuals = _fit_pixel_groups(scan, np.zeros(len(pts), np.int64), min_plane_points=3)
+    if planes.num_planes != 1 or not np.isfinite(planes.sse[0]):
+        raise ValueError('degenerate ray set: the rays do not determine a plane (collinear endpoints?)')
+    return PlaneFit(
+        normal=planes.normals[0],
+        offset=float(planes.offsets[0]),
+        sse=float(planes.sse[0]),
+        rmse=float(planes.rmse[0]),
+        count=int(planes.point_counts[0]),
+        covariance=planes.covariances[0],
+        residuals=residuals[:, 0].copy(),
+    )
+
+
+def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, **meta
+                      ) -> tuple[PlaneSet, np.ndarray]:
+    """Fit every group of pixels sharing a plane id >= 0 (ids < 0: no plane).
+
+    Groups smaller than ``min_plane_points`` become no plane. Planes are numbered 1..J by
+    decreasing size (ties: first pixel in row-major order). Returns the PlaneSet and an
+    ``(H, W)`` image of radial residuals (NaN where no plane).
+    """
+    ids = np.where(scan.valid, plane_ids, -1)
+    keep = np.flatnonzero(ids >= 0)
+    height, width = scan.height, scan.width
+    residual_image = np.full(scan.size, np.nan)
+    if len(keep) == 0:
+        return PlaneSet.empty((height, width), **meta), residual_image.reshape(height, width)
+    uniq, first, inverse, counts = np.unique(ids[keep], return_index=True, return_inverse=True,
+                                             return_counts=True)
+    big = counts >= min_plane_points
+    # order planes: size desc, then first pixel asc
+    first_pixel = keep[first]
+    order = np.lexsort((first_pixel, -counts))
+    order = order[big[order]]
+    n_planes = len(order)
+    if n_planes == 0:
+        return PlaneSet.empty((height, width), **meta), residual_image.reshape(height, width)
+    rank = np.full(len(uniq), -1, np.int64)
+    rank[order] = np.arange(n_planes)
+    pixel_rank = rank[inverse]
+    sel = pixel_rank >= 0
+    pixels = keep[sel]
+    pixel_rank = pixel_rank[sel]
+    sort = np.argsort(pixel_rank, kind='stable')
+    members = np.ascontiguousarray(pixels[sort])
+    starts = np.zeros(n_planes + 1, np.int64)
+    starts[1:] = np.cumsum(counts[order])
+    out_w = np.empty((n_planes, 3))
+    out_sse = np.empty(n_planes)
+    out_info = np.empty((n_planes, 6))
+    _fit_groups(scan.endpoints, scan.directions, members, starts, FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE,
+                out_w, out_sse, out_info)
+    labels = np.zeros(scan.size, np.int32)
+    labels[members] = (np.repeat(np.arange(n_planes), counts[order]) + 1).astype(np.int32)
+    normals = np.empty((n_planes, 3))
+    offsets = np.empty(n_planes)
+    centroids = np.empty((n_planes, 3))
+    covariances = np.empty((n_planes, 3, 3))
+    point_counts = counts[order].astype(np.int64)
+    for j in range(n_planes):
+        idx = members[starts[j]:starts[j + 1]]
+        w = out_w[j]
+        centroids[j] = scan.endpoints[idx].mean(axis=0) + scan.center
+        if not np.all(np.isfinite(w)):
+            normals[j] = np.nan
+            offsets[j] = np.nan
+            covariances[j] = np.nan
+            continue
+        normals[j], offsets[j] = _plane_from_w(w, scan.center)
+        covariances[j] = _closest_point_covariance(w, scan.center, out_info[j], out_sse[j], len(idx))
+        residual_image[idx] = _residuals(scan.endpoints[idx], scan.directions[idx], w)
+    planes = PlaneSet(
+        labels=labels.reshape(height, width),
+        normals=normals,
+        offsets=offsets,
+        centroids=centroids,
+        point_counts=point_counts,
+        sse=out_sse.copy(),
+        rmse=np.sqrt(out_sse / point_counts),
+        covariances=covariances,
+        **meta,
+    )
+    return planes, residual_image.reshape(height, width)
+
+
+@dataclass(frozen=True)
+class LabeledPlanes:
+    """Exact plane fits of a given labelling.
+
+    Attributes:
+        planes: the PlaneSet (labels renumbered 1..J by size).
+        label_ids: ``(J,)`` the original label of each plane.
+        residuals: ``(H, W)`` radial residual of every pixel of a plane (m), NaN elsewhere.
+    """
+
+    planes: PlaneSet
+    label_ids: np.ndarray
+    residuals: np.ndarray
+
+
+def fit_labeled_planes(points: np.ndarray, labels: np.ndarray, *, origins: np.ndarray | None = None,
+                       min_plane_points: int = 4, ignore_labels_below: int = 1) -> LabeledPlanes:
+    """Fit one maximum-likelihood plane per label of an organized scan.
+
+    Args:
+        points: ``(H, W, 3)`` endpoints (m), NaN = no return.
+        labels: ``(H, W)`` integer labels; labels below ``ignore_labels_below`` are not planes.
+        origins: ray starts (None, ``(3,)`` or ``(H, W, 3)``).
+        min_plane_points: smaller labels are reported as no plane.
+    """
+    scan = make_ray_scan(points, origins)
+    lab = np.asarray(labels)
+    if lab.shape != (scan.height, scan.width):
+        raise ValueError(f'labels must have the grid shape {(scan.height, scan.width)}; got {lab.shape}')
+    if not np.issubdtype(lab.dtype, np.integer):
+        if not np.all(np.isfinite(lab)) or not np.all(lab == np.round(lab)):
+            raise ValueError('labels must be integers')
+        lab = lab.astype(np.int64)
+    flat = lab.reshape(-1).astype(np.int64)
+    ids = np.where(flat >= ignore_labels_below, flat, -1)
+    planes, residuals = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points)
+    label_ids = np.zeros(planes.num_planes, np.int64)
+    plane_labels = planes.labels.reshape(-1)
+    mask = plane_labels > 0
+    label_ids[plane_labels[mask] - 1] = flat[mask]
+    return LabeledPlanes(planes=planes, label_ids=label_ids, residuals=residuals)

@@ -1,0 +1,109 @@
+"""The ray model of an organized scan: ray starts s_k, unit directions v_k and lengths r_k.
+
+A scan is an organized ``(H, W, 3)`` array of measured endpoints (metres, NaN = no return) plus
+the start point of every ray: ``None`` (all rays start at the coordinate origin), a ``(3,)``
+point, or an ``(H, W, 3)`` array (per-ray starts, e.g. Ouster beam origins). Internally the
+extractor works in a frame translated by the mean ray start (``center``) so that no plane seen by
+the sensor passes through the internal origin, which the ``w = n / d`` plane parameterisation needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RayScan:
+    """Flattened rays of an organized scan, row-major (pixel id = row * width + col).
+
+    Attributes:
+        height, width: grid size (rows, columns).
+        endpoints: ``(H*W, 3)`` measured endpoints in the internal frame (input frame minus
+            ``center``), metres; rows of invalid rays are 0.
+        directions: ``(H*W, 3)`` unit ray directions (0 for invalid rays).
+        ranges: ``(H*W,)`` measured ray lengths ``r_k = |p_k - s_k|`` in metres (NaN if invalid).
+        valid: ``(H*W,)`` bool: finite endpoint and start, and ``r_k > 0``.
+        center: ``(3,)`` the internal frame origin in input coordinates (mean valid ray start).
+    """
+
+    height: int
+    width: int
+    endpoints: np.ndarray
+    directions: np.ndarray
+    ranges: np.ndarray
+    valid: np.ndarray
+    center: np.ndarray
+
+    @property
+    def size(self) -> int:
+        """Number of pixels H*W."""
+        return self.height * self.width
+
+    def ray_starts(self) -> np.ndarray:
+        """``(H*W, 3)`` ray starts in the internal frame."""
+        starts = self.endpoints - self.ranges[:, None] * self.directions
+        starts[~self.valid] = 0.0
+        return starts
+
+
+def as_points_array(points: np.ndarray, *, name: str = 'points') -> np.ndarray:
+    """Validate an organized ``(H, W, 3)`` cloud and return it as C-contiguous float64."""
+    array = np.asarray(points)
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise ValueError(
+            f'{name} must be an organized (H, W, 3) array of x, y, z in metres; got shape {array.shape}'
+        )
+    if array.shape[0] < 1 or array.shape[1] < 1:
+        raise ValueError(f'{name} is empty: shape {array.shape}')
+    if not np.issubdtype(array.dtype, np.number):
+        raise ValueError(f'{name} must be numeric; got dtype {array.dtype}')
+    return np.ascontiguousarray(array, dtype=np.float64)
+
+
+def make_ray_scan(points: np.ndarray, origins: np.ndarray | None = None) -> RayScan:
+    """Build the ray model of an organized scan.
+
+    Args:
+        points: ``(H, W, 3)`` measured endpoints in metres, NaN = no return.
+        origins: ray starts in the same frame: None (coordinate origin), ``(3,)`` or ``(H, W, 3)``.
+
+    Raises:
+        ValueError: wrong shapes or dtypes.
+    """
+    pts = as_points_array(points)
+    height, width, _ = pts.shape
+    if origins is None:
+        starts = np.zeros_like(pts)
+    else:
+        starts = np.asarray(origins, dtype=np.float64)
+        if starts.shape == (3,):
+            if not np.all(np.isfinite(starts)):
+                raise ValueError(f'origins must be finite; got {starts}')
+            starts = np.broadcast_to(starts, pts.shape)
+        elif starts.shape != pts.shape:
+            raise ValueError(
+                f'origins must be None, a (3,) ray start or an (H, W, 3) array like points {pts.shape}; '
+                f'got shape {starts.shape}'
+            )
+    flat_points = pts.reshape(-1, 3)
+    flat_starts = np.ascontiguousarray(starts, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid='ignore'):
+        delta = flat_points - flat_starts
+        ranges = np.sqrt(np.einsum('ij,ij->i', delta, delta))
+        valid = np.isfinite(ranges) & (ranges > 0.0)
+    center = flat_starts[valid].mean(axis=0) if valid.any() else np.zeros(3)
+    endpoints = np.where(valid[:, None], flat_points - center, 0.0)
+    directions = np.zeros_like(delta)
+    directions[valid] = delta[valid] / ranges[valid, None]
+    ranges = np.where(valid, ranges, np.nan)
+    return RayScan(
+        height=height,
+        width=width,
+        endpoints=np.ascontiguousarray(endpoints),
+        directions=np.ascontiguousarray(directions),
+        ranges=ranges,
+        valid=valid,
+        center=center,
+    )
