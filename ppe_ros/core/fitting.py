@@ -140,6 +140,10 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
         d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
         if not ok:
             return sse, w0, w1, w2, False
+        # Gauss-Newton predicted decrease b^T H^-1 b: converged when negligible
+        predicted = d0 * b0 + d1 * b1 + d2 * b2
+        if not predicted > relative_tolerance * sse:
+            return sse, w0, w1, w2, True
         step = 1.0
         improved = False
         new_sse = sse
@@ -165,18 +169,14 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
 
 
 @nb.njit(cache=True)
-def _fit_rays(endpoints, directions, idx, count, w_start, max_iterations, relative_tolerance):
-    """Exact fit of rays idx[:count]; starts from w_start if finite, else the algebraic fit.
+def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
+    """Exact fit of rays idx[:count]; starts from (w0, w1, w2) if finite, else the algebraic fit.
 
     Returns (sse, w0, w1, w2); sse = inf for a degenerate set (fewer than 3 independent rays).
     """
     if count < 3:
         return np.inf, np.nan, np.nan, np.nan
-    if np.isfinite(w_start[0]) and np.isfinite(w_start[1]) and np.isfinite(w_start[2]):
-        w0 = w_start[0]
-        w1 = w_start[1]
-        w2 = w_start[2]
-    else:
+    if not (np.isfinite(w0) and np.isfinite(w1) and np.isfinite(w2)):
         w0, w1, w2, ok = _linear_init(endpoints, idx, count)
         if not ok:
             return np.inf, np.nan, np.nan, np.nan
@@ -216,9 +216,8 @@ def _fit_groups(endpoints, directions, members, starts, max_iterations, relative
     n_groups = len(starts) - 1
     for g in nb.prange(n_groups):
         idx = members[starts[g]:starts[g + 1]]
-        w_start = np.full(3, np.nan)
         sse, w0, w1, w2 = _fit_rays(
-            endpoints, directions, idx, len(idx), w_start, max_iterations, relative_tolerance
+            endpoints, directions, idx, len(idx), np.nan, np.nan, np.nan, max_iterations, relative_tolerance
         )
         out_sse[g] = sse
         out_w[g, 0] = w0

@@ -1,0 +1,1246 @@
+"""Probabilistic Plane Extraction (PPE): greedy maximum-likelihood agglomeration of rays into planes.
+
+Semantics (Schaefer et al., ICRA 2019, Algorithm 1, with the reference code's stopping rules and
+without its quirks):
+
+* every valid ray starts as an atomic plane; the error E of a set of planes is the sum over rays
+  of squared ray-length residuals (m^2), atomic planes have error 0;
+* actions: *create* a regular plane from 4 atomic rays forming one of the 17 non-I tetrominoes,
+  *extend* a regular plane by one 4-neighbouring atomic ray, *merge* two regular planes that touch;
+  joins happen only over grid edges whose endpoints are at most ``max_neighbor_distance`` apart
+  (the paper's d / the reference's lmax), and a seed with a no-return or a too-long internal edge
+  is invalid;
+* each step executes the action with the least error increment (ties: create < extend < merge,
+  then by ids);
+* a cut for threshold e is the state before the first action whose increment exceeds e; a cut
+  for a plane count n is the first state with J <= n planes (J counts atomic rays and regular planes).
+
+Plane ids in the action log: a plane created from a seed gets the row-major pixel id of the seed's
+anchor; a merge keeps the smaller id. Increments are computed exactly (Gauss-Newton to convergence)
+for planes of up to ``exact_plane_size`` rays and for every merge that is executed; larger planes
+use their Gauss-Newton quadratic model, re-linearised exactly whenever the plane doubles in size or
+its parameters drift (see docs/algorithm.md for the error bound and how it is tested).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from ppe_ros.core.fitting import (
+    _fit_pixel_groups,
+    _fit_rays,
+    _gn_information,
+    _solve_sym3,
+)
+from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.scan import RayScan, make_ray_scan
+
+KIND_CREATE = 0
+KIND_EXTEND = 1
+KIND_MERGE = 2
+
+#: Offsets (drow, dcol) of the 17 fixed non-I tetrominoes containing the anchor (0, 0), in the
+#: reference implementation's configuration order (1 O, 4 T, 4 S/Z, 8 L/J).
+TETROMINO_OFFSETS = np.array(
+    [
+        [(0, 0), (1, 0), (0, 1), (1, 1)],
+        [(-1, 0), (0, 0), (1, 0), (0, 1)],
+        [(0, -1), (-1, 0), (0, 0), (1, 0)],
+        [(0, -1), (0, 0), (1, 0), (0, 1)],
+        [(0, -1), (-1, 0), (0, 0), (0, 1)],
+        [(0, 0), (1, 0), (-1, 1), (0, 1)],
+        [(-1, -1), (0, -1), (0, 0), (1, 0)],
+        [(0, -1), (0, 0), (1, 0), (1, 1)],
+        [(0, -1), (-1, 0), (0, 0), (-1, 1)],
+        [(-1, 0), (0, 0), (1, 0), (-1, 1)],
+        [(-1, -1), (-1, 0), (0, 0), (1, 0)],
+        [(0, -1), (1, -1), (0, 0), (0, 1)],
+        [(0, -1), (0, 0), (0, 1), (1, 1)],
+        [(-1, -1), (0, -1), (0, 0), (0, 1)],
+        [(0, -1), (0, 0), (-1, 1), (0, 1)],
+        [(-1, 0), (0, 0), (1, 0), (1, 1)],
+        [(1, -1), (-1, 0), (0, 0), (1, 0)],
+    ],
+    dtype=np.int64,
+)
+
+ACTION_DTYPE = np.dtype([('kind', np.int8), ('a', np.int64), ('b', np.int64), ('increment', np.float64)])
+
+#: Planes of up to this many rays are evaluated with exact fits; larger ones with their model.
+DEFAULT_EXACT_PLANE_SIZE = 32
+#: Relative drift of predicted ranges that triggers an exact re-linearisation of a large plane.
+RELINEARISATION_DRIFT = 1e-3
+#: Relative slack subtracted from cached lower bounds (round-off and model error).
+BOUND_SLACK = 1e-7
+
+_FIT_ITERATIONS = 50
+_FIT_TOLERANCE = 1e-13
+
+# global heap entry kinds (sorted so that create < extend < merge on equal keys)
+_G_SEED = 0
+_G_EXTEND = 1
+_G_MERGE_MODEL = 2
+_G_MERGE_EXACT = 3
+
+# plane float fields
+_PE = 0  # error (m^2)
+_PW = 1  # w (3)
+_PH = 4  # GN information (6)
+_PWL = 10  # w at the last exact linearisation (3)
+_PRMAX = 13  # max |p| of the plane's endpoints
+_NPF = 14
+# plane int fields
+_PCOUNT = 0
+_PCOUNTLIN = 1
+_PVER = 2
+_PSTAMP = 3
+_PHEAD = 4
+_PTAIL = 5
+_PROOT = 6
+_PADJ = 7
+_PADJN = 8
+_PALIVE = 9
+_NPI = 10
+# kernel statistics (counters returned with the action log)
+_ST_POPS = 0
+_ST_REEVALS = 1
+_ST_NEW_CANDIDATES = 2
+_ST_MERGE_EVALS = 3
+_ST_MERGE_REFINES = 4
+_ST_REFINE_RAYS = 5
+_ST_RELINS = 6
+_ST_RELIN_RAYS = 7
+_ST_HEAP_PEAK = 8
+_N_STATS = 9
+STAT_NAMES = ('heap_pops', 'candidate_reevaluations', 'new_candidates', 'merge_evaluations', 'merge_refinements',
+              'merge_refinement_rays', 'relinearisations', 'relinearisation_rays', 'heap_capacity')
+
+
+# --------------------------------------------------------------------------------------------
+# seeds
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _edge_ok(a, b, width, ok_right, ok_down):
+    if b == a + 1:
+        return ok_right[a]
+    if a == b + 1:
+        return ok_right[b]
+    if b == a + width:
+        return ok_down[a]
+    if a == b + width:
+        return ok_down[b]
+    return False
+
+
+@nb.njit(cache=True, parallel=True)
+def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, out):
+    """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid."""
+    n_pixels = height * width
+    for anchor in nb.prange(n_pixels):
+        i = anchor // width
+        j = anchor % width
+        idx = np.empty(4, np.int64)
+        for c in range(17):
+            ok = True
+            for t in range(4):
+                ii = i + offsets[c, t, 0]
+                jj = j + offsets[c, t, 1]
+                if ii < 0 or ii >= height or jj < 0 or jj >= width:
+                    ok = False
+                    break
+                k = ii * width + jj
+                if not valid[k]:
+                    ok = False
+                    break
+                idx[t] = k
+            if ok:
+                for t in range(4):
+                    for u in range(t + 1, 4):
+                        dr = abs(offsets[c, t, 0] - offsets[c, u, 0])
+                        dc = abs(offsets[c, t, 1] - offsets[c, u, 1])
+                        if dr + dc == 1 and not _edge_ok(idx[t], idx[u], width, ok_right, ok_down):
+                            ok = False
+            if not ok:
+                out[anchor, c] = np.inf
+                continue
+            sse, _, _, _ = _fit_rays(endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
+                                     _FIT_TOLERANCE)
+            out[anchor, c] = sse if np.isfinite(sse) else np.inf
+
+
+# --------------------------------------------------------------------------------------------
+# global binary heap: key, then (kind, a, b); int payload columns kind a b va vb
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _g_less(gkey, gint, i, j):
+    if gkey[i] != gkey[j]:
+        return gkey[i] < gkey[j]
+    if gint[i, 0] != gint[j, 0]:
+        return gint[i, 0] < gint[j, 0]
+    if gint[i, 1] != gint[j, 1]:
+        return gint[i, 1] < gint[j, 1]
+    return gint[i, 2] < gint[j, 2]
+
+
+@nb.njit(cache=True)
+def _g_swap(gkey, gint, i, j):
+    tk = gkey[i]
+    gkey[i] = gkey[j]
+    gkey[j] = tk
+    for c in range(5):
+        t = gint[i, c]
+        gint[i, c] = gint[j, c]
+        gint[j, c] = t
+
+
+@nb.njit(cache=True)
+def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
+    """Push an entry; the caller guarantees capacity. Returns the new size."""
+    i = size
+    gkey[i] = key
+    gint[i, 0] = kind
+    gint[i, 1] = a
+    gint[i, 2] = b
+    gint[i, 3] = va
+    gint[i, 4] = vb
+    while i > 0:
+        parent = (i - 1) >> 1
+        if _g_less(gkey, gint, i, parent):
+            _g_swap(gkey, gint, i, parent)
+            i = parent
+        else:
+            break
+    return size + 1
+
+
+@nb.njit(cache=True)
+def _g_pop(gkey, gint, size):
+    """Remove the minimum (moved to index size-1, where the caller reads it). Returns the new size."""
+    last = size - 1
+    _g_swap(gkey, gint, 0, last)
+    i = 0
+    while True:
+        left = 2 * i + 1
+        if left >= last:
+            break
+        child = left
+        right = left + 1
+        if right < last and _g_less(gkey, gint, right, left):
+            child = right
+        if _g_less(gkey, gint, child, i):
+            _g_swap(gkey, gint, child, i)
+            i = child
+        else:
+            break
+    return last
+
+
+# --------------------------------------------------------------------------------------------
+# per-plane skew heaps of extension candidates (node pool)
+#   hf[node] = (bound key, exact value); hi[node] = (pixel, version, left, right)
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _h_less(hf, hi, x, y):
+    if hf[x, 0] != hf[y, 0]:
+        return hf[x, 0] < hf[y, 0]
+    return hi[x, 0] < hi[y, 0]
+
+
+@nb.njit(cache=True)
+def _h_meld(hf, hi, x, y):
+    """Meld two skew heaps (top-down, iterative). Returns the root."""
+    if x < 0:
+        return y
+    if y < 0:
+        return x
+    if _h_less(hf, hi, y, x):
+        x, y = y, x
+    root = x
+    while True:
+        r = hi[x, 3]
+        hi[x, 3] = hi[x, 2]
+        if r < 0:
+            hi[x, 2] = y
+            break
+        if _h_less(hf, hi, y, r):
+            r, y = y, r
+        hi[x, 2] = r
+        x = r
+    return root
+
+
+# --------------------------------------------------------------------------------------------
+# helpers on plane state
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _find(parent, x):
+    root = x
+    while parent[root] != root:
+        root = parent[root]
+    while parent[x] != root:
+        nxt = parent[x]
+        parent[x] = root
+        x = nxt
+    return root
+
+
+@nb.njit(cache=True)
+def _gather(pi, nextpix, p, buf):
+    """Write plane p's pixel ids into buf; returns the count."""
+    n = 0
+    k = pi[p, _PHEAD]
+    while k >= 0:
+        buf[n] = k
+        n += 1
+        k = nextpix[k]
+    return n
+
+
+@nb.njit(cache=True)
+def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
+    """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
+    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS, _FIT_TOLERANCE)
+    pf[p, _PE] = sse
+    pf[p, _PW] = w0
+    pf[p, _PW + 1] = w1
+    pf[p, _PW + 2] = w2
+    pf[p, _PWL] = w0
+    pf[p, _PWL + 1] = w1
+    pf[p, _PWL + 2] = w2
+    _gn_information(endpoints, directions, idx, count, w0, w1, w2, pf[p, _PH:_PH + 6])
+
+
+@nb.njit(cache=True)
+def _point_terms(endpoints, directions, k, w0, w1, w2):
+    """Residual f and gradient g of ray k at w."""
+    vx = directions[k, 0]
+    vy = directions[k, 1]
+    vz = directions[k, 2]
+    den = w0 * vx + w1 * vy + w2 * vz
+    f = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) / den
+    g0 = (endpoints[k, 0] - f * vx) / den
+    g1 = (endpoints[k, 1] - f * vy) / den
+    g2 = (endpoints[k, 2] - f * vz) / den
+    return f, g0, g1, g2
+
+
+@nb.njit(cache=True)
+def _model_extension(endpoints, directions, pf, p, k):
+    """Increment of adding ray k to plane p under p's quadratic model (rank-one update).
+
+    Returns (increment, x0, x1, x2, f, g0, g1, g2) with x = H^-1 g.
+    """
+    w0 = pf[p, _PW]
+    w1 = pf[p, _PW + 1]
+    w2 = pf[p, _PW + 2]
+    f, g0, g1, g2 = _point_terms(endpoints, directions, k, w0, w1, w2)
+    h = pf[p, _PH:_PH + 6]
+    x0, x1, x2, ok = _solve_sym3(h[0], h[1], h[2], h[3], h[4], h[5], g0, g1, g2)
+    if not ok or not np.isfinite(f):
+        return np.inf, 0.0, 0.0, 0.0, f, g0, g1, g2
+    denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
+    return f * f / denom, x0, x1, x2, f, g0, g1, g2
+
+
+@nb.njit(cache=True)
+def _model_merge(pf, a, b):
+    """Merge increment of planes a, b under their quadratic models and the merged w."""
+    ha = pf[a, _PH:_PH + 6]
+    hb = pf[b, _PH:_PH + 6]
+    d0 = pf[a, _PW] - pf[b, _PW]
+    d1 = pf[a, _PW + 1] - pf[b, _PW + 1]
+    d2 = pf[a, _PW + 2] - pf[b, _PW + 2]
+    # Ha d, Hb d
+    ad0 = ha[0] * d0 + ha[1] * d1 + ha[2] * d2
+    ad1 = ha[1] * d0 + ha[3] * d1 + ha[4] * d2
+    ad2 = ha[2] * d0 + ha[4] * d1 + ha[5] * d2
+    bd0 = hb[0] * d0 + hb[1] * d1 + hb[2] * d2
+    bd1 = hb[1] * d0 + hb[3] * d1 + hb[4] * d2
+    bd2 = hb[2] * d0 + hb[4] * d1 + hb[5] * d2
+    s0 = ha[0] + hb[0]
+    s1 = ha[1] + hb[1]
+    s2 = ha[2] + hb[2]
+    s3 = ha[3] + hb[3]
+    s4 = ha[4] + hb[4]
+    s5 = ha[5] + hb[5]
+    y0, y1, y2, ok = _solve_sym3(s0, s1, s2, s3, s4, s5, bd0, bd1, bd2)
+    if not ok:
+        return np.inf, np.nan, np.nan, np.nan
+    inc = ad0 * y0 + ad1 * y1 + ad2 * y2
+    if inc < 0.0:
+        inc = 0.0
+    # merged w = w_b + S^-1 Ha (w_a - w_b)
+    z0, z1, z2, ok = _solve_sym3(s0, s1, s2, s3, s4, s5, ad0, ad1, ad2)
+    return inc, pf[b, _PW] + z0, pf[b, _PW + 1] + z1, pf[b, _PW + 2] + z2
+
+
+@nb.njit(cache=True)
+def _hybrid_objective(endpoints, directions, pf, big, idx, count, x0, x1, x2):
+    """model_big(x) + exact radial SSE of rays idx[:count] at x."""
+    h = pf[big, _PH:_PH + 6]
+    e0 = x0 - pf[big, _PW]
+    e1 = x1 - pf[big, _PW + 1]
+    e2 = x2 - pf[big, _PW + 2]
+    quad = (h[0] * e0 * e0 + h[3] * e1 * e1 + h[5] * e2 * e2
+            + 2.0 * (h[1] * e0 * e1 + h[2] * e0 * e2 + h[4] * e1 * e2))
+    return pf[big, _PE] + quad + _sse_rays(endpoints, directions, idx, count, x0, x1, x2)
+
+
+@nb.njit(cache=True)
+def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
+    """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving).
+
+    Returns (value, w0, w1, w2, info6) where info6 is the information matrix at the minimum.
+    """
+    h = pf[big, _PH:_PH + 6]
+    c0 = pf[big, _PW]
+    c1 = pf[big, _PW + 1]
+    c2 = pf[big, _PW + 2]
+    info = np.zeros(6)
+    value = _hybrid_objective(endpoints, directions, pf, big, idx, count, w0, w1, w2)
+    for _ in range(_FIT_ITERATIONS):
+        e0 = w0 - c0
+        e1 = w1 - c1
+        e2 = w2 - c2
+        r0 = h[0] * e0 + h[1] * e1 + h[2] * e2
+        r1 = h[1] * e0 + h[3] * e1 + h[4] * e2
+        r2 = h[2] * e0 + h[4] * e1 + h[5] * e2
+        for i in range(6):
+            info[i] = h[i]
+        for t in range(count):
+            f, g0, g1, g2 = _point_terms(endpoints, directions, idx[t], w0, w1, w2)
+            info[0] += g0 * g0
+            info[1] += g0 * g1
+            info[2] += g0 * g2
+            info[3] += g1 * g1
+            info[4] += g1 * g2
+            info[5] += g2 * g2
+            r0 += g0 * f
+            r1 += g1 * f
+            r2 += g2 * f
+        d0, d1, d2, ok = _solve_sym3(info[0], info[1], info[2], info[3], info[4], info[5], r0, r1, r2)
+        if not ok:
+            break
+        if not (d0 * r0 + d1 * r1 + d2 * r2) > _FIT_TOLERANCE * value:
+            break
+        step = 1.0
+        improved = False
+        new_value = value
+        n0 = w0
+        n1 = w1
+        n2 = w2
+        for _h in range(30):
+            n0 = w0 - step * d0
+            n1 = w1 - step * d1
+            n2 = w2 - step * d2
+            new_value = _hybrid_objective(endpoints, directions, pf, big, idx, count, n0, n1, n2)
+            if new_value <= value:
+                improved = True
+                break
+            step *= 0.5
+        if not improved:
+            break
+        decrease = value - new_value
+        w0, w1, w2 = n0, n1, n2
+        value = new_value
+        if decrease <= _FIT_TOLERANCE * value:
+            break
+    return value, w0, w1, w2, info
+
+
+@nb.njit(cache=True)
+def _sse_rays(endpoints, directions, idx, count, w0, w1, w2):
+    sse = 0.0
+    for t in range(count):
+        k = idx[t]
+        den = w0 * directions[k, 0] + w1 * directions[k, 1] + w2 * directions[k, 2]
+        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) / den
+        sse += res * res
+    return sse
+
+
+# --------------------------------------------------------------------------------------------
+# the greedy kernel
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _grow_f(arr, new_rows):
+    out = np.empty((new_rows,) + arr.shape[1:], arr.dtype)  # noqa: RUF005 (numba-typed tuple)
+    out[: arr.shape[0]] = arr
+    return out
+
+
+@nb.njit(cache=True)
+def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse,
+                exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack):
+    """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment) and its length.
+
+    Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
+    """
+    n_pixels = height * width
+    n_valid = 0
+    for k in range(n_pixels):
+        if valid[k]:
+            n_valid += 1
+
+    # pixel state
+    owner = np.full(n_pixels, -1, np.int64)
+    nextpix = np.full(n_pixels, -1, np.int64)
+    parent = np.arange(n_pixels)
+    buf = np.empty(n_pixels, np.int64)
+    buf2 = np.empty(n_pixels, np.int64)
+    seen = np.full(n_pixels, -1, np.int64)
+    seen_stamp = 0
+
+    # plane state
+    pf = np.zeros((n_pixels, _NPF))
+    pi = np.zeros((n_pixels, _NPI), np.int64)
+
+    # global heap
+    gcap = max(2 * n_pixels, 1024)
+    gkey = np.empty(gcap)
+    gint = np.empty((gcap, 5), np.int64)
+    gsize = 0
+
+    # skew heap node pool
+    hcap = max(4 * n_pixels, 1024)
+    hf = np.empty((hcap, 2))
+    hi = np.empty((hcap, 4), np.int64)
+    hused = 0
+    hfree = -1
+
+    # adjacency pool (linked lists of neighbouring plane ids)
+    acap = max(4 * n_pixels, 1024)
+    aval = np.empty(acap, np.int64)
+    anext = np.empty(acap, np.int64)
+    aused = 0
+    afree = -1
+
+    # action log
+    log_kind = np.empty(n_pixels + 1, np.int8)
+    log_a = np.empty(n_pixels + 1, np.int64)
+    log_b = np.empty(n_pixels + 1, np.int64)
+    log_inc = np.empty(n_pixels + 1)
+    n_actions = 0
+
+    # initial seeds: best valid config per anchor
+    for anchor in range(n_pixels):
+        best = -1
+        for c in range(17):
+            if np.isfinite(seed_sse[anchor, c]) and (best < 0 or seed_sse[anchor, c] < seed_sse[anchor, best]):
+                best = c
+        if best >= 0:
+            gsize = _g_push(gkey, gint, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
+
+    plane_count = n_valid
+    stats = np.zeros(_N_STATS, np.int64)
+    cell = np.empty(4, np.int64)
+    nb_pix = np.empty(4, np.int64)
+
+    while True:
+        # ---------------- capacity (the loop below pushes a bounded number of entries) -------
+        # ---------------- find the next action with an exact key ----------------------------
+        found = False
+        key = 0.0
+        kind = 0
+        act_a = 0
+        act_b = 0
+        while gsize > 0:
+            if gsize + 8 >= gcap:
+                gcap *= 2
+                gkey = _grow_f(gkey, gcap)
+                gint = _grow_f(gint, gcap)
+            if hused + 8 >= hcap:
+                hcap *= 2
+                hf = _grow_f(hf, hcap)
+                hi = _grow_f(hi, hcap)
+            gsize = _g_pop(gkey, gint, gsize)
+            stats[_ST_POPS] += 1
+            key = gkey[gsize]
+            kind = gint[gsize, 0]
+            ea = gint[gsize, 1]
+            eb = gint[gsize, 2]
+            eva = gint[gsize, 3]
+            evb = gint[gsize, 4]
+            if kind == _G_SEED:
+                anchor = ea
+                c = eb
+                ok = True
+                i = anchor // width
+                j = anchor % width
+                for t in range(4):
+                    k = (i + offsets[c, t, 0]) * width + (j + offsets[c, t, 1])
+                    if owner[k] >= 0:
+                        ok = False
+                        break
+                if ok:
+                    found = True
+                    act_a = anchor
+                    act_b = c
+                    break
+                # next best valid seed of this anchor after (key, c)
+                best = -1
+                for c2 in range(17):
+                    e2 = seed_sse[anchor, c2]
+                    if not np.isfinite(e2):
+                        continue
+                    if e2 < key or (e2 == key and c2 <= c):
+                        continue
+                    ok2 = True
+                    for t in range(4):
+                        k = (i + offsets[c2, t, 0]) * width + (j + offsets[c2, t, 1])
+                        if owner[k] >= 0:
+                            ok2 = False
+                            break
+                    if not ok2:
+                        continue
+                    if best < 0 or e2 < seed_sse[anchor, best]:
+                        best = c2
+                if best >= 0:
+                    gsize = _g_push(gkey, gint, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
+            elif kind == _G_EXTEND:
+                p = ea
+                if pi[p, _PALIVE] == 0 or eva != pi[p, _PSTAMP]:
+                    continue
+                root = pi[p, _PROOT]
+                if root < 0:
+                    continue
+                k = hi[root, 0]
+                if owner[k] >= 0:
+                    # candidate ray was taken by another plane: drop the node
+                    newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
+                    hi[root, 2] = hfree
+                    hfree = root
+                    pi[p, _PROOT] = newroot
+                elif hi[root, 1] == pi[p, _PVER]:
+                    inc = hf[root, 1] - pf[p, _PE]
+                    if key >= inc:
+                        found = True
+                        key = inc
+                        act_a = p
+                        act_b = k
+                        break
+                    # (the proxy key was a bound): fall through to re-push with the exact key
+                else:
+                    # stale bound: evaluate exactly for the current version and re-insert
+                    stats[_ST_REEVALS] += 1
+                    newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
+                    count = pi[p, _PCOUNT]
+                    if count + 1 <= exact_plane_size:
+                        n = _gather(pi, nextpix, p, buf)
+                        buf[n] = k
+                        sse, _, _, _ = _fit_rays(endpoints, directions, buf, n + 1, pf[p, _PW], pf[p, _PW + 1],
+                                                 pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+                        inc = sse - pf[p, _PE]
+                    else:
+                        inc = _model_extension(endpoints, directions, pf, p, k)[0]
+                    if inc < 0.0:
+                        inc = 0.0
+                    value = pf[p, _PE] + inc
+                    hf[root, 0] = value - slack * abs(value)
+                    hf[root, 1] = value
+                    hi[root, 1] = pi[p, _PVER]
+                    hi[root, 2] = -1
+                    hi[root, 3] = -1
+                    if not np.isfinite(value):
+                        hi[root, 2] = hfree
+                        hfree = root
+                        pi[p, _PROOT] = newroot
+                    else:
+                        pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
+                # push the plane's proxy with its current top
+                root = pi[p, _PROOT]
+                if root >= 0:
+                    if hi[root, 1] == pi[p, _PVER]:
+                        pkey = hf[root, 1] - pf[p, _PE]
+                    else:
+                        pkey = hf[root, 0] - pf[p, _PE]
+                    pi[p, _PSTAMP] += 1
+                    gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
+            else:
+                a = ea
+                b = eb
+                if pi[a, _PALIVE] == 0 or pi[b, _PALIVE] == 0:
+                    continue
+                if pi[a, _PVER] != eva or pi[b, _PVER] != evb:
+                    continue
+                if kind == _G_MERGE_EXACT:
+                    found = True
+                    act_a = a
+                    act_b = b
+                    break
+                # a model merge reached the top: refine it (exact union fit when small, else
+                # the larger plane's model plus the smaller plane's exact residuals)
+                stats[_ST_MERGE_REFINES] += 1
+                if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= exact_plane_size:
+                    n1 = _gather(pi, nextpix, a, buf)
+                    n2 = _gather(pi, nextpix, b, buf[n1:])
+                    wsrc = a if pi[a, _PCOUNT] >= pi[b, _PCOUNT] else b
+                    sse, _, _, _ = _fit_rays(endpoints, directions, buf, n1 + n2, pf[wsrc, _PW],
+                                             pf[wsrc, _PW + 1], pf[wsrc, _PW + 2], _FIT_ITERATIONS,
+                                             _FIT_TOLERANCE)
+                    inc = sse - pf[a, _PE] - pf[b, _PE]
+                    if inc < 0.0:
+                        inc = 0.0
+                    if np.isfinite(inc):
+                        gsize = _g_push(gkey, gint, gsize, inc, _G_MERGE_EXACT, a, b, eva, evb)
+                    continue
+                big = a
+                small = b
+                if pi[b, _PCOUNT] > pi[a, _PCOUNT]:
+                    big = b
+                    small = a
+                n = _gather(pi, nextpix, small, buf)
+                stats[_ST_REFINE_RAYS] += n
+                e_small, _, _, _ = _fit_rays(endpoints, directions, buf, n, pf[small, _PW],
+                                                   pf[small, _PW + 1], pf[small, _PW + 2], _FIT_ITERATIONS,
+                                                   _FIT_TOLERANCE)
+                _, m0, m1, m2 = _model_merge(pf, a, b)
+                value, m0, m1, m2, _info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+                inc = value - pf[big, _PE] - e_small
+                if inc < 0.0:
+                    inc = 0.0
+                if np.isfinite(inc):
+                    gsize = _g_push(gkey, gint, gsize, inc, _G_MERGE_EXACT, a, b, eva, evb)
+        if not found:
+            break
+        if not (key <= max_increment or plane_count > min_count):
+            break
+
+        # ---------------- execute ----------------------------------------------------------
+        if n_actions >= len(log_kind):
+            break
+        log_a[n_actions] = act_a
+        log_b[n_actions] = act_b
+        log_inc[n_actions] = key
+        changed = -1
+        new_pixels = 0
+        if kind == _G_SEED:
+            log_kind[n_actions] = KIND_CREATE
+            p = act_a
+            i = p // width
+            j = p % width
+            for t in range(4):
+                cell[t] = (i + offsets[act_b, t, 0]) * width + (j + offsets[act_b, t, 1])
+            pi[p, _PALIVE] = 1
+            pi[p, _PROOT] = -1
+            pi[p, _PADJ] = -1
+            pi[p, _PADJN] = 0
+            pi[p, _PHEAD] = cell[0]
+            for t in range(4):
+                owner[cell[t]] = p
+                nextpix[cell[t]] = cell[t + 1] if t < 3 else -1
+            pi[p, _PTAIL] = cell[3]
+            pi[p, _PCOUNT] = 4
+            pi[p, _PCOUNTLIN] = 4
+            _set_exact_state(endpoints, directions, pf, cell, 4, p, np.nan, np.nan, np.nan)
+            rmax = 0.0
+            for t in range(4):
+                k = cell[t]
+                r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
+                rmax = max(rmax, r)
+            pf[p, _PRMAX] = rmax
+            plane_count -= 3
+            changed = p
+            new_pixels = 4
+            for t in range(4):
+                buf2[t] = cell[t]
+        elif kind == _G_EXTEND:
+            log_kind[n_actions] = KIND_EXTEND
+            p = act_a
+            k = act_b
+            count = pi[p, _PCOUNT]
+            owner[k] = p
+            nextpix[k] = -1
+            nextpix[pi[p, _PTAIL]] = k
+            pi[p, _PTAIL] = k
+            pi[p, _PCOUNT] = count + 1
+            r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
+            pf[p, _PRMAX] = max(pf[p, _PRMAX], r)
+            if count + 1 <= exact_plane_size:
+                n = _gather(pi, nextpix, p, buf)
+                _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
+                                 pf[p, _PW + 2])
+                pi[p, _PCOUNTLIN] = n
+            else:
+                inc, x0, x1, x2, f, g0, g1, g2 = _model_extension(endpoints, directions, pf, p, k)
+                denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
+                pf[p, _PW] -= x0 * f / denom
+                pf[p, _PW + 1] -= x1 * f / denom
+                pf[p, _PW + 2] -= x2 * f / denom
+                pf[p, _PH] += g0 * g0
+                pf[p, _PH + 1] += g0 * g1
+                pf[p, _PH + 2] += g0 * g2
+                pf[p, _PH + 3] += g1 * g1
+                pf[p, _PH + 4] += g1 * g2
+                pf[p, _PH + 5] += g2 * g2
+                pf[p, _PE] += key
+            plane_count -= 1
+            changed = p
+            new_pixels = 1
+            buf2[0] = k
+        else:
+            log_kind[n_actions] = KIND_MERGE
+            a = act_a
+            b = act_b
+            s = min(a, b)
+            o = max(a, b)
+            na = pi[a, _PCOUNT]
+            nbn = pi[b, _PCOUNT]
+            total = na + nbn
+            info = np.zeros(6)
+            value = 0.0
+            if total <= exact_plane_size:
+                # exact merged state from the larger plane's w
+                wsrc = a if na >= nbn else b
+                w0 = pf[wsrc, _PW]
+                w1 = pf[wsrc, _PW + 1]
+                w2 = pf[wsrc, _PW + 2]
+            else:
+                big = a if na >= nbn else b
+                small = b if big == a else a
+                n = _gather(pi, nextpix, small, buf)
+                _, m0, m1, m2 = _model_merge(pf, a, b)
+                value, w0, w1, w2, info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+            # concatenate pixel lists into s
+            nextpix[pi[s, _PTAIL]] = pi[o, _PHEAD]
+            pi[s, _PTAIL] = pi[o, _PTAIL]
+            parent[o] = s
+            pi[s, _PCOUNT] = total
+            pi[s, _PROOT] = _h_meld(hf, hi, pi[s, _PROOT], pi[o, _PROOT])
+            # adjacency lists
+            if pi[s, _PADJ] < 0:
+                pi[s, _PADJ] = pi[o, _PADJ]
+            elif pi[o, _PADJ] >= 0:
+                x = pi[s, _PADJ]
+                while anext[x] >= 0:
+                    x = anext[x]
+                anext[x] = pi[o, _PADJ]
+            pi[s, _PADJN] += pi[o, _PADJN]
+            pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
+            lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
+            if total <= exact_plane_size:
+                n = _gather(pi, nextpix, s, buf)
+                _set_exact_state(endpoints, directions, pf, buf, n, s, w0, w1, w2)
+                pi[s, _PCOUNTLIN] = n
+            else:
+                pf[s, _PE] = value
+                pf[s, _PW] = w0
+                pf[s, _PW + 1] = w1
+                pf[s, _PW + 2] = w2
+                for t in range(6):
+                    pf[s, _PH + t] = info[t]
+                pi[s, _PCOUNTLIN] = lin
+            pi[o, _PALIVE] = 0
+            pi[o, _PROOT] = -1
+            plane_count -= 1
+            changed = s
+            new_pixels = 0
+        n_actions += 1
+
+        # ---------------- bookkeeping of the changed plane ---------------------------------
+        p = changed
+        count = pi[p, _PCOUNT]
+        if count > exact_plane_size:
+            dw = np.sqrt((pf[p, _PW] - pf[p, _PWL]) ** 2 + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
+                         + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2)
+            if count >= 2 * pi[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > drift_limit:
+                n = _gather(pi, nextpix, p, buf)
+                stats[_ST_RELINS] += 1
+                stats[_ST_RELIN_RAYS] += n
+                _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
+                                 pf[p, _PW + 2])
+                pi[p, _PCOUNTLIN] = n
+        pi[p, _PVER] += 1
+
+        # capacity for node/adjacency pushes of this step
+        if hused + 4 * new_pixels + 8 >= hcap:
+            hcap *= 2
+            hf = _grow_f(hf, hcap)
+            hi = _grow_f(hi, hcap)
+        if aused + 8 * new_pixels + 8 >= acap:
+            acap *= 2
+            aval = _grow_f(aval, acap)
+            anext = _grow_f(anext, acap)
+
+        # new neighbours of the added pixels: extension candidates and adjacent planes
+        for t in range(new_pixels):
+            k = buf2[t]
+            i = k // width
+            j = k % width
+            n_nb = 0
+            if j + 1 < width and ok_right[k]:
+                nb_pix[n_nb] = k + 1
+                n_nb += 1
+            if j > 0 and ok_right[k - 1]:
+                nb_pix[n_nb] = k - 1
+                n_nb += 1
+            if i + 1 < height and ok_down[k]:
+                nb_pix[n_nb] = k + width
+                n_nb += 1
+            if i > 0 and ok_down[k - width]:
+                nb_pix[n_nb] = k - width
+                n_nb += 1
+            for u in range(n_nb):
+                q = nb_pix[u]
+                if owner[q] < 0:
+                    # extension candidate (p, q), exact value for the current version
+                    stats[_ST_NEW_CANDIDATES] += 1
+                    if count + 1 <= exact_plane_size:
+                        n = _gather(pi, nextpix, p, buf)
+                        buf[n] = q
+                        sse, _, _, _ = _fit_rays(endpoints, directions, buf, n + 1, pf[p, _PW], pf[p, _PW + 1],
+                                                 pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+                        inc = sse - pf[p, _PE]
+                    else:
+                        inc = _model_extension(endpoints, directions, pf, p, q)[0]
+                    if not np.isfinite(inc):
+                        continue
+                    if inc < 0.0:
+                        inc = 0.0
+                    value = pf[p, _PE] + inc
+                    if hfree >= 0:
+                        node = hfree
+                        hfree = hi[node, 2]
+                    else:
+                        node = hused
+                        hused += 1
+                    hf[node, 0] = value - slack * abs(value)
+                    hf[node, 1] = value
+                    hi[node, 0] = q
+                    hi[node, 1] = pi[p, _PVER]
+                    hi[node, 2] = -1
+                    hi[node, 3] = -1
+                    pi[p, _PROOT] = _h_meld(hf, hi, pi[p, _PROOT], node)
+                else:
+                    other = _find(parent, owner[q])
+                    if other != p:
+                        for side in range(2):
+                            x = p if side == 0 else other
+                            y = other if side == 0 else p
+                            if afree >= 0:
+                                node = afree
+                                afree = anext[node]
+                            else:
+                                node = aused
+                                aused += 1
+                            aval[node] = y
+                            anext[node] = pi[x, _PADJ]
+                            pi[x, _PADJ] = node
+                            pi[x, _PADJN] += 1
+
+        # proxy of p's extension candidates
+        root = pi[p, _PROOT]
+        if gsize + 2 + pi[p, _PADJN] >= gcap:
+            gcap = 2 * (gcap + pi[p, _PADJN])
+            gkey = _grow_f(gkey, gcap)
+            gint = _grow_f(gint, gcap)
+        if root >= 0:
+            if hi[root, 1] == pi[p, _PVER]:
+                pkey = hf[root, 1] - pf[p, _PE]
+            else:
+                pkey = hf[root, 0] - pf[p, _PE]
+            pi[p, _PSTAMP] += 1
+            gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
+
+        # merges with every neighbouring plane (compacting p's adjacency list)
+        seen_stamp += 1
+        x = pi[p, _PADJ]
+        new_head = -1
+        n_adj = 0
+        while x >= 0:
+            nxt = anext[x]
+            q = _find(parent, aval[x])
+            if q == p or pi[q, _PALIVE] == 0 or seen[q] == seen_stamp:
+                anext[x] = afree
+                afree = x
+            else:
+                seen[q] = seen_stamp
+                aval[x] = q
+                anext[x] = new_head
+                new_head = x
+                n_adj += 1
+                stats[_ST_MERGE_EVALS] += 1
+                a = min(p, q)
+                b = max(p, q)
+                total = pi[a, _PCOUNT] + pi[b, _PCOUNT]
+                if total <= exact_merge_size:
+                    n1 = _gather(pi, nextpix, a, buf)
+                    n2 = _gather(pi, nextpix, b, buf[n1:])
+                    wsrc = a if pi[a, _PCOUNT] >= pi[b, _PCOUNT] else b
+                    sse, _, _, _ = _fit_rays(endpoints, directions, buf, n1 + n2, pf[wsrc, _PW],
+                                             pf[wsrc, _PW + 1], pf[wsrc, _PW + 2], _FIT_ITERATIONS,
+                                             _FIT_TOLERANCE)
+                    inc = sse - pf[a, _PE] - pf[b, _PE]
+                    gkind = _G_MERGE_EXACT
+                else:
+                    inc = _model_merge(pf, a, b)[0]
+                    gkind = _G_MERGE_MODEL
+                if np.isfinite(inc):
+                    if inc < 0.0:
+                        inc = 0.0
+                    gsize = _g_push(gkey, gint, gsize, inc, gkind, a, b, pi[a, _PVER], pi[b, _PVER])
+            x = nxt
+        pi[p, _PADJ] = new_head
+        pi[p, _PADJN] = n_adj
+
+    stats[_ST_HEAP_PEAK] = gcap
+    return (log_kind[:n_actions].copy(), log_a[:n_actions].copy(), log_b[:n_actions].copy(),
+            log_inc[:n_actions].copy(), stats)
+
+
+# --------------------------------------------------------------------------------------------
+# replay of the action log
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _replay(kinds, a_ids, b_ids, n_steps, height, width, offsets):
+    """Plane id of every pixel after the first n_steps actions (-1 = atomic or no return)."""
+    n_pixels = height * width
+    parent = np.arange(n_pixels)
+    owner = np.full(n_pixels, -1, np.int64)
+    for s in range(n_steps):
+        kind = kinds[s]
+        a = a_ids[s]
+        b = b_ids[s]
+        if kind == KIND_CREATE:
+            i = a // width
+            j = a % width
+            for t in range(4):
+                owner[(i + offsets[b, t, 0]) * width + (j + offsets[b, t, 1])] = a
+        elif kind == KIND_EXTEND:
+            owner[b] = a
+        else:
+            parent[b] = a
+    out = np.full(n_pixels, -1, np.int64)
+    for k in range(n_pixels):
+        if owner[k] >= 0:
+            out[k] = _find(parent, owner[k])
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------
+
+
+def _edge_masks(scan: RayScan, max_neighbor_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Admissible grid edges: right (k, k+1) and down (k, k+W) with both rays valid and close enough."""
+    h, w = scan.height, scan.width
+    pts = scan.endpoints.reshape(h, w, 3)
+    valid = scan.valid.reshape(h, w)
+    ok_right = np.zeros((h, w), bool)
+    ok_down = np.zeros((h, w), bool)
+    if w > 1:
+        dist = np.linalg.norm(pts[:, 1:] - pts[:, :-1], axis=2)
+        ok_right[:, :-1] = valid[:, 1:] & valid[:, :-1] & (dist <= max_neighbor_distance)
+    if h > 1:
+        dist = np.linalg.norm(pts[1:] - pts[:-1], axis=2)
+        ok_down[:-1] = valid[1:] & valid[:-1] & (dist <= max_neighbor_distance)
+    return ok_right.reshape(-1), ok_down.reshape(-1)
+
+
+def _as_threshold_list(value, name: str, cast) -> list | None:
+    if value is None:
+        return None
+    values = list(value) if isinstance(value, Sequence | np.ndarray) else [value]
+    if not values:
+        raise ValueError(f'{name} must not be an empty list')
+    out = []
+    for v in values:
+        try:
+            x = cast(v)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f'{name} must be a number or a list of numbers; got {v!r}') from exc
+        if cast is float and (not np.isfinite(x) or x < 0):
+            raise ValueError(f'{name} must be finite and >= 0 (m^2); got {v!r}')
+        if cast is int and x < 1:
+            raise ValueError(f'{name} must be >= 1; got {v!r}')
+        out.append(x)
+    return out
+
+
+@dataclass(frozen=True)
+class PlaneHierarchy:
+    """The greedy action log of one PPE run; cut it at any threshold without re-running.
+
+    Attributes:
+        scan: the ray model the run used.
+        actions: structured array (kind, a, b, increment) with kind 0 create (a = anchor pixel id,
+            b = tetromino config 0..16), 1 extend (a = plane id, b = pixel id), 2 merge
+            (a = surviving id = min, b = removed id); increments in m^2. Pixel id = row * W + col.
+        plane_counts: J after each action (atomic rays + regular planes).
+        initial_plane_count: J before the first action (the number of valid rays).
+        complete: True when the run went on until no action was left.
+        seconds: wall time of the run (seeds + greedy), excluding JIT compilation of a first call.
+    """
+
+    scan: RayScan
+    actions: np.ndarray
+    plane_counts: np.ndarray
+    initial_plane_count: int
+    complete: bool
+    seconds: float = 0.0
+    stats: dict | None = None
+
+    def steps_for_error(self, max_error_increment: float) -> int:
+        """Number of actions before the first one whose increment exceeds e (m^2)."""
+        over = np.flatnonzero(self.actions['increment'] > max_error_increment)
+        return int(over[0]) if len(over) else len(self.actions)
+
+    def steps_for_count(self, max_planes: int) -> int:
+        """Number of actions until J <= n first holds."""
+        if self.initial_plane_count <= max_planes:
+            return 0
+        hit = np.flatnonzero(self.plane_counts <= max_planes)
+        return int(hit[0]) + 1 if len(hit) else len(self.actions)
+
+    def plane_ids(self, steps: int) -> np.ndarray:
+        """``(H*W,)`` plane id of each pixel after ``steps`` actions (-1: atomic/no return)."""
+        a = self.actions
+        return _replay(np.ascontiguousarray(a['kind']), np.ascontiguousarray(a['a']), np.ascontiguousarray(a['b']),
+                       int(steps), self.scan.height, self.scan.width, TETROMINO_OFFSETS)
+
+    def cut(self, *, max_error_increment: float | None = None, max_planes: int | None = None,
+            min_plane_points: int = 4) -> PlaneSet:
+        """The planes of the snapshot for one threshold (exactly one of e or n)."""
+        if (max_error_increment is None) == (max_planes is None):
+            raise ValueError('cut needs exactly one of max_error_increment or max_planes')
+        if max_error_increment is not None:
+            steps = self.steps_for_error(max_error_increment)
+        else:
+            steps = self.steps_for_count(max_planes)
+        planes, _ = _fit_pixel_groups(
+            self.scan, self.plane_ids(steps), min_plane_points=min_plane_points,
+            max_error_increment=max_error_increment, max_planes=max_planes, actions=steps,
+        )
+        return planes
+
+
+def extract_plane_hierarchy(
+    points: np.ndarray,
+    *,
+    origins: np.ndarray | None = None,
+    max_neighbor_distance: float = np.inf,
+    max_error_increment: float | None = None,
+    max_planes: int | None = None,
+    exact_plane_size: int = DEFAULT_EXACT_PLANE_SIZE,
+    exact_merge_size: int = 0,
+    relinearisation_drift: float = RELINEARISATION_DRIFT,
+) -> PlaneHierarchy:
+    """Run PPE and return its action log.
+
+    Args:
+        points: organized ``(H, W, 3)`` endpoints in metres, NaN = no return.
+        origins: ray starts: None (coordinate origin), ``(3,)`` or ``(H, W, 3)``, same frame.
+        max_neighbor_distance: the largest 3-D distance (m) between 4-neighbouring endpoints that
+            may be joined (the paper's d, the reference's lmax); inf = no limit.
+        max_error_increment: stop once the next increment exceeds this (m^2) and no plane-count
+            target remains; None with max_planes None runs until no action is left.
+        max_planes: continue at least until J <= max_planes.
+        exact_plane_size: planes up to this many rays are evaluated with exact fits (tests use a
+            large value to make every evaluation exact).
+        exact_merge_size: merges whose union has up to this many rays are fitted exactly as soon as
+            they become candidates; larger ones enter the queue with their model increment and are
+            refined when they reach the front.
+        relinearisation_drift: relative change of a large plane's predicted ranges since its last
+            exact fit that triggers an exact re-linearisation.
+    """
+    import time
+
+    scan = make_ray_scan(points, origins)
+    lmax = float(max_neighbor_distance)
+    if not (lmax > 0):
+        raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {max_neighbor_distance!r}')
+    if int(exact_plane_size) < 4:
+        raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
+    stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
+        -np.inf if max_error_increment is None else float(max_error_increment))
+    stop_count = np.iinfo(np.int64).max if max_planes is None else int(max_planes)
+    if max_planes is None and max_error_increment is None:
+        stop_count = -1
+    start = time.perf_counter()
+    ok_right, ok_down = _edge_masks(scan, lmax)
+    seed_sse = np.empty((scan.size, 17))
+    _seed_errors(scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
+                 TETROMINO_OFFSETS, seed_sse)
+    kinds, a_ids, b_ids, incs, stats = _ppe_kernel(
+        scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
+        TETROMINO_OFFSETS, seed_sse, int(exact_plane_size), int(exact_merge_size), float(relinearisation_drift),
+        stop_increment, stop_count, BOUND_SLACK,
+    )
+    seconds = time.perf_counter() - start
+    actions = np.empty(len(kinds), ACTION_DTYPE)
+    actions['kind'] = kinds
+    actions['a'] = a_ids
+    actions['b'] = b_ids
+    actions['increment'] = incs
+    reduction = np.where(kinds == KIND_CREATE, 3, 1)
+    n_valid = int(scan.valid.sum())
+    plane_counts = n_valid - np.cumsum(reduction)
+    complete = stop_increment == np.inf and stop_count < 0
+    return PlaneHierarchy(scan=scan, actions=actions, plane_counts=plane_counts, initial_plane_count=n_valid,
+                          complete=complete, seconds=seconds,
+                          stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)))
+
+
+def extract_planes(
+    points: np.ndarray,
+    *,
+    origins: np.ndarray | None = None,
+    max_error_increment: float | Sequence[float] | None = 0.01,
+    max_planes: int | Sequence[int] | None = None,
+    max_neighbor_distance: float = np.inf,
+    min_plane_points: int = 4,
+) -> PlaneSet | list[PlaneSet]:
+    """Extract finite planes from an organized scan with PPE.
+
+    Args:
+        points: organized ``(H, W, 3)`` endpoints in metres (any frame), NaN = no return.
+        origins: ray starts in the same frame: None (the frame origin), ``(3,)`` or ``(H, W, 3)``.
+        max_error_increment: the paper's e (m^2): a snapshot is the state before the first action
+            whose error increment exceeds it. One value or a list (one snapshot each).
+        max_planes: the paper's J_max (atomic rays and regular planes counted), one value or a list.
+        max_neighbor_distance: largest distance (m) between neighbouring endpoints that may be
+            joined (the paper's d / lmax).
+        min_plane_points: planes with fewer rays are reported as no plane.
+
+    Returns:
+        A PlaneSet when both thresholds are single values (or None), else a list of PlaneSets:
+        one per e (in the given order), then one per n.
+    """
+    e_list = _as_threshold_list(max_error_increment, 'max_error_increment', float)
+    n_list = _as_threshold_list(max_planes, 'max_planes', int)
+    if int(min_plane_points) < 1:
+        raise ValueError(f'min_plane_points must be >= 1; got {min_plane_points!r}')
+    hierarchy = extract_plane_hierarchy(
+        points,
+        origins=origins,
+        max_neighbor_distance=max_neighbor_distance,
+        max_error_increment=max(e_list) if e_list else None,
+        max_planes=min(n_list) if n_list else None,
+    )
+    cuts = [hierarchy.cut(max_error_increment=e, min_plane_points=min_plane_points) for e in e_list or []]
+    cuts += [hierarchy.cut(max_planes=n, min_plane_points=min_plane_points) for n in n_list or []]
+    if not cuts:
+        steps = len(hierarchy.actions)
+        planes, _ = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps),
+                                      min_plane_points=min_plane_points, actions=steps)
+        cuts = [planes]
+    scalar = not isinstance(max_error_increment, Sequence | np.ndarray) and not isinstance(
+        max_planes, Sequence | np.ndarray)
+    return cuts[0] if scalar and len(cuts) == 1 else cuts
