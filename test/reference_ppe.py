@@ -72,7 +72,9 @@ DEFAULT_MAX_ERROR_INCREMENT = 0.01
 # Plane fit: stop when an accepted Gauss-Newton step lowers the SSE by less than this fraction.
 _FIT_RELATIVE_TOLERANCE = 1e-13
 _FIT_MAX_ITERATIONS = 100
-_FIT_MAX_STEP_HALVINGS = 60
+_FIT_MAX_STEP_HALVINGS = 40
+# ... or when the Gauss-Newton step would change w by less than this fraction (round-off level).
+_FIT_NEGLIGIBLE_STEP = 1e-13
 
 
 # --------------------------------------------------------------------------------------------
@@ -108,7 +110,7 @@ def _gauss_newton(w: np.ndarray, points: np.ndarray, directions: np.ndarray) -> 
         residuals = (points @ w - 1.0) / cosines
         jacobian = (points - residuals[:, None] * directions) / cosines[:, None]
         step = np.linalg.lstsq(jacobian, -residuals, rcond=None)[0]
-        if not np.all(np.isfinite(step)):
+        if not np.all(np.isfinite(step)) or np.linalg.norm(step) <= _FIT_NEGLIGIBLE_STEP * np.linalg.norm(w):
             break
         fraction = 1.0
         for _ in range(_FIT_MAX_STEP_HALVINGS):
@@ -142,7 +144,9 @@ def _initial_guesses(points: np.ndarray, ranges: np.ndarray) -> list[np.ndarray]
     return guesses
 
 
-def _fit_translated(points: np.ndarray, directions: np.ndarray, ranges: np.ndarray) -> tuple[float, np.ndarray]:
+def _fit_translated(
+    points: np.ndarray, directions: np.ndarray, ranges: np.ndarray
+) -> tuple[float, np.ndarray]:
     """The best (sse, w) over all starts; ``points`` are endpoints relative to the mean origin."""
     best_sse, best_w = math.inf, np.full(3, np.nan)
     for guess in _initial_guesses(points, ranges):
@@ -226,9 +230,9 @@ class Action(NamedTuple):
 class Snapshot(NamedTuple):
     """The state at a stopping threshold.
 
-    ``description`` is ``'e=<value>'`` or ``'n=<value>'``; ``plane_id_image`` is ``(H, W)`` int64
-    holding each pixel's regular plane id, -1 for atomic and invalid pixels; ``steps`` is the
-    number of actions executed before this state.
+    ``description`` is ``f'e={float(e)!r}'`` (e.g. ``'e=0.01'``) or ``f'n={n}'``;
+    ``plane_id_image`` is ``(H, W)`` int64 holding each pixel's regular plane id, -1 for atomic
+    and invalid pixels; ``steps`` is the number of actions executed before this state.
     """
 
     description: str
@@ -240,7 +244,10 @@ def plane_sets(snapshot: Snapshot | np.ndarray) -> dict[int, tuple[int, ...]]:
     """Map plane id -> sorted linear pixel ids, from a snapshot or a plane-id image."""
     image = snapshot.plane_id_image if isinstance(snapshot, Snapshot) else np.asarray(snapshot)
     flat = image.reshape(-1)
-    return {int(plane): tuple(int(k) for k in np.flatnonzero(flat == plane)) for plane in np.unique(flat[flat >= 0])}
+    return {
+        int(plane): tuple(int(k) for k in np.flatnonzero(flat == plane))
+        for plane in np.unique(flat[flat >= 0])
+    }
 
 
 def tetromino_pixels(anchor: int, config: int, width: int) -> tuple[int, ...]:
@@ -383,7 +390,9 @@ class _Extractor:
         if pixels not in self._sse_cache:
             ids = np.array(sorted(pixels))
             scan = self.scan
-            self._sse_cache[pixels] = reference_fit(scan.origins[ids], scan.directions[ids], scan.ranges[ids])[0]
+            self._sse_cache[pixels] = reference_fit(
+                scan.origins[ids], scan.directions[ids], scan.ranges[ids]
+            )[0]
         return self._sse_cache[pixels]
 
     def plane_count(self) -> int:
@@ -413,7 +422,11 @@ class _Extractor:
                     if other >= 0 and other != plane:
                         merge_pairs.add((min(plane, other), max(plane, other)))
         for a, b in merge_pairs:
-            increment = self.sse(self.planes[a] | self.planes[b]) - self.sse(self.planes[a]) - self.sse(self.planes[b])
+            increment = (
+                self.sse(self.planes[a] | self.planes[b])
+                - self.sse(self.planes[a])
+                - self.sse(self.planes[b])
+            )
             out.append((increment, MERGE, a, b))
         # A NaN increment (a fit that failed) can never be chosen.
         return [candidate for candidate in out if not math.isnan(candidate[0])]
@@ -437,7 +450,7 @@ class _Extractor:
 def _as_thresholds(value: float | Sequence[float] | None, name: str) -> list[float]:
     if value is None:
         return []
-    values = [value] if np.isscalar(value) else list(value)
+    values = [value] if np.ndim(value) == 0 else list(np.asarray(value).reshape(-1))
     out = []
     for v in values:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
@@ -451,7 +464,7 @@ def _as_thresholds(value: float | Sequence[float] | None, name: str) -> list[flo
 def _as_counts(value: int | Sequence[int] | None) -> list[int]:
     if value is None:
         return []
-    values = [value] if np.isscalar(value) else list(value)
+    values = [value] if np.ndim(value) == 0 else list(np.asarray(value).reshape(-1))
     out = []
     for v in values:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 0:

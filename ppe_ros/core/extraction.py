@@ -74,6 +74,8 @@ ACTION_DTYPE = np.dtype([('kind', np.int8), ('a', np.int64), ('b', np.int64), ('
 DEFAULT_EXACT_PLANE_SIZE = 32
 #: Relative drift of predicted ranges that triggers an exact re-linearisation of a large plane.
 RELINEARISATION_DRIFT = 1e-3
+#: Model merge increments above this multiple of the stopping threshold are not queued.
+MODEL_CUTOFF_FACTOR = 4.0
 #: Relative slack subtracted from cached lower bounds (round-off and model error).
 BOUND_SLACK = 1e-7
 
@@ -536,14 +538,29 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     log_inc = np.empty(n_pixels + 1)
     n_actions = 0
 
-    # initial seeds: best valid config per anchor
+    # entries whose key exceeds the cutoff can never be executed in this run (the run stops
+    # before any action above max_increment unless a plane-count target keeps it going)
+    cutoff = np.inf if min_count < n_pixels else max_increment
+    model_cutoff = MODEL_CUTOFF_FACTOR * cutoff
+
+    # initial seeds: the best valid config of every anchor, in a sorted array (next-best seeds
+    # of anchors whose best seed became invalid go through the heap)
+    seed_best = np.full(n_pixels, -1, np.int64)
+    seed_key = np.full(n_pixels, np.inf)
     for anchor in range(n_pixels):
         best = -1
         for c in range(17):
             if np.isfinite(seed_sse[anchor, c]) and (best < 0 or seed_sse[anchor, c] < seed_sse[anchor, best]):
                 best = c
-        if best >= 0:
-            gsize = _g_push(gkey, gint, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
+        if best >= 0 and seed_sse[anchor, best] <= cutoff:
+            seed_best[anchor] = best
+            seed_key[anchor] = seed_sse[anchor, best]
+    seed_order = np.argsort(seed_key, kind='mergesort')  # stable: ties by anchor id
+    n_seeds = 0
+    for anchor in range(n_pixels):
+        if seed_best[anchor] >= 0:
+            n_seeds += 1
+    seed_ptr = 0
 
     plane_count = n_valid
     stats = np.zeros(_N_STATS, np.int64)
@@ -558,7 +575,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         kind = 0
         act_a = 0
         act_b = 0
-        while gsize > 0:
+        while gsize > 0 or seed_ptr < n_seeds:
             if gsize + 8 >= gcap:
                 gcap *= 2
                 gkey = _grow_f(gkey, gcap)
@@ -567,14 +584,35 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 hcap *= 2
                 hf = _grow_f(hf, hcap)
                 hi = _grow_f(hi, hcap)
-            gsize = _g_pop(gkey, gint, gsize)
+            # the next entry: the sorted initial seeds or the heap, whichever comes first
+            take_sorted = False
+            if seed_ptr < n_seeds:
+                sa = seed_order[seed_ptr]
+                if gsize == 0:
+                    take_sorted = True
+                else:
+                    sk = seed_key[sa]
+                    if sk < gkey[0] or (sk == gkey[0] and (gint[0, 0] > _G_SEED or (
+                            gint[0, 0] == _G_SEED and (gint[0, 1] > sa or (
+                                gint[0, 1] == sa and gint[0, 2] > seed_best[sa]))))):
+                        take_sorted = True
+            if take_sorted:
+                key = seed_key[sa]
+                kind = _G_SEED
+                ea = sa
+                eb = seed_best[sa]
+                eva = 0
+                evb = 0
+                seed_ptr += 1
+            else:
+                gsize = _g_pop(gkey, gint, gsize)
+                key = gkey[gsize]
+                kind = gint[gsize, 0]
+                ea = gint[gsize, 1]
+                eb = gint[gsize, 2]
+                eva = gint[gsize, 3]
+                evb = gint[gsize, 4]
             stats[_ST_POPS] += 1
-            key = gkey[gsize]
-            kind = gint[gsize, 0]
-            ea = gint[gsize, 1]
-            eb = gint[gsize, 2]
-            eva = gint[gsize, 3]
-            evb = gint[gsize, 4]
             if kind == _G_SEED:
                 anchor = ea
                 c = eb
@@ -609,7 +647,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         continue
                     if best < 0 or e2 < seed_sse[anchor, best]:
                         best = c2
-                if best >= 0:
+                if best >= 0 and seed_sse[anchor, best] <= cutoff:
                     gsize = _g_push(gkey, gint, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
             elif kind == _G_EXTEND:
                 p = ea
@@ -669,7 +707,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     else:
                         pkey = hf[root, 0] - pf[p, _PE]
                     pi[p, _PSTAMP] += 1
-                    gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
+                    if pkey <= cutoff:
+                        gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
             else:
                 a = ea
                 b = eb
@@ -695,7 +734,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     if inc < 0.0:
                         inc = 0.0
-                    if np.isfinite(inc):
+                    if inc <= cutoff:
                         gsize = _g_push(gkey, gint, gsize, inc, _G_MERGE_EXACT, a, b, eva, evb)
                     continue
                 big = a
@@ -713,7 +752,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 inc = value - pf[big, _PE] - e_small
                 if inc < 0.0:
                     inc = 0.0
-                if np.isfinite(inc):
+                if inc <= cutoff:
                     gsize = _g_push(gkey, gint, gsize, inc, _G_MERGE_EXACT, a, b, eva, evb)
         if not found:
             break
@@ -954,7 +993,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             else:
                 pkey = hf[root, 0] - pf[p, _PE]
             pi[p, _PSTAMP] += 1
-            gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
+            if pkey <= cutoff:
+                gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
 
         # merges with every neighbouring plane (compacting p's adjacency list)
         seen_stamp += 1
@@ -989,9 +1029,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 else:
                     inc = _model_merge(pf, a, b)[0]
                     gkind = _G_MERGE_MODEL
-                if np.isfinite(inc):
-                    if inc < 0.0:
-                        inc = 0.0
+                if inc < 0.0:
+                    inc = 0.0
+                if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
                     gsize = _g_push(gkey, gint, gsize, inc, gkind, a, b, pi[a, _PVER], pi[b, _PVER])
             x = nxt
         pi[p, _PADJ] = new_head
