@@ -1,0 +1,522 @@
+"""Scan files -> organized clouds (ppe_ros.io) and the ``ppe info`` command."""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppe_ros.cli import main
+from ppe_ros.io import PinholeIntrinsics, ScanFileError, backproject_depth, load_scan, read_pcd, save_pcd
+from ppe_ros.io.lzf import lzf_compress, lzf_decompress
+
+# --------------------------------------------------------------------------------------------
+# the shared data sets: every file with its documented shape (../shared/data/README.md)
+# --------------------------------------------------------------------------------------------
+
+#: relative path -> (rows, columns, min valid fraction, max valid fraction, number of plane ids or None,
+#:                   load_scan keyword arguments, (min, max) plausible range in metres)
+SHARED_FILES: dict[str, tuple] = {
+    'synpeb/test_500.pcd': (500, 500, 1.0, 1.0, 38, {}, (0.5, 10.0)),
+    'synpeb/test_100.pcd': (100, 100, 1.0, 1.0, 12, {}, (0.5, 10.0)),
+    'synpeb/pc_01.pcd': (500, 500, 1.0, 1.0, 60, {}, (0.5, 10.0)),
+    'synpeb/pc_02.pcd': (500, 500, 1.0, 1.0, 30, {}, (0.1, 10.0)),
+    'icl_nuim/icl_nuim_0.png': (480, 640, 0.99, 1.0, 17, {}, (0.5, 10.0)),
+    'kinect/depth_0.png': (480, 640, 0.75, 0.95, None, {}, (0.4, 10.0)),
+    'tls/andreashaus_scan000.pcd': (633, 513, 0.9, 0.99, None, {'units': 'cm'}, (0.5, 20.0)),
+    'ouster/OS-0-128-U1_v2.3.0_1024x10_frame1491_xyz_m.npy': (128, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+    'ouster/OS-1-128_v2.3.0_1024x10_lb_n3_frame1795_xyz_m.npy': (128, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+    'ouster/OS-1-128_v2.3.0_1024x10_lb_n3_frame1796_xyz_m.npy': (128, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+    'ouster/OS-1-128_v2.3.0_1024x10_lb_n3_frame1797_xyz_m.npy': (128, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+    'ouster/OS-1-32-G_v2.1.1_1024x10_frame638_xyz_m.npy': (32, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+    'ouster/OS-2-128-U1_v2.3.0_1024x10_frame1259_xyz_m.npy': (128, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+    'ouster/OS-2-32-U0_v2.0.0_1024x10_frame5424_xyz_m.npy': (32, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
+}
+
+SCAN_SUFFIXES = ('.pcd', '.npy', '.png')
+
+
+def test_every_shared_scan_file_is_covered(shared_data: Path) -> None:
+    found = {
+        str(p.relative_to(shared_data))
+        for p in shared_data.rglob('*')
+        if p.suffix.lower() in SCAN_SUFFIXES and not p.name.endswith('_labels.npy')
+    }
+    assert found == set(SHARED_FILES), 'a scan file was added or removed: document it in SHARED_FILES'
+
+
+@pytest.mark.parametrize('relative', sorted(SHARED_FILES))
+def test_shared_file_loads_with_documented_shape(shared_data: Path, relative: str) -> None:
+    rows, columns, min_valid, max_valid, n_planes, kwargs, (min_range, max_range) = SHARED_FILES[relative]
+    scan = load_scan(shared_data / relative, **kwargs)
+    assert scan.points.shape == (rows, columns, 3)
+    assert scan.points.dtype == np.float64
+    assert min_valid <= scan.valid_fraction <= max_valid
+    # every pixel is either fully valid or fully NaN
+    assert np.array_equal(np.isnan(scan.points).any(axis=2), np.isnan(scan.points).all(axis=2))
+    ranges = np.linalg.norm(scan.points[scan.valid], axis=1)
+    assert min_range <= ranges.min() and ranges.max() <= max_range
+    if n_planes is None:
+        assert scan.labels is None
+    else:
+        assert scan.labels is not None and scan.labels.shape == (rows, columns)
+        assert scan.labels.dtype == np.int64
+        ids = np.unique(scan.labels)
+        assert int((ids >= scan.meta['min_plane_label']).sum()) == n_planes
+
+
+def test_synpeb_binary_compressed_is_fast_and_matches_the_ascii_crop(shared_data: Path) -> None:
+    load_scan(shared_data / 'synpeb/test_500.pcd')  # numba kernels compiled or loaded from cache
+    start = time.perf_counter()
+    full = load_scan(shared_data / 'synpeb/test_500.pcd')
+    elapsed = time.perf_counter() - start
+    assert elapsed < 0.5, f'loading a 500x500 binary_compressed PCD took {elapsed:.3f} s'
+    assert full.meta['encoding'] == 'binary_compressed'
+    crop = load_scan(shared_data / 'synpeb/test_100.pcd')
+    assert crop.meta['encoding'] == 'ascii'
+    # README: test_100 is exactly rows/cols 100..199 of test_500 (printed with 6 decimals)
+    np.testing.assert_allclose(crop.points, full.points[100:200, 100:200], atol=2e-6, rtol=0)
+    assert np.array_equal(crop.labels, full.labels[100:200, 100:200])
+
+
+def test_synpeb_geometry_row_zero_is_the_top(shared_data: Path) -> None:
+    scan = load_scan(shared_data / 'synpeb/pc_01.pcd')
+    directions = scan.points / np.linalg.norm(scan.points, axis=2, keepdims=True)
+    elevation = np.degrees(np.arcsin(directions[..., 2]))
+    azimuth = np.degrees(np.arctan2(directions[..., 1], directions[..., 0]))
+    # README: elevation +30 deg - (60/499) deg * row, azimuth -35 deg + 0.14 deg * col (noise is radial)
+    np.testing.assert_allclose(np.median(elevation, axis=1), 30.0 - 60.0 / 499.0 * np.arange(500), atol=0.05)
+    np.testing.assert_allclose(np.median(azimuth, axis=0), -35.0 + 0.14 * np.arange(500), atol=0.05)
+
+
+def test_icl_nuim_labels_picked_up_and_segments_are_flat(shared_data: Path) -> None:
+    scan = load_scan(shared_data / 'icl_nuim/icl_nuim_0.png')
+    assert scan.meta['intrinsics'] == [481.2, 480.0, 319.5, 239.5]
+    assert scan.meta['depth_scale'] == pytest.approx(1 / 5000)
+    assert scan.meta['labels_source'].endswith('icl_nuim_0_labels.npy')
+    assert set(np.unique(scan.labels)) == set(range(18))
+    for label in range(1, 18):
+        segment = scan.points[scan.labels == label]
+        centred = segment - segment.mean(axis=0)
+        normal = np.linalg.svd(centred, full_matrices=False)[2][2]
+        # README: every labelled segment is flat to about 2.6 mm (z-depth, y-down back-projection)
+        assert np.sqrt(np.mean((centred @ normal) ** 2)) < 0.003, label
+
+
+def test_kinect_uses_ir_intrinsics_and_millimetres(shared_data: Path) -> None:
+    scan = load_scan(shared_data / 'kinect/depth_0.png')
+    fx, fy, cx, cy = scan.meta['intrinsics']
+    assert (round(fx, 1), round(fy, 1), round(cx, 1), round(cy, 1)) == (575.9, 576.4, 315.2, 230.6)
+    assert scan.meta['depth_scale'] == 0.001
+    from PIL import Image
+
+    depth = np.asarray(Image.open(shared_data / 'kinect/depth_0.png'))
+    row, col = np.argwhere(depth > 0)[1000]
+    z = depth[row, col] / 1000.0
+    np.testing.assert_allclose(scan.points[row, col], [(col - cx) * z / fx, (row - cy) * z / fy, z])
+    assert np.all(np.isnan(scan.points[depth == 0]))
+
+
+def test_tls_scan_is_centimetres(shared_data: Path) -> None:
+    raw = load_scan(shared_data / 'tls/andreashaus_scan000.pcd')
+    metres = load_scan(shared_data / 'tls/andreashaus_scan000.pcd', units='cm')
+    np.testing.assert_allclose(metres.points, raw.points / 100.0, equal_nan=True)
+    assert 100.0 < np.nanmedian(np.linalg.norm(raw.points, axis=2)) < 1000.0
+
+
+@pytest.mark.parametrize('relative', sorted(k for k in SHARED_FILES if k.startswith('ouster/')))
+def test_ouster_beam_origins_reproduce_the_beam_elevations(shared_data: Path, relative: str) -> None:
+    scan = load_scan(shared_data / relative)
+    assert scan.origins is not None and scan.origins.shape == scan.points.shape
+    sensor = json.loads(Path(scan.meta['origins_source'].split(' (')[0]).read_text())
+    offset_m = sensor['lidar_origin_to_beam_origin_mm'] / 1000.0
+    lift_m = sensor['lidar_to_sensor_transform'][11] / 1000.0
+    np.testing.assert_allclose(np.hypot(scan.origins[..., 0], scan.origins[..., 1]), offset_m)
+    np.testing.assert_allclose(scan.origins[..., 2], lift_m)
+    rays = scan.points - scan.origins
+    elevation = np.degrees(np.arctan2(rays[..., 2], np.hypot(rays[..., 0], rays[..., 1])))
+    error = np.abs(elevation - np.asarray(sensor['beam_altitude_angles'])[:, None])[scan.valid]
+    assert np.percentile(error, 99) < 0.01
+    # rays from the sensor origin instead are off by up to degrees at short range
+    naive = np.degrees(np.arctan2(scan.points[..., 2] - lift_m, np.hypot(scan.points[..., 0], scan.points[..., 1])))
+    assert np.abs(naive - np.asarray(sensor['beam_altitude_angles'])[:, None])[scan.valid].max() > 0.01
+
+
+# --------------------------------------------------------------------------------------------
+# PCD files written here
+# --------------------------------------------------------------------------------------------
+
+
+def _grid(height: int = 3, width: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    rows, cols = np.mgrid[0:height, 0:width]
+    points = np.stack([1.0 + 0.5 * cols, -0.25 * rows, 2.0 + 0.125 * (rows + cols)], axis=-1)
+    points[1, 2] = np.nan
+    labels = (10 + rows * width + cols).astype(np.int64)
+    return points, labels
+
+
+@pytest.mark.parametrize(
+    ('binary', 'compressed', 'encoding'),
+    [(False, False, 'ascii'), (True, False, 'binary'), (True, True, 'binary_compressed')],
+)
+def test_save_pcd_round_trip(tmp_path: Path, binary: bool, compressed: bool, encoding: str) -> None:
+    points, labels = _grid()
+    intensity = np.linspace(0.0, 1.0, 12, dtype=np.float32).reshape(3, 4)
+    ring = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    offset = np.full((3, 4), -7, dtype=np.int8)
+    path = save_pcd(
+        tmp_path / 'cloud.pcd',
+        points,
+        labels=labels,
+        extra_fields={'intensity': intensity, 'ring': ring, 'offset': offset},
+        binary=binary,
+        compressed=compressed,
+    )
+    cloud = read_pcd(path)
+    assert cloud.header.encoding == encoding
+    assert cloud.header.fields == ('x', 'y', 'z', 'label', 'intensity', 'ring', 'offset')
+    assert cloud.header.types == ('F', 'F', 'F', 'U', 'F', 'U', 'I')
+    assert cloud.data.shape == (3, 4)
+    assert np.array_equal(cloud.data['ring'], ring) and np.array_equal(cloud.data['offset'], offset)
+    assert np.array_equal(cloud.data['intensity'], intensity)
+    scan = load_scan(path)
+    assert scan.format == 'pcd' and scan.meta['encoding'] == encoding
+    np.testing.assert_array_equal(scan.points, points.astype(np.float32).astype(np.float64))
+    assert np.array_equal(scan.labels, labels)
+    assert scan.origins is None
+
+
+def test_save_pcd_refuses_to_overwrite(tmp_path: Path) -> None:
+    points, _ = _grid()
+    path = save_pcd(tmp_path / 'cloud.pcd', points)
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match='refusing to overwrite'):
+        save_pcd(path, points * 2.0)
+    assert path.read_bytes() == before
+    save_pcd(path, points * 2.0, overwrite=True)
+    np.testing.assert_allclose(load_scan(path).points, points * 2.0, equal_nan=True)
+
+
+def test_save_pcd_rejects_bad_input(tmp_path: Path) -> None:
+    points, labels = _grid()
+    with pytest.raises(ValueError, match=r'\(H, W, 3\)'):
+        save_pcd(tmp_path / 'a.pcd', points[..., :2])
+    with pytest.raises(ValueError, match='labels must lie in 0'):
+        save_pcd(tmp_path / 'b.pcd', points, labels=labels - 20)
+    with pytest.raises(ValueError, match='labels must have shape'):
+        save_pcd(tmp_path / 'c.pcd', points, labels=labels[:2])
+    with pytest.raises(ValueError, match='needs binary=True'):
+        save_pcd(tmp_path / 'd.pcd', points, binary=False, compressed=True)
+    with pytest.raises(ValueError, match='cannot be stored'):
+        save_pcd(tmp_path / 'e.pcd', points, extra_fields={'flag': np.zeros((3, 4), dtype=bool)})
+    assert not list(tmp_path.iterdir())
+
+
+def _header(fields: str, size: str, type_: str, width: int, height: int, data: str, extra: str = '') -> bytes:
+    return (
+        '# .PCD v.7 - Point Cloud Data file format\nVERSION .7\n'
+        f'FIELDS {fields}\nSIZE {size}\nTYPE {type_}\nCOUNT {" ".join("1" for _ in fields.split())}\n'
+        f'WIDTH {width}\nHEIGHT {height}\n{extra}POINTS {width * height}\nDATA {data}\n'
+    ).encode()
+
+
+def test_hand_written_ascii_pcd_with_matlab_header(tmp_path: Path) -> None:
+    body = '1 2 3 10\n4 5 6 11\nnan nan nan 3\n7 8 9 12\n'
+    path = tmp_path / 'ascii.pcd'
+    header = '# This PCD file was generated using the MATLAB\u00ae pcwrite function\n'.encode('latin-1')
+    path.write_bytes(header + _header('x y z intensity', '4 4 4 4', 'F F F F', 2, 2, 'ascii') + body.encode())
+    scan = load_scan(path)
+    assert scan.points.shape == (2, 2, 3)
+    np.testing.assert_array_equal(scan.points[0, 1], [4, 5, 6])  # point 1 is row 0, column 1
+    np.testing.assert_array_equal(scan.points[1, 1], [7, 8, 9])
+    assert np.all(np.isnan(scan.points[1, 0]))
+    assert scan.labels.tolist() == [[10, 11], [3, 12]]
+    assert scan.meta['min_plane_label'] == 10
+
+
+def test_hand_written_binary_pcd_with_padding_field_and_viewpoint(tmp_path: Path) -> None:
+    # PCL style: a one-byte padding field "_" and a uint8 label; a viewpoint 1 m above the origin
+    values = [(1.0, 2.0, 3.0, 0, 5), (4.0, 5.0, 6.0, 0, 6), (7.0, 8.0, 9.0, 0, 7), (0.0, 0.0, 0.0, 0, 0)]
+    body = b''.join(struct.pack('<fffBB', *v) for v in values)
+    path = tmp_path / 'binary.pcd'
+    extra = 'VIEWPOINT 0 0 100 1 0 0 0\n'
+    path.write_bytes(_header('x y z _ label', '4 4 4 1 1', 'F F F U U', 2, 2, 'binary', extra) + body)
+    scan = load_scan(path, units='cm')
+    np.testing.assert_allclose(scan.points[0, 0], [0.01, 0.02, 0.03])
+    assert np.all(np.isnan(scan.points[1, 1]))  # exactly (0, 0, 0) = no return
+    assert scan.labels.tolist() == [[5, 6], [7, 0]]
+    np.testing.assert_allclose(scan.origins, [0.0, 0.0, 1.0])
+
+
+def test_intensity_is_ground_truth_only_when_it_holds_plane_ids(tmp_path: Path) -> None:
+    points, labels = _grid()
+    measured = save_pcd(tmp_path / 'measured.pcd', points,
+                        extra_fields={'intensity': np.full((3, 4), 0.37, dtype=np.float32)})
+    assert load_scan(measured).labels is None  # a real intensity is not a label
+    with pytest.raises(ScanFileError, match='intensity field is not whole numbers'):
+        load_scan(measured, intensity_labels=True)
+    ids = save_pcd(tmp_path / 'ids.pcd', points, extra_fields={'intensity': labels.astype(np.float32)})
+    assert np.array_equal(load_scan(ids).labels, labels)
+    assert load_scan(ids, intensity_labels=False).labels is None
+    plain = save_pcd(tmp_path / 'plain.pcd', points)
+    with pytest.raises(ScanFileError, match='no intensity field'):
+        load_scan(plain, intensity_labels=True)
+
+
+def _literal_lzf(payload: bytes) -> bytes:
+    """An LZF block made of literal runs only (independent of ppe_ros's compressor)."""
+    out = bytearray()
+    for start in range(0, len(payload), 32):
+        chunk = payload[start:start + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)
+
+
+def test_hand_written_binary_compressed_pcd_is_field_by_field(tmp_path: Path) -> None:
+    xyz = np.arange(18, dtype=np.float32).reshape(6, 3) + 1.0
+    intensity = np.array([10, 11, 12, 13, 14, 15], dtype=np.float32)
+    payload = xyz[:, 0].tobytes() + xyz[:, 1].tobytes() + xyz[:, 2].tobytes() + intensity.tobytes()
+    block = _literal_lzf(payload)
+    path = tmp_path / 'compressed.pcd'
+    header = _header('x y z intensity', '4 4 4 4', 'F F F F', 3, 2, 'binary_compressed')
+    path.write_bytes(header + struct.pack('<II', len(block), len(payload)) + block)
+    scan = load_scan(path)
+    np.testing.assert_array_equal(scan.points.reshape(6, 3), xyz)
+    assert scan.labels.tolist() == [[10, 11, 12], [13, 14, 15]]
+
+
+def test_lzf_back_references_and_round_trip() -> None:
+    # 'abcabcabca': literal 'abc' then a match of length 7 at distance 3 (overlapping copy)
+    block = bytes([2]) + b'abc' + bytes([(5 << 5) | 0, 2])
+    assert lzf_decompress(block, 10).tobytes() == b'abcabcabca'
+    rng = np.random.default_rng(1)
+    for data in (b'', b'a', bytes(1000), rng.integers(0, 4, 5000).astype(np.uint8).tobytes(),
+                 rng.integers(0, 256, 3000).astype(np.uint8).tobytes()):
+        assert lzf_decompress(lzf_compress(data), len(data)).tobytes() == data
+    assert len(lzf_compress(bytes(10000))) < 200
+    with pytest.raises(ValueError, match='back-reference before the start'):
+        lzf_decompress(bytes([(1 << 5) | 0, 5]), 3)
+    with pytest.raises(ValueError, match='ends inside a run'):
+        lzf_decompress(bytes([9]) + b'abc', 10)
+    with pytest.raises(ValueError, match='expected 12 decompressed bytes, found 10'):
+        lzf_decompress(block, 12)
+    with pytest.raises(ValueError, match='expands beyond the expected 5 bytes'):
+        lzf_decompress(block, 5)
+
+
+@pytest.mark.parametrize('encoding', ['ascii', 'binary', 'binary_compressed'])
+def test_truncated_pcd_says_expected_and_found(tmp_path: Path, encoding: str) -> None:
+    points, labels = _grid(20, 30)
+    full = save_pcd(tmp_path / 'full.pcd', points, labels=labels, binary=encoding != 'ascii',
+                    compressed=encoding == 'binary_compressed')
+    raw = full.read_bytes()
+    cut = tmp_path / 'cut.pcd'
+    cut.write_bytes(raw[: len(raw) - 100])
+    expected_message = {
+        'ascii': r'truncated DATA ascii: expected 2400 values .* found 23\d\d',
+        'binary': r'truncated DATA binary: expected 9600 bytes .* found 9500',
+        'binary_compressed': r'truncated DATA binary_compressed: expected \d+ compressed bytes, found \d+',
+    }[encoding]
+    with pytest.raises(ScanFileError, match=expected_message):
+        load_scan(cut)
+
+
+def test_corrupt_compressed_sizes_and_headers(tmp_path: Path) -> None:
+    header = _header('x y z', '4 4 4', 'F F F', 2, 2, 'binary_compressed')
+    path = tmp_path / 'bad.pcd'
+    path.write_bytes(header + struct.pack('<II', 10, 40) + bytes(10))
+    with pytest.raises(ScanFileError, match='says 40 raw bytes, the header needs 48'):
+        load_scan(path)
+    path.write_bytes(header + b'\x01\x00')
+    with pytest.raises(ScanFileError, match='expected an 8-byte size prefix, found 2 bytes'):
+        load_scan(path)
+    payload = bytes(48)
+    block = _literal_lzf(payload)[:-5]
+    path.write_bytes(header + struct.pack('<II', len(block), 48) + block)
+    with pytest.raises(ScanFileError, match='corrupt or truncated LZF data'):
+        load_scan(path)
+    path.write_bytes(_header('x y z', '4 4 4', 'F F F', 2, 2, 'binary')[:60])
+    with pytest.raises(ScanFileError, match='no DATA line'):
+        load_scan(path)
+    path.write_bytes(b'ply\nformat ascii 1.0\n')
+    with pytest.raises(ScanFileError, match='not a PCD file'):
+        load_scan(path)
+    path.write_bytes(_header('x y z', '4 4 4', 'F F F', 2, 2, 'binary').replace(b'POINTS 4', b'POINTS 5'))
+    with pytest.raises(ScanFileError, match='POINTS 5 differs from WIDTH × HEIGHT'):
+        load_scan(path)
+    path.write_bytes(_header('x y z', '4 4 2', 'F F F', 2, 2, 'binary') + bytes(40))
+    with pytest.raises(ScanFileError, match="field 'z': unsupported TYPE F with SIZE 2"):
+        load_scan(path)
+    path.write_bytes(_header('x y z', '4 4 4', 'F F F', 2, 2, 'lzma') + bytes(48))
+    with pytest.raises(ScanFileError, match="unsupported PCD DATA encoding 'lzma'"):
+        load_scan(path)
+    path.write_bytes(_header('a b c', '4 4 4', 'F F F', 2, 2, 'binary') + bytes(48))
+    with pytest.raises(ScanFileError, match='no x/y/z field'):
+        load_scan(path)
+    path.write_bytes(_header('x y z', '4 4 4', 'F F F', 2, 2, 'ascii') + b'1 2 3\n4 5 6\n7 8 x\n1 1 1\n')
+    with pytest.raises(ScanFileError, match='not a number'):
+        load_scan(path)
+
+
+def test_unorganized_pcd_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / 'list.pcd'
+    path.write_bytes(_header('x y z', '4 4 4', 'F F F', 3, 1, 'ascii') + b'1 2 3\n4 5 6\n7 8 9\n')
+    assert read_pcd(path).data.shape == (1, 3)  # the raw reader still reads it
+    with pytest.raises(ScanFileError, match='not organized'):
+        load_scan(path)
+
+
+def test_missing_and_unknown_files(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match='scan file not found'):
+        load_scan(tmp_path / 'nothing.pcd')
+    other = tmp_path / 'scan.ply'
+    other.write_bytes(b'ply\n')
+    with pytest.raises(ScanFileError, match=r"unknown scan format '\.ply'"):
+        load_scan(other)
+    points, _ = _grid()
+    path = save_pcd(tmp_path / 'cloud.pcd', points)
+    with pytest.raises(ValueError, match='units must be one of'):
+        load_scan(path, units='inch')
+    with pytest.raises(FileNotFoundError, match='labels file not found'):
+        load_scan(path, gt=tmp_path / 'none.npy')
+
+
+# --------------------------------------------------------------------------------------------
+# NPY, labels, depth PNG
+# --------------------------------------------------------------------------------------------
+
+
+def test_npy_scan_units_and_ground_truth(tmp_path: Path) -> None:
+    points, labels = _grid()
+    np.save(tmp_path / 'scan.npy', (points * 1000.0).astype(np.float32))
+    scan = load_scan(tmp_path / 'scan.npy', units='mm')
+    np.testing.assert_allclose(scan.points, points, equal_nan=True, rtol=1e-6)
+    assert scan.labels is None and scan.origins is None
+    np.save(tmp_path / 'gt.npy', labels.astype(np.int32))
+    assert np.array_equal(load_scan(tmp_path / 'scan.npy', gt=tmp_path / 'gt.npy').labels, labels)
+    np.save(tmp_path / 'scan_labels.npy', labels)  # picked up automatically
+    assert np.array_equal(load_scan(tmp_path / 'scan.npy').labels, labels)
+    np.save(tmp_path / 'short.npy', labels[:2])
+    with pytest.raises(ScanFileError, match=r'labels have shape \(2, 4\), the scan is \(3, 4\)'):
+        load_scan(tmp_path / 'scan.npy', gt=tmp_path / 'short.npy')
+    np.save(tmp_path / 'flat.npy', points.reshape(-1, 3))
+    with pytest.raises(ScanFileError, match=r'expected an organized \(H, W, 3\) array .* found shape \(12, 3\)'):
+        load_scan(tmp_path / 'flat.npy')
+    (tmp_path / 'broken.npy').write_bytes((tmp_path / 'scan.npy').read_bytes()[:100])
+    with pytest.raises(ScanFileError, match=r'not a readable \.npy'):
+        load_scan(tmp_path / 'broken.npy')
+
+
+def test_depth_png_with_explicit_intrinsics(tmp_path: Path) -> None:
+    from PIL import Image
+
+    depth = np.array([[0, 1000, 2000], [1500, 0, 3000]], dtype=np.uint16)
+    path = tmp_path / 'depth.png'
+    Image.fromarray(depth).save(path)
+    with pytest.raises(ScanFileError, match='no camera intrinsics'):
+        load_scan(path)
+    with pytest.raises(ScanFileError, match='unknown depth unit'):
+        load_scan(path, intrinsics=(100.0, 110.0, 1.0, 0.5))
+    scan = load_scan(path, intrinsics=(100.0, 110.0, 1.0, 0.5), units='mm')
+    assert scan.points.shape == (2, 3, 3)
+    assert np.all(np.isnan(scan.points[0, 0])) and np.all(np.isnan(scan.points[1, 1]))
+    np.testing.assert_allclose(scan.points[1, 2], [(2 - 1.0) * 3.0 / 100.0, (1 - 0.5) * 3.0 / 110.0, 3.0])
+    np.testing.assert_allclose(scan.points[0, 1, 2], 1.0)
+    scaled = load_scan(path, intrinsics=(100.0, 110.0, 1.0, 0.5), depth_scale=0.0002)
+    np.testing.assert_allclose(scaled.points[0, 1, 2], 0.2)
+    with pytest.raises(ValueError, match='focal lengths must be positive'):
+        load_scan(path, intrinsics=(100.0, -110.0, 1.0, 0.5), units='mm')
+    Image.fromarray(depth.astype(np.uint8)).save(tmp_path / 'eight_bit.png')
+    with pytest.raises(ScanFileError, match="expected a 16-bit single-channel depth PNG, found image mode 'L'"):
+        load_scan(tmp_path / 'eight_bit.png', intrinsics=(1.0, 1.0, 0.0, 0.0), units='mm')
+
+
+def test_depth_png_calibration_files_next_to_it(tmp_path: Path) -> None:
+    from PIL import Image
+
+    depth = np.full((4, 5), 5000, dtype=np.uint16)
+    icl = tmp_path / 'icl'
+    icl.mkdir()
+    Image.fromarray(depth).save(icl / 'frame.png')
+    (icl / 'camera.K').write_text('4.812e+02 0. 3.195e+02\n0. -4.80e+02 2.395e+02\n0. 0. 1.')
+    scan = load_scan(icl / 'frame.png')
+    assert scan.meta['intrinsics'] == [481.2, 480.0, 319.5, 239.5]
+    np.testing.assert_allclose(scan.points[..., 2], 1.0)  # 5000 counts = 1 m
+    assert np.all(scan.points[..., 1] < 0)  # rows above cy are up: negative y in a y-down frame
+    (icl / 'other.K').write_text('1 0 0 0 1 0 0 0 1')
+    with pytest.raises(ScanFileError, match='several camera matrix files'):
+        load_scan(icl / 'frame.png')
+    # explicit arguments need no calibration file
+    scan = load_scan(icl / 'frame.png', intrinsics=(500.0, 500.0, 2.0, 1.5), units='mm')
+    np.testing.assert_allclose(scan.points[..., 2], 5.0)
+
+
+def test_backproject_depth_validates() -> None:
+    camera = PinholeIntrinsics(500.0, 500.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match='depth_scale must be a positive'):
+        backproject_depth(np.ones((2, 2)), camera, 0.0)
+    with pytest.raises(ValueError, match=r'\(H, W\) image'):
+        backproject_depth(np.ones(4), camera, 0.001)
+
+
+# --------------------------------------------------------------------------------------------
+# ppe info
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('relative', sorted(SHARED_FILES))
+def test_info_on_every_shared_file(shared_data: Path, relative: str, capsys: pytest.CaptureFixture[str]) -> None:
+    rows, columns, min_valid, max_valid, n_planes, kwargs, _ = SHARED_FILES[relative]
+    argv = ['info', str(shared_data / relative)]
+    if 'units' in kwargs:
+        argv += ['--units', kwargs['units']]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert f'{rows} rows x {columns} columns' in text
+    assert 'range |p| [m]' in text and 'bounding box [m]' in text
+    assert ('ground truth:    none' in text) == (n_planes is None)
+    if n_planes is not None:
+        assert f'{n_planes} planes' in text
+
+    assert main([*argv, '--json']) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary['rows'], summary['columns']) == (rows, columns)
+    assert min_valid <= summary['valid_fraction'] <= max_valid
+    assert summary['range_m']['min'] <= summary['range_m']['median'] <= summary['range_m']['max']
+    assert len(summary['bounding_box_m']['min']) == 3
+    if n_planes is not None:
+        assert summary['labels']['planes'] == n_planes
+        assert summary['labels']['points_per_plane']['min'] >= 1
+        assert sum(summary['labels']['counts'].values()) == rows * columns
+
+
+def test_info_synpeb_counts_ids_from_ten(shared_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['info', '--json', str(shared_data / 'synpeb/pc_01.pcd')]) == 0
+    labels = json.loads(capsys.readouterr().out)['labels']
+    assert labels['min_plane_label'] == 10 and labels['ids_ge_10'] == 60 and labels['planes'] == 60
+    assert labels['unlabelled_points'] == labels['counts']['3']
+
+
+def test_info_warns_about_centimetres(shared_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['info', str(shared_data / 'tls/andreashaus_scan000.pcd')]) == 0
+    assert 'are the coordinates in cm or mm?' in capsys.readouterr().out
+
+
+def test_info_with_gt_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    points, labels = _grid()
+    path = save_pcd(tmp_path / 'cloud.pcd', points)
+    np.save(tmp_path / 'gt.npy', labels)
+    assert main(['info', str(path), '--gt', str(tmp_path / 'gt.npy'), '--json']) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary['labels']['distinct_ids'] == 12 and summary['valid_points'] == 11
+    assert main(['info', str(tmp_path / 'missing.pcd')]) == 2
+    assert 'scan file not found' in capsys.readouterr().err
+    cut = tmp_path / 'cut.pcd'
+    cut.write_bytes(path.read_bytes()[:-10])
+    assert main(['info', str(cut)]) == 2
+    assert 'truncated DATA binary' in capsys.readouterr().err
