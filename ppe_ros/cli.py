@@ -12,6 +12,8 @@ import sys
 
 SUBCOMMANDS: tuple[str, ...] = (
     'info',
+    'extract',
+    'demo',
 )
 
 
