@@ -463,6 +463,28 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
 
 
 @nb.njit(cache=True)
+def _union_fit(endpoints, directions, pf, idx, count, a, b):
+    """Exact fit of the union of planes a and b (rays idx[:count]).
+
+    The radial SSE of rays on two different surfaces can have several local minima, so the fit
+    starts from a's plane, b's plane and the algebraic fit and keeps the least SSE.
+    Returns (sse, w0, w1, w2).
+    """
+    best, b0, b1, b2 = _fit_rays(endpoints, directions, idx, count, pf[a, _PW], pf[a, _PW + 1], pf[a, _PW + 2],
+                                 _FIT_ITERATIONS, _FIT_TOLERANCE)
+    for start in range(2):
+        if start == 0:
+            sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1],
+                                        pf[b, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+        else:
+            sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, np.nan, np.nan, np.nan,
+                                        _FIT_ITERATIONS, _FIT_TOLERANCE)
+        if sse < best:
+            best, b0, b1, b2 = sse, w0, w1, w2
+    return best, b0, b1, b2
+
+
+@nb.njit(cache=True)
 def _sse_rays(endpoints, directions, idx, count, w0, w1, w2):
     sse = 0.0
     for t in range(count):
@@ -563,6 +585,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     seed_ptr = 0
 
     plane_count = n_valid
+    version_counter = 0
     stats = np.zeros(_N_STATS, np.int64)
     cell = np.empty(4, np.int64)
     nb_pix = np.empty(4, np.int64)
@@ -727,10 +750,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= exact_plane_size:
                     n1 = _gather(pi, nextpix, a, buf)
                     n2 = _gather(pi, nextpix, b, buf[n1:])
-                    wsrc = a if pi[a, _PCOUNT] >= pi[b, _PCOUNT] else b
-                    sse, _, _, _ = _fit_rays(endpoints, directions, buf, n1 + n2, pf[wsrc, _PW],
-                                             pf[wsrc, _PW + 1], pf[wsrc, _PW + 2], _FIT_ITERATIONS,
-                                             _FIT_TOLERANCE)
+                    sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     if inc < 0.0:
                         inc = 0.0
@@ -843,11 +863,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             info = np.zeros(6)
             value = 0.0
             if total <= exact_plane_size:
-                # exact merged state from the larger plane's w
-                wsrc = a if na >= nbn else b
-                w0 = pf[wsrc, _PW]
-                w1 = pf[wsrc, _PW + 1]
-                w2 = pf[wsrc, _PW + 2]
+                # exact merged state from the best of the union's starting points
+                n1 = _gather(pi, nextpix, a, buf)
+                n2 = _gather(pi, nextpix, b, buf[n1:])
+                _, w0, w1, w2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
             else:
                 big = a if na >= nbn else b
                 small = b if big == a else a
@@ -903,7 +922,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
                                  pf[p, _PW + 2])
                 pi[p, _PCOUNTLIN] = n
-        pi[p, _PVER] += 1
+        # versions are unique across planes: the candidates a merged plane inherits from the
+        # absorbed plane can never pass for current ones
+        version_counter += 1
+        pi[p, _PVER] = version_counter
 
         # capacity for node/adjacency pushes of this step
         if hused + 4 * new_pixels + 8 >= hcap:
@@ -1020,10 +1042,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if total <= exact_merge_size:
                     n1 = _gather(pi, nextpix, a, buf)
                     n2 = _gather(pi, nextpix, b, buf[n1:])
-                    wsrc = a if pi[a, _PCOUNT] >= pi[b, _PCOUNT] else b
-                    sse, _, _, _ = _fit_rays(endpoints, directions, buf, n1 + n2, pf[wsrc, _PW],
-                                             pf[wsrc, _PW + 1], pf[wsrc, _PW + 2], _FIT_ITERATIONS,
-                                             _FIT_TOLERANCE)
+                    sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
                 else:
@@ -1103,6 +1122,8 @@ def _as_threshold_list(value, name: str, cast) -> list | None:
     out = []
     for v in values:
         try:
+            if cast is int and (isinstance(v, bool | np.bool_) or not float(v).is_integer()):
+                raise ValueError('not a whole number')
             x = cast(v)
         except (TypeError, ValueError) as exc:
             raise ValueError(f'{name} must be a number or a list of numbers; got {v!r}') from exc
@@ -1210,7 +1231,7 @@ def extract_plane_hierarchy(
         raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
     stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
         -np.inf if max_error_increment is None else float(max_error_increment))
-    stop_count = np.iinfo(np.int64).max if max_planes is None else int(max_planes)
+    stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
     if max_planes is None and max_error_increment is None:
         stop_count = -1
     start = time.perf_counter()

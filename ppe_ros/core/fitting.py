@@ -274,7 +274,7 @@ def _closest_point_covariance(w: np.ndarray, center: np.ndarray, info6: np.ndarr
     normal = -w / norm
     offset = normal @ center - 1.0 / norm
     d_normal = -(np.eye(3) - np.outer(normal, normal)) / norm  # d n / d w (symmetric)
-    d_offset = d_normal @ center + normal / norm**2  # gradient of d w.r.t. w
+    d_offset = d_normal @ center - normal / norm**2  # gradient of d w.r.t. w (d/dw of -1/|w| is -n/|w|^2)
     jac = np.outer(normal, d_offset) + offset * d_normal  # d (d n) / d w
     cov = jac @ cov_w @ jac.T
     return 0.5 * (cov + cov.T)

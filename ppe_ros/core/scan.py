@@ -57,8 +57,8 @@ def as_points_array(points: np.ndarray, *, name: str = 'points') -> np.ndarray:
         )
     if array.shape[0] < 1 or array.shape[1] < 1:
         raise ValueError(f'{name} is empty: shape {array.shape}')
-    if not np.issubdtype(array.dtype, np.number):
-        raise ValueError(f'{name} must be numeric; got dtype {array.dtype}')
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise ValueError(f'{name} must be numeric (real floats or integers); got dtype {array.dtype}')
     return np.ascontiguousarray(array, dtype=np.float64)
 
 
