@@ -1,0 +1,163 @@
+"""Per-frame overhead of the extractor node beyond extraction, for a 128 x 1024 lidar cloud.
+
+Measures exactly what :func:`ppe_ros.ros.processing.process_cloud` does around ``extract_planes``:
+conversion in (PointCloud2 with an Ouster-like 48-byte point layout -> validated (H, W, 3) float64)
+and building the three outputs (labelled cloud, CDR MarkerArray, plane table) with rclpy message
+classes. The planes are found once, untimed.
+
+Input (``--cloud``): by default a synthetic 128 x 1024 spinning-lidar scan of a 28-sided room with
+floor and ceiling: 30 planes fitted to the true faces, 98 % of pixels planar (the worst case for
+the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` with the planes that
+``extract_planes`` finds (about a thousand small ones: the worst case for the number of markers).
+
+    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster]
+
+Prints a markdown table (median and max over the repeats, milliseconds; wall time per step and the
+thread's CPU time for the total, which other processes on a busy machine do not inflate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ppe_ros.core.extraction import extract_planes
+from ppe_ros.core.fitting import fit_labeled_planes
+from ppe_ros.ros.messages import StampedFrame, rclpy_message_types
+from ppe_ros.ros.pointcloud2 import FLOAT32, structured_to_pointcloud2
+from ppe_ros.ros.processing import (
+    ExtractorParams,
+    OutputSelection,
+    ProcessedFrame,
+    build_outputs,
+    cloud_points,
+)
+
+OUSTER = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'ouster'
+OUSTER_FILE = 'OS-1-128_v2.3.0_1024x10_lb_n3_frame1795_xyz_m.npy'
+BUDGET_MS = 15.0
+
+#: The point layout of the Ouster ROS driver's cloud (x y z, intensity, t, reflectivity, ring, ambient, range).
+OUSTER_POINT = np.dtype({
+    'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
+    'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
+    'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
+    'itemsize': 48,
+})
+
+
+def synthetic_room(height: int = 128, width: int = 1024, sides: int = 28,
+                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Scan of a ``sides``-gon room (radius 8 m, floor -1.5 m, ceiling 2.5 m), 1 cm noise, 2 % no-returns.
+
+    Returns ``(H, W, 3)`` points and ``(H, W)`` true face labels (0 = no return, faces 1..sides + 2).
+    """
+    rng = np.random.default_rng(seed)
+    elevation = np.radians(np.linspace(22.5, -22.5, height))[:, None]
+    azimuth = np.linspace(0.0, 2 * np.pi, width, endpoint=False)[None, :]
+    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
+                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
+    angles = (np.arange(sides) + 0.5) * 2 * np.pi / sides
+    outward = np.concatenate([np.stack([np.cos(angles), np.sin(angles), np.zeros(sides)], 1),
+                              [[0, 0, 1.0], [0, 0, -1.0]]])
+    distances = np.concatenate([np.full(sides, 8.0), [2.5, 1.5]])
+    with np.errstate(divide='ignore'):
+        along = directions @ outward.T
+        distance = np.where(along > 1e-9, distances / along, np.inf)
+    labels = np.argmin(distance, axis=-1) + 1
+    hit = distance.min(axis=-1)
+    points = directions * (hit + rng.normal(0.0, 0.01, hit.shape))[..., None]
+    missing = rng.random(hit.shape) < 0.02
+    points[missing] = np.nan
+    labels[missing] = 0
+    return points, labels
+
+
+def driver_message(points: np.ndarray, types):
+    """A PointCloud2 like a lidar driver publishes (48-byte points, float32 xyz)."""
+    from std_msgs.msg import Header
+
+    table = np.zeros(points.shape[:2], OUSTER_POINT)
+    for index, axis in enumerate('xyz'):
+        table[axis] = points[..., index]
+    table['ring'] = np.arange(points.shape[0])[:, None]
+    header = Header(frame_id='os_lidar')
+    header.stamp.sec = 1_700_000_000
+    return structured_to_pointcloud2(table, header=header, msg_class=types.PointCloud2,
+                                     field_class=types.PointField, datatypes={'intensity': FLOAT32})
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--repeats', type=int, default=30)
+    parser.add_argument('--cloud', choices=('synthetic', 'ouster'), default='synthetic')
+    args = parser.parse_args(argv)
+    params = ExtractorParams()
+    types = rclpy_message_types()
+    start = time.perf_counter()
+    if args.cloud == 'ouster':
+        if not (OUSTER / OUSTER_FILE).is_file():
+            print(f'needs {OUSTER / OUSTER_FILE}', file=sys.stderr)
+            return 2
+        points = np.load(OUSTER / OUSTER_FILE).astype(np.float64)
+        msg = driver_message(points, types)
+        planes = extract_planes(cloud_points(msg, params), max_error_increment=params.max_error_increment,
+                                min_plane_points=params.min_plane_points)
+        description = f'Ouster {OUSTER_FILE}, planes from extract_planes'
+    else:  # the true faces, fitted: the overhead does not depend on how the planes were found
+        points, labels = synthetic_room()
+        msg = driver_message(points, types)
+        planes = fit_labeled_planes(cloud_points(msg, params), labels).planes
+        description = 'synthetic 28-gon room + floor + ceiling, planes fitted to the true faces'
+    planes_s = time.perf_counter() - start
+    selection = OutputSelection(True, True, True)
+
+    rows: dict[str, list[float]] = {k: [] for k in ('convert', 'labeled_points', 'markers', 'plane_table')}
+    totals, builds, cpu_totals = [], [], []
+    marker_bytes = 0
+    for repeat in range(args.repeats + 1):  # the first run compiles / loads the numba cache
+        start, cpu_start = time.perf_counter(), time.thread_time()
+        points_in = cloud_points(msg, params)
+        convert = time.perf_counter() - start
+        frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=points_in,
+                               planes=planes, timings={'convert': convert})
+        build_outputs(frame, params, types, selection)
+        total = time.perf_counter() - start
+        cpu_total = time.thread_time() - cpu_start
+        if repeat == 0:
+            marker_bytes = len(frame.markers)
+            continue
+        for key in rows:
+            rows[key].append(frame.timings[key] * 1e3)
+        totals.append(total * 1e3)
+        cpu_totals.append(cpu_total * 1e3)
+        builds.append((total - convert) * 1e3)
+
+    height, width, _ = points.shape
+    print(f'Cloud: {description}, {height} x {width}, {planes.num_planes} planes '
+          f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
+          f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats.\n')
+    print('| step | median ms | max ms |')
+    print('|---|---|---|')
+    labels = {'convert': 'conversion in (PointCloud2 -> validated points)', 'labeled_points': 'labelled cloud',
+              'markers': 'markers (mesh + outline + arrows, CDR)', 'plane_table': 'plane table'}
+    for key, values in rows.items():
+        print(f'| {labels[key]} | {statistics.median(values):.2f} | {max(values):.2f} |')
+    print(f'| building outputs (sum of the three) | {statistics.median(builds):.2f} | {max(builds):.2f} |')
+    print(f'| **total overhead** | **{statistics.median(totals):.2f}** | {max(totals):.2f} |')
+    print(f'| total overhead, CPU time of the thread (not inflated by other processes) | '
+          f'{statistics.median(cpu_totals):.2f} | {max(cpu_totals):.2f} |')
+    verdict = 'within' if statistics.median(totals) <= BUDGET_MS else 'OVER'
+    print(f'\nBudget {BUDGET_MS:.0f} ms per frame (median wall time): {verdict}. '
+          f'Load average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores.')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

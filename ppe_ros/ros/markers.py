@@ -1,0 +1,482 @@
+"""RViz markers of finite planes: a mesh of each plane's own grid cells, its outline and its normal.
+
+Geometry (pure numpy, vectorized over all planes at once):
+
+* **Mesh** (``TRIANGLE_LIST``): every 2x2 cell of the (optionally strided) grid whose pixels
+  belong to one plane gives two triangles if all 4 corners belong to it and one triangle if
+  exactly 3 do. A vertex is the intersection of the pixel's ray (from ``ray_origin`` through the
+  measured point) with the fitted plane, so the mesh is the finite plane with its holes, not a
+  convex hull. Triangles are wound counter-clockwise seen from the side the plane normal points
+  to (the sensor side).
+* **Outline** (``LINE_LIST``): the mesh's boundary edges, i.e. edges used by exactly one triangle.
+* **Normal** (``ARROW``): from the plane centroid along the unit normal.
+
+The marker array is serialized directly to CDR bytes (see :mod:`ppe_ros.ros.messages`):
+``DELETEALL`` first, then per plane its mesh, outline and arrow in the namespaces
+:data:`MESH_NAMESPACE`, :data:`OUTLINE_NAMESPACE` and :data:`NORMAL_NAMESPACE` with
+``id = plane id``. Every marker header, and the nested texture header, carries the input stamp and
+frame_id. All coordinates are metres in the frame of the input cloud.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from ppe_ros.core.planes import PlaneSet
+from ppe_ros.ros.messages import CDR_LE_HEADER, CdrWriter, StampedFrame
+
+MESH_NAMESPACE = 'plane_mesh'
+OUTLINE_NAMESPACE = 'plane_outline'
+NORMAL_NAMESPACE = 'plane_normal'
+
+# visualization_msgs/Marker constants
+ARROW = 0
+LINE_LIST = 5
+TRIANGLE_LIST = 11
+ADD = 0
+DELETEALL = 3
+
+#: Rays closer than this cosine to parallel to their plane are projected orthogonally instead of
+#: intersected (the intersection would run off to infinity).
+GRAZING_COSINE = 1e-3
+
+
+@dataclass(frozen=True)
+class PlaneGeometry:
+    """Marker geometry of all planes of one scan, grouped by plane id (1..J in order).
+
+    Attributes:
+        triangles: ``(T, 3, 3)`` triangle vertices (m, cloud frame), plane 1's first.
+        triangle_counts: ``(J,)`` triangles of each plane.
+        segments: ``(S, 2, 3)`` outline segment end points (m), grouped like ``triangles``.
+        segment_counts: ``(J,)`` outline segments of each plane.
+        areas: ``(J,)`` mesh area of each plane (m^2).
+    """
+
+    triangles: np.ndarray
+    triangle_counts: np.ndarray
+    segments: np.ndarray
+    segment_counts: np.ndarray
+    areas: np.ndarray
+
+    @property
+    def num_planes(self) -> int:
+        """Number of planes J."""
+        return len(self.triangle_counts)
+
+
+# --------------------------------------------------------------------------------------------
+# numba kernels
+# --------------------------------------------------------------------------------------------
+
+# cell kinds (corners a=(r,c) b=(r,c+1) c=(r+1,c) d=(r+1,c+1) of the 2x2 cell at (r, c))
+_NO_CELL, _FULL, _MISSING_A, _MISSING_B, _MISSING_C, _MISSING_D = 0, 1, 2, 3, 4, 5
+
+
+@nb.njit(cache=True)
+def _project_vertices(points, labels, normals, offsets, origin, grazing_cosine):
+    """``(H, W, 3)``: each labelled pixel's ray meets its plane here (0 for unlabelled pixels)."""
+    height, width = labels.shape
+    vertices = np.zeros((height, width, 3))
+    for r in range(height):
+        for c in range(width):
+            label = labels[r, c]
+            if label <= 0:
+                continue
+            j = label - 1
+            n0, n1, n2 = normals[j, 0], normals[j, 1], normals[j, 2]
+            p0, p1, p2 = points[r, c, 0], points[r, c, 1], points[r, c, 2]
+            u0, u1, u2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
+            along = n0 * u0 + n1 * u1 + n2 * u2
+            length = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            if abs(along) > grazing_cosine * length:
+                t = (offsets[j] - (n0 * origin[0] + n1 * origin[1] + n2 * origin[2])) / along
+                vertices[r, c, 0] = origin[0] + t * u0
+                vertices[r, c, 1] = origin[1] + t * u1
+                vertices[r, c, 2] = origin[2] + t * u2
+            else:  # grazing ray: orthogonal projection of the measured point
+                off = n0 * p0 + n1 * p1 + n2 * p2 - offsets[j]
+                vertices[r, c, 0] = p0 - off * n0
+                vertices[r, c, 1] = p1 - off * n1
+                vertices[r, c, 2] = p2 - off * n2
+    return vertices
+
+
+@nb.njit(cache=True, inline='always')
+def _cell(labels, r, c):
+    """(plane label, kind) of the cell at (r, c): a plane owning >= 3 of its 4 corners, else (0, 0)."""
+    la, lb, lc, ld = labels[r, c], labels[r, c + 1], labels[r + 1, c], labels[r + 1, c + 1]
+    if la > 0 and la == lb and la == lc and la == ld:
+        return la, _FULL
+    if lb > 0 and lb == lc and lb == ld:
+        return lb, _MISSING_A
+    if la > 0 and la == lc and la == ld:
+        return la, _MISSING_B
+    if la > 0 and la == lb and la == ld:
+        return la, _MISSING_C
+    if la > 0 and la == lb and la == lc:
+        return la, _MISSING_D
+    return 0, _NO_CELL
+
+
+@nb.njit(cache=True, inline='always')
+def _cell_label_at(cell_labels, r, c):
+    """Label of cell (r, c), 0 outside the cell grid."""
+    if r < 0 or c < 0 or r >= cell_labels.shape[0] or c >= cell_labels.shape[1]:
+        return 0
+    return cell_labels[r, c]
+
+
+@nb.njit(cache=True, inline='always')
+def _boundary_label(label_0, label_1, cell_label_0, cell_label_1):
+    """Plane of a grid side between two pixels if exactly one adjacent cell's triangles use it, else 0."""
+    if label_0 <= 0 or label_1 != label_0:
+        return 0
+    uses = (cell_label_0 == label_0) + (cell_label_1 == label_0)
+    return label_0 if uses == 1 else 0
+
+
+@nb.njit(cache=True, inline='always')
+def _put_triangle(triangles, areas, slot, normal, label, va, vb, vc):
+    """Write triangle (va, vb, vc) into ``triangles[slot]``, wound counter-clockwise around ``normal``."""
+    e10, e11, e12 = vb[0] - va[0], vb[1] - va[1], vb[2] - va[2]
+    e20, e21, e22 = vc[0] - va[0], vc[1] - va[1], vc[2] - va[2]
+    facing = (normal[0] * (e11 * e22 - e12 * e21)
+              + normal[1] * (e12 * e20 - e10 * e22)
+              + normal[2] * (e10 * e21 - e11 * e20))
+    first, second = (vb, vc) if facing >= 0.0 else (vc, vb)
+    for k in range(3):
+        triangles[slot, 0, k] = va[k]
+        triangles[slot, 1, k] = first[k]
+        triangles[slot, 2, k] = second[k]
+    areas[label - 1] += 0.5 * abs(facing)
+
+
+@nb.njit(cache=True)
+def _mesh_kernel(vertices, labels, normals, num_planes):
+    """Triangles, outline segments (grouped by plane) and areas of all planes; see plane_geometry."""
+    height, width = labels.shape
+    cell_labels = np.zeros((height - 1, width - 1), np.int64)
+    cell_kinds = np.zeros((height - 1, width - 1), np.int8)
+    triangle_counts = np.zeros(num_planes + 1, np.int64)
+    segment_counts = np.zeros(num_planes + 1, np.int64)
+    # pass 1: classify cells, count triangles and diagonal outline segments
+    for r in range(height - 1):
+        for c in range(width - 1):
+            label, kind = _cell(labels, r, c)
+            cell_labels[r, c] = label
+            cell_kinds[r, c] = kind
+            if kind == _FULL:
+                triangle_counts[label] += 2
+            elif kind != _NO_CELL:
+                triangle_counts[label] += 1
+                segment_counts[label] += 1  # the diagonal of a one-triangle cell is a boundary edge
+    # side edges used by exactly one cell's triangles are boundary edges
+    for r in range(height):
+        for c in range(width - 1):  # horizontal edge (r, c)-(r, c+1): cells above and below
+            label = _boundary_label(labels[r, c], labels[r, c + 1],
+                                    _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c))
+            if label > 0:
+                segment_counts[label] += 1
+    for r in range(height - 1):
+        for c in range(width):  # vertical edge (r, c)-(r+1, c): cells left and right
+            label = _boundary_label(labels[r, c], labels[r + 1, c],
+                                    _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c))
+            if label > 0:
+                segment_counts[label] += 1
+    triangle_next = np.zeros(num_planes + 1, np.int64)
+    segment_next = np.zeros(num_planes + 1, np.int64)
+    for j in range(1, num_planes + 1):
+        triangle_next[j] = triangle_next[j - 1] + triangle_counts[j - 1]
+        segment_next[j] = segment_next[j - 1] + segment_counts[j - 1]
+    triangles = np.empty((triangle_next[num_planes] + triangle_counts[num_planes], 3, 3))
+    segments = np.empty((segment_next[num_planes] + segment_counts[num_planes], 2, 3))
+    areas = np.zeros(num_planes)
+    # pass 2: fill, in row-major order within each plane
+    for r in range(height - 1):
+        for c in range(width - 1):
+            kind = cell_kinds[r, c]
+            if kind == _NO_CELL:
+                continue
+            label = cell_labels[r, c]
+            normal = normals[label - 1]
+            slot = triangle_next[label]
+            v = vertices
+            a, b, c_, d = v[r, c], v[r, c + 1], v[r + 1, c], v[r + 1, c + 1]
+            if kind == _FULL:
+                _put_triangle(triangles, areas, slot, normal, label, a, b, d)
+                _put_triangle(triangles, areas, slot + 1, normal, label, a, d, c_)
+                triangle_next[label] = slot + 2
+                continue
+            if kind == _MISSING_A:
+                _put_triangle(triangles, areas, slot, normal, label, b, d, c_)
+            elif kind == _MISSING_B:
+                _put_triangle(triangles, areas, slot, normal, label, a, d, c_)
+            elif kind == _MISSING_C:
+                _put_triangle(triangles, areas, slot, normal, label, a, b, d)
+            else:
+                _put_triangle(triangles, areas, slot, normal, label, a, b, c_)
+            triangle_next[label] = slot + 1
+            s = segment_next[label]
+            if kind == _MISSING_A or kind == _MISSING_D:  # diagonal b-c
+                segments[s, 0] = vertices[r, c + 1]
+                segments[s, 1] = vertices[r + 1, c]
+            else:  # diagonal a-d
+                segments[s, 0] = vertices[r, c]
+                segments[s, 1] = vertices[r + 1, c + 1]
+            segment_next[label] = s + 1
+    for r in range(height):
+        for c in range(width - 1):
+            label = _boundary_label(labels[r, c], labels[r, c + 1],
+                                    _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c))
+            if label > 0:
+                s = segment_next[label]
+                segments[s, 0] = vertices[r, c]
+                segments[s, 1] = vertices[r, c + 1]
+                segment_next[label] = s + 1
+    for r in range(height - 1):
+        for c in range(width):
+            label = _boundary_label(labels[r, c], labels[r + 1, c],
+                                    _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c))
+            if label > 0:
+                s = segment_next[label]
+                segments[s, 0] = vertices[r, c]
+                segments[s, 1] = vertices[r + 1, c]
+                segment_next[label] = s + 1
+    return triangles, triangle_counts[1:], segments, segment_counts[1:], areas
+
+
+# --------------------------------------------------------------------------------------------
+# public functions
+# --------------------------------------------------------------------------------------------
+
+
+def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarray | None = None,
+                   stride: int = 1) -> PlaneGeometry:
+    """Mesh triangles, outline segments and areas of every plane of an organized scan.
+
+    Args:
+        points: ``(H, W, 3)`` measured endpoints (m, cloud frame), NaN = no return.
+        planes: the planes of this scan (``planes.labels`` is ``(H, W)``).
+        ray_origin: ``(3,)`` start point of every ray (m, cloud frame); default the origin.
+        stride: use every ``stride``-th row and column (a coarser mesh, ``stride**2`` fewer triangles).
+
+    Raises:
+        ValueError: shapes that do not match, labels outside ``0..J``, a bad ``stride`` or ``ray_origin``.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    labels = np.asarray(planes.labels)
+    if points.ndim != 3 or points.shape[2] != 3 or points.shape[:2] != labels.shape:
+        raise ValueError(
+            f'points must be (H, W, 3) with the grid of planes.labels {labels.shape}; got {points.shape}'
+        )
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f'stride must be an integer >= 1; got {stride}')
+    origin = np.zeros(3) if ray_origin is None else np.asarray(ray_origin, dtype=np.float64)
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        raise ValueError(f'ray_origin must be a finite (3,) point; got {ray_origin!r}')
+    num_planes = planes.num_planes
+    if labels.size and (labels.min() < 0 or labels.max() > num_planes):
+        raise ValueError(f'planes.labels must lie in 0..{num_planes}; got {labels.min()}..{labels.max()}')
+    stride = int(stride)
+    points = np.ascontiguousarray(points[::stride, ::stride])
+    labels = np.ascontiguousarray(labels[::stride, ::stride], dtype=np.int64)
+    height, width = labels.shape
+    if num_planes == 0 or height < 2 or width < 2:
+        return PlaneGeometry(
+            triangles=np.zeros((0, 3, 3)), triangle_counts=np.zeros(num_planes, np.int64),
+            segments=np.zeros((0, 2, 3)), segment_counts=np.zeros(num_planes, np.int64),
+            areas=np.zeros(num_planes),
+        )
+    normals = np.ascontiguousarray(planes.normals, dtype=np.float64)
+    offsets = np.ascontiguousarray(planes.offsets, dtype=np.float64)
+    vertices = _project_vertices(points, labels, normals, offsets, origin, GRAZING_COSINE)
+    triangles, triangle_counts, segments, segment_counts, areas = _mesh_kernel(
+        vertices, labels, normals, num_planes
+    )
+    return PlaneGeometry(
+        triangles=triangles,
+        triangle_counts=triangle_counts,
+        segments=segments,
+        segment_counts=segment_counts,
+        areas=areas,
+    )
+
+
+def rgb_floats(colors: np.ndarray) -> np.ndarray:
+    """``(J, 3)`` float r, g, b in [0, 1] of ``0x00RRGGBB`` colours."""
+    packed = np.asarray(colors, dtype=np.uint32)
+    return np.stack([(packed >> 16) & 0xFF, (packed >> 8) & 0xFF, packed & 0xFF], axis=-1) / 255.0
+
+
+def arrow_lengths(areas: np.ndarray) -> np.ndarray:
+    """Normal-arrow length per plane (m): half the side of a square of the mesh area, in [0.1, 1]."""
+    return np.clip(0.5 * np.sqrt(np.asarray(areas, dtype=np.float64)), 0.1, 1.0)
+
+
+def _write_marker_tail(writer: CdrWriter, stamped: StampedFrame) -> None:
+    """The fields of a Marker after ``points[]``: all empty, except the texture's header."""
+    writer.uint32(0)  # colors[]
+    writer.string('')  # texture_resource
+    writer.header(stamped)  # texture: sensor_msgs/CompressedImage
+    writer.string('')  # texture.format
+    writer.uint32(0)  # texture.data[]
+    writer.uint32(0)  # uv_coordinates[]
+    writer.string('')  # text
+    writer.string('')  # mesh_resource
+    writer.string('')  # mesh_file.filename
+    writer.uint32(0)  # mesh_file.data[]
+    writer.boolean(False)  # mesh_use_embedded_materials
+
+
+def _write_marker(writer: CdrWriter, stamped: StampedFrame, *, ns: str, marker_id: int, marker_type: int,
+                  action: int, scale: tuple[float, float, float], rgba: tuple[float, float, float, float],
+                  points: np.ndarray | None) -> None:
+    """One ``visualization_msgs/Marker`` (identity pose, lifetime 0 = until replaced), field by field."""
+    writer.header(stamped)
+    writer.string(ns)
+    writer.int32(marker_id)
+    writer.int32(marker_type)
+    writer.int32(action)
+    writer.float64s(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)  # pose: position, orientation (x y z w)
+    writer.float64s(*scale)
+    writer.float32s(*rgba)
+    writer.int32(0)  # lifetime.sec
+    writer.uint32(0)  # lifetime.nanosec
+    writer.boolean(False)  # frame_locked
+    count = 0 if points is None else len(points)
+    writer.uint32(count)  # points[]
+    if count:
+        writer.float64_block(points)
+    _write_marker_tail(writer, stamped)
+
+
+class _MarkerEncoder:
+    """Serializes ADD markers that have points, with one ``struct.pack`` each (thousands per frame).
+
+    Everything before the vertices is one precompiled struct per (namespace, alignment phase); the
+    vertices are referenced without copying; everything after them is the same bytes for every
+    marker of the frame, because a vertex block (24 bytes per point) starts and ends 8-byte aligned.
+    Produces exactly the bytes of :func:`_write_marker`. Chunks collect here and go to the writer
+    in :meth:`flush`.
+    """
+
+    def __init__(self, writer: CdrWriter, stamped: StampedFrame) -> None:
+        self._writer = writer
+        self._size = writer.size
+        self._chunks: list[bytes | memoryview] = []
+        self._head = (stamped.sec, stamped.nanosec, len(frame_id := stamped.frame_id.encode('utf-8') + b'\x00'),
+                      frame_id)
+        self._frame_id_length = len(frame_id)
+        self._structs: dict[tuple[bytes, int], struct.Struct] = {}
+        tail = CdrWriter()
+        _write_marker_tail(tail, stamped)
+        self._tail = tail.getvalue()[len(CDR_LE_HEADER):]
+
+    def _prefix(self, ns: bytes, phase: int) -> struct.Struct:
+        parts = ['<']
+        offset = phase
+
+        def add(code: str, size: int, alignment: int) -> None:
+            nonlocal offset
+            pad = -offset % alignment
+            if pad:
+                parts.append(f'{pad}x')
+            parts.append(code)
+            offset += pad + size
+
+        add('iI', 8, 4)  # header.stamp
+        add(f'I{self._frame_id_length}s', 4 + self._frame_id_length, 4)  # header.frame_id
+        add(f'I{len(ns)}s', 4 + len(ns), 4)  # ns
+        add('iii', 12, 4)  # id, type, action
+        add('7d', 56, 8)  # pose
+        add('3d', 24, 8)  # scale
+        add('4f', 16, 4)  # color
+        add('iI', 8, 4)  # lifetime
+        add('B', 1, 1)  # frame_locked
+        add('I', 4, 4)  # len(points)
+        add('', 0, 8)  # the vertex block is 8-byte aligned
+        self._structs[ns, phase] = prefix = struct.Struct(''.join(parts))
+        return prefix
+
+    def write(self, ns: bytes, marker_id: int, marker_type: int, scale: tuple[float, float, float],
+              rgba: tuple[float, float, float, float], block: memoryview) -> None:
+        """One ADD marker whose points are ``block``: the bytes of N > 0 little-endian float64 x y z."""
+        phase = self._size & 7
+        prefix = self._structs.get((ns, phase)) or self._prefix(ns, phase)
+        head = prefix.pack(*self._head, len(ns), ns, marker_id, marker_type, ADD,
+                           0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, *scale, *rgba, 0, 0, 0, len(block) // 24)
+        self._chunks += (head, block, self._tail)
+        self._size += len(head) + len(block) + len(self._tail)
+
+    def flush(self) -> None:
+        """Hand the collected chunks to the writer."""
+        self._writer.raw(*self._chunks)
+        self._chunks = []
+
+
+def _byte_view(values: np.ndarray) -> memoryview:
+    """The bytes of ``values`` as little-endian float64, without a copy when already so."""
+    return memoryview(np.ascontiguousarray(values, dtype='<f8').reshape(-1).view(np.uint8))
+
+
+def marker_array_cdr(geometry: PlaneGeometry, planes: PlaneSet, stamped: StampedFrame, *,
+                     colors: np.ndarray, mesh_alpha: float = 0.5, line_width: float = 0.02) -> bytes:
+    """Serialize the markers of all planes to a CDR ``visualization_msgs/msg/MarkerArray``.
+
+    Args:
+        geometry: from :func:`plane_geometry`.
+        planes: the same planes (centroids and normals for the arrows).
+        stamped: stamp and frame_id of the input cloud, written into every header.
+        colors: ``(J,)`` ``0x00RRGGBB`` colour of each plane (the labelled cloud's colours).
+        mesh_alpha: opacity of the meshes in [0, 1]; outlines and arrows are opaque.
+        line_width: outline width (m).
+
+    Markers: ``DELETEALL``; then per plane ``j`` its mesh (if it has triangles), its outline (if it
+    has boundary edges) and its normal arrow, each with ``id = j``.
+    """
+    num_planes = planes.num_planes
+    if geometry.num_planes != num_planes or len(colors) != num_planes:
+        raise ValueError(
+            f'geometry ({geometry.num_planes}), colors ({len(colors)}) and planes ({num_planes}) '
+            'must describe the same planes'
+        )
+    if not 0.0 <= mesh_alpha <= 1.0:
+        raise ValueError(f'mesh_alpha must lie in [0, 1]; got {mesh_alpha}')
+    rgb = rgb_floats(colors).tolist()
+    lengths = arrow_lengths(geometry.areas)
+    arrows = np.stack([planes.centroids, planes.centroids + lengths[:, None] * planes.normals], axis=1)
+    # byte views of the vertex blocks: slicing a memoryview costs far less than slicing an array
+    triangle_bytes = _byte_view(geometry.triangles)
+    segment_bytes = _byte_view(geometry.segments)
+    arrow_bytes = _byte_view(arrows)  # (J, 2, 3): centroid, tip
+    triangle_ends = (72 * np.concatenate([[0], np.cumsum(geometry.triangle_counts)])).tolist()
+    segment_ends = (48 * np.concatenate([[0], np.cumsum(geometry.segment_counts)])).tolist()
+    markers_per_plane = (geometry.triangle_counts > 0).astype(int) + (geometry.segment_counts > 0) + 1
+    writer = CdrWriter()
+    writer.uint32(1 + int(markers_per_plane.sum()))
+    _write_marker(writer, stamped, ns='', marker_id=0, marker_type=ARROW, action=DELETEALL,
+                  scale=(1.0, 1.0, 1.0), rgba=(0.0, 0.0, 0.0, 0.0), points=None)
+    encoder = _MarkerEncoder(writer, stamped)
+    mesh_ns, outline_ns, normal_ns = (ns.encode() + b'\x00' for ns in
+                                      (MESH_NAMESPACE, OUTLINE_NAMESPACE, NORMAL_NAMESPACE))
+    alpha = float(mesh_alpha)
+    line_scale = (float(line_width), 1.0, 1.0)
+    unit_scale = (1.0, 1.0, 1.0)
+    for j, length in enumerate(lengths.tolist()):
+        plane_id = j + 1
+        r, g, b = rgb[j]
+        if triangle_ends[j + 1] > triangle_ends[j]:
+            encoder.write(mesh_ns, plane_id, TRIANGLE_LIST, unit_scale, (r, g, b, alpha),
+                          triangle_bytes[triangle_ends[j]:triangle_ends[j + 1]])
+        if segment_ends[j + 1] > segment_ends[j]:
+            encoder.write(outline_ns, plane_id, LINE_LIST, line_scale, (r, g, b, 1.0),
+                          segment_bytes[segment_ends[j]:segment_ends[j + 1]])
+        encoder.write(normal_ns, plane_id, ARROW, (0.1 * length, 0.2 * length, 0.3 * length), (r, g, b, 1.0),
+                      arrow_bytes[48 * j:48 * j + 48])
+    encoder.flush()
+    return writer.getvalue()

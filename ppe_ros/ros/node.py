@@ -1,0 +1,550 @@
+"""``ros2 run ppe_ros extractor``: the live plane-extraction node.
+
+Threads: the executor thread runs the subscription callback (it only drops the newest cloud into a
+one-slot mailbox), the diagnostics timer and the parameter services; one worker thread converts,
+extracts and publishes. A cloud that arrives while the worker is busy replaces the waiting one and
+is counted as dropped, so the executor never stalls and the node always works on the newest frame.
+
+Topics (relative names, remappable):
+
+* in ``points`` (``sensor_msgs/PointCloud2``, organized), QoS depth 1, reliability from the
+  ``input_reliability`` parameter;
+* out ``planes/labeled_points``, ``planes/markers``, ``planes`` (see :mod:`ppe_ros.ros.processing`)
+  and ``/diagnostics`` (about 1 Hz). Outputs are reliable (they match reliable and best-effort
+  subscribers); an output nobody subscribes to is not built.
+
+Parameters: :data:`ppe_ros.ros.processing.PARAM_SPECS`, loaded with
+``--ros-args --params-file config/extractor.yaml`` and changeable at runtime (an invalid value is
+rejected with the reason).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
+
+from ppe_ros.ros.messages import MessageTypes, rclpy_message_types
+from ppe_ros.ros.pointcloud2 import xyz_to_pointcloud2
+from ppe_ros.ros.processing import (
+    PARAM_SPEC_BY_NAME,
+    PARAM_SPECS,
+    ExtractorParams,
+    FrameSkipped,
+    OutputSelection,
+    ParamSpec,
+    process_cloud,
+)
+
+NODE_NAME = 'extractor'
+INPUT_TOPIC = 'points'
+LABELED_POINTS_TOPIC = 'planes/labeled_points'
+MARKERS_TOPIC = 'planes/markers'
+PLANE_TABLE_TOPIC = 'planes'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+DIAGNOSTICS_PERIOD_S = 1.0
+#: At most one warning per kind of skipped frame (or failure) in this many seconds.
+WARNING_THROTTLE_S = 5.0
+#: The worker checks for a stop request at least this often (s).
+WORKER_POLL_S = 0.1
+
+_RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT, 'reliable': ReliabilityPolicy.RELIABLE}
+_PARAMETER_TYPE = {
+    'double': ParameterType.PARAMETER_DOUBLE,
+    'integer': ParameterType.PARAMETER_INTEGER,
+    'bool': ParameterType.PARAMETER_BOOL,
+    'string': ParameterType.PARAMETER_STRING,
+    'double_array': ParameterType.PARAMETER_DOUBLE_ARRAY,
+}
+
+
+def input_qos(reliability: str) -> QoSProfile:
+    """QoS of the ``points`` subscription: keep last 1, volatile, the given reliability."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=_RELIABILITY[reliability],
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def output_qos() -> QoSProfile:
+    """QoS of the plane outputs: reliable keep-last 1 (matches reliable and best-effort readers)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """The ROS descriptor of a parameter: type, description, range or allowed values."""
+    descriptor = ParameterDescriptor(
+        name=spec.name,
+        type=_PARAMETER_TYPE[spec.kind],
+        description=spec.description,
+        additional_constraints=spec.constraints(),
+        read_only=spec.read_only,
+    )
+    if spec.kind == 'double' and spec.low is not None and spec.high is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(spec.low),
+                                                              to_value=float(spec.high), step=0.0)]
+    elif spec.kind == 'integer' and spec.low is not None and spec.high is not None:
+        descriptor.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)]
+    return descriptor
+
+
+def _as_declared_type(spec: ParamSpec, value: Any) -> Any:
+    """Integers given for a double (array) parameter become floats (``-p max_error_increment:=1``)."""
+    if spec.kind == 'double' and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if spec.kind == 'double_array' and isinstance(value, list | tuple) and all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+        return [float(v) for v in value]
+    return value
+
+
+class LatestMailbox:
+    """A one-slot mailbox: ``put`` replaces a waiting item (counted as dropped); ``take`` waits, bounded."""
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._item: Any = None
+        self._closed = False
+
+    def put(self, item: Any) -> bool:
+        """Leave ``item`` for the worker; True if it replaced an item nobody had taken (a dropped frame)."""
+        with self._condition:
+            replaced = self._item is not None
+            self._item = item
+            self._condition.notify()
+            return replaced
+
+    def take(self, timeout: float) -> Any:
+        """The waiting item (emptying the slot), or None after ``timeout`` seconds or once closed."""
+        with self._condition:
+            if self._item is None and not self._closed:
+                self._condition.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        """Wake every waiting ``take``."""
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
+
+
+@dataclass
+class FrameStats:
+    """Counters for diagnostics; the worker and the executor thread share it under ``lock``."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    received: int = 0
+    processed: int = 0
+    dropped: int = 0
+    skipped: int = 0
+    failed: int = 0
+    skipped_by_kind: Counter = field(default_factory=Counter)
+    last_error: str = ''
+    last_error_time: float = math.nan
+    last_planes: int = 0
+    last_frame_id: str = ''
+    # since the last diagnostics report
+    window_start: float = field(default_factory=time.monotonic)
+    window_received: int = 0
+    window_skipped: int = 0
+    window_failed: int = 0
+    window_dropped: int = 0
+    window_times: list = field(default_factory=list)
+
+
+class ExtractorNode(Node):
+    """The plane-extraction node (name ``extractor``); see the module docstring.
+
+    Keyword arguments go to :class:`rclpy.node.Node` (``context``, ``namespace``,
+    ``parameter_overrides``, ...). Call :meth:`stop` (or :meth:`destroy_node`, which calls it)
+    before shutting the context down: it joins the worker thread.
+
+    Raises:
+        ValueError: a parameter given at start-up (params file, ``-p``, overrides) is invalid.
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self._types = rclpy_message_types()
+        try:
+            self._params = self._declare_parameters()
+        except ValueError:
+            super().destroy_node()  # no worker yet: release the node handle and report the parameter
+            raise
+        self.add_pre_set_parameters_callback(self._coerce_parameters)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self._labeled_points_pub = self.create_publisher(self._types.PointCloud2, LABELED_POINTS_TOPIC,
+                                                         output_qos())
+        self._markers_pub = self.create_publisher(self._types.MarkerArray, MARKERS_TOPIC, output_qos())
+        self._plane_table_pub = self.create_publisher(self._types.PointCloud2, PLANE_TABLE_TOPIC,
+                                                      output_qos())
+        self._diagnostics_pub = self.create_publisher(self._types.DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+
+        self._stats = FrameStats()
+        self._mailbox = LatestMailbox()
+        self._warned_at: dict[str, float] = {}
+        self._suppressed: Counter = Counter()
+        self._stop_requested = threading.Event()
+        self.ready = threading.Event()
+        """Set once the JIT warm-up is done and the worker waits for clouds."""
+        self._numba_threads_applied: int | None = None
+
+        self._subscription_lock = threading.Lock()
+        self._subscription = self._subscribe(self._params.input_reliability)
+        self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name=f'{node_name}-worker', daemon=False)
+        self._worker.start()
+
+    # ---------------------------------------------------------------- parameters
+
+    @property
+    def params(self) -> ExtractorParams:
+        """The current validated parameters (replaced as a whole on every accepted change)."""
+        return self._params
+
+    def _declare_parameters(self) -> ExtractorParams:
+        overrides = getattr(self, '_parameter_overrides', {})
+        values = {}
+        for spec in PARAM_SPECS:
+            override = overrides.get(spec.name)
+            if override is not None:
+                coerced = _as_declared_type(spec, override.value)
+                if coerced is not override.value:
+                    overrides[spec.name] = Parameter(spec.name, value=coerced)
+            default = list(spec.default) if spec.kind == 'double_array' else spec.default
+            try:
+                value = self.declare_parameter(spec.name, default, parameter_descriptor(spec)).value
+                values[spec.name] = spec.validate(value)
+            except (ParameterException, ValueError) as exc:
+                raise ValueError(f'invalid parameter {spec.name!r}: {exc}') from None
+        try:
+            params = ExtractorParams(**values)
+            self._check_numba_threads(params.numba_threads)
+        except ValueError as exc:
+            raise ValueError(f'invalid parameters: {exc}') from None
+        return params
+
+    @staticmethod
+    def _check_numba_threads(count: int) -> None:
+        import numba
+
+        if count > numba.config.NUMBA_NUM_THREADS:
+            raise ValueError(
+                f'numba_threads must be 0 (all) or at most {numba.config.NUMBA_NUM_THREADS} '
+                f'(NUMBA_NUM_THREADS); got {count}'
+            )
+
+    def _coerce_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
+        out = []
+        for parameter in parameters:
+            spec = PARAM_SPEC_BY_NAME.get(parameter.name)
+            value = parameter.value
+            coerced = value if spec is None else _as_declared_type(spec, value)
+            out.append(parameter if coerced is value else Parameter(parameter.name, value=coerced))
+        return out
+
+    def _changes(self, parameters: list[Parameter]) -> dict[str, Any]:
+        return {p.name: p.value for p in parameters if p.name in PARAM_SPEC_BY_NAME}
+
+    def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        try:
+            changed = self._params.replace(**self._changes(parameters))
+            self._check_numba_threads(changed.numba_threads)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        changes = self._changes(parameters)
+        if not changes:
+            return
+        previous = self._params
+        self._params = previous.replace(**changes)
+        self.get_logger().info('parameters changed: ' + ', '.join(f'{k}={v!r}' for k, v in changes.items()))
+        if self._params.input_reliability != previous.input_reliability:
+            self._resubscribe(self._params.input_reliability)
+
+    # ---------------------------------------------------------------- input
+
+    def _subscribe(self, reliability: str):
+        return self.create_subscription(self._types.PointCloud2, INPUT_TOPIC, self._on_cloud,
+                                        input_qos(reliability))
+
+    def _resubscribe(self, reliability: str) -> None:
+        with self._subscription_lock:
+            self.destroy_subscription(self._subscription)
+            self._subscription = self._subscribe(reliability)
+        self.get_logger().info(f'input {self._subscription.topic_name} now subscribed with {reliability} QoS')
+
+    @property
+    def input_topic(self) -> str:
+        """Resolved name of the input topic."""
+        return self._subscription.topic_name
+
+    def _on_cloud(self, msg: Any) -> None:
+        dropped = self._mailbox.put(msg)
+        stats = self._stats
+        with stats.lock:
+            stats.received += 1
+            stats.window_received += 1
+            if dropped:
+                stats.dropped += 1
+                stats.window_dropped += 1
+
+    # ---------------------------------------------------------------- worker
+
+    def _apply_numba_threads(self, count: int) -> None:
+        """numba's thread count is per calling thread: this runs in the worker, which runs the kernels."""
+        if count == self._numba_threads_applied:
+            return
+        import numba
+
+        numba.set_num_threads(count or numba.config.NUMBA_NUM_THREADS)
+        self._numba_threads_applied = count
+
+    def _warm_up(self) -> None:
+        """Run the whole pipeline once on a small synthetic cloud (compiles or loads the numba cache)."""
+        start = time.perf_counter()
+        cloud = warm_up_cloud(self._types)
+        frame = process_cloud(cloud, ExtractorParams(min_plane_points=4), self._types,
+                              outputs=OutputSelection(True, True, True))
+        self.get_logger().info(
+            f'JIT warm-up done in {time.perf_counter() - start:.2f} s ({frame.planes.num_planes} planes '
+            'in the warm-up cloud)'
+        )
+
+    def _work(self) -> None:
+        try:
+            self._apply_numba_threads(self._params.numba_threads)
+            self._warm_up()
+        except Exception as exc:  # a failed warm-up must not kill the node
+            self._record_failure(f'warm-up failed: {type(exc).__name__}: {exc}')
+        self.ready.set()
+        if not self._stop_requested.is_set():
+            self.get_logger().info(
+                f'ready: waiting for organized PointCloud2 on {self.input_topic} '
+                f'({self._params.input_reliability})'
+            )
+        while not self._stop_requested.is_set():
+            msg = self._mailbox.take(WORKER_POLL_S)
+            if msg is None or self._stop_requested.is_set():
+                continue
+            self._process(msg)
+
+    def _wanted_outputs(self, params: ExtractorParams) -> OutputSelection:
+        """The enabled outputs that somebody subscribes to (nobody listening: not built)."""
+        return OutputSelection(
+            labeled_points=(params.publish_labeled_points
+                            and self._labeled_points_pub.get_subscription_count() > 0),
+            markers=params.publish_markers and self._markers_pub.get_subscription_count() > 0,
+            plane_table=params.publish_plane_table and self._plane_table_pub.get_subscription_count() > 0,
+        )
+
+    def _process(self, msg: Any) -> None:
+        params = self._params
+        start = time.perf_counter()
+        try:
+            self._apply_numba_threads(params.numba_threads)
+            frame = process_cloud(msg, params, self._types, outputs=self._wanted_outputs(params))
+            if frame.labeled_points is not None:
+                self._labeled_points_pub.publish(frame.labeled_points)
+            if frame.markers is not None:
+                self._markers_pub.publish(frame.markers)  # CDR bytes of a MarkerArray
+            if frame.plane_table is not None:
+                self._plane_table_pub.publish(frame.plane_table)
+        except FrameSkipped as exc:
+            self._record_skip(exc)
+            return
+        except Exception as exc:  # the node keeps running on any per-frame failure
+            if not self.context.ok():
+                return  # shutting down: publishing on a closed context fails, nothing to report
+            self._record_failure(f'frame failed: {type(exc).__name__}: {exc}')
+            return
+        elapsed = time.perf_counter() - start
+        stats = self._stats
+        with stats.lock:
+            stats.processed += 1
+            stats.window_times.append(elapsed)
+            stats.last_planes = frame.planes.num_planes
+            stats.last_frame_id = frame.stamped.frame_id
+
+    def _warn_throttled(self, key: str, message: str, *, error: bool = False) -> None:
+        now = time.monotonic()
+        last = self._warned_at.get(key)
+        if last is not None and now - last < WARNING_THROTTLE_S:
+            self._suppressed[key] += 1
+            return
+        suppressed = self._suppressed.pop(key, 0)
+        if suppressed:
+            message += f' ({suppressed} more like this in the last {now - last:.0f} s)'
+        self._warned_at[key] = now
+        logger = self.get_logger()
+        (logger.error if error else logger.warning)(message)
+
+    def _record_skip(self, exc: FrameSkipped) -> None:
+        stats = self._stats
+        with stats.lock:
+            stats.skipped += 1
+            stats.window_skipped += 1
+            stats.skipped_by_kind[exc.kind] += 1
+            stats.last_error = f'skipped ({exc.kind}): {exc.reason}'
+            stats.last_error_time = time.monotonic()
+        self._warn_throttled(exc.kind, f'frame skipped: {exc.reason}')
+
+    def _record_failure(self, message: str) -> None:
+        stats = self._stats
+        with stats.lock:
+            stats.failed += 1
+            stats.window_failed += 1
+            stats.last_error = message
+            stats.last_error_time = time.monotonic()
+        self._warn_throttled('failure', message, error=True)
+
+    # ---------------------------------------------------------------- diagnostics
+
+    def frame_counts(self) -> dict[str, Any]:
+        """Totals since start: received, processed, dropped, skipped, failed, skipped_by_kind, last_error."""
+        stats = self._stats
+        with stats.lock:
+            return dict(received=stats.received, processed=stats.processed, dropped=stats.dropped,
+                        skipped=stats.skipped, failed=stats.failed, skipped_by_kind=dict(stats.skipped_by_kind),
+                        last_error=stats.last_error)
+
+    def diagnostics_status(self) -> Any:
+        """A ``diagnostic_msgs/DiagnosticStatus`` for the window since the previous call (resets it)."""
+        stats = self._stats
+        now = time.monotonic()
+        with stats.lock:
+            elapsed = max(now - stats.window_start, 1e-9)
+            times = np.array(stats.window_times) * 1e3
+            window = (stats.window_received, stats.window_skipped, stats.window_failed, stats.window_dropped)
+            totals = dict(received=stats.received, processed=stats.processed, dropped=stats.dropped,
+                          skipped=stats.skipped, failed=stats.failed)
+            by_kind = dict(stats.skipped_by_kind)
+            last_error = stats.last_error
+            last_error_age = now - stats.last_error_time if stats.last_error else math.nan
+            last_planes, frame_id = stats.last_planes, stats.last_frame_id
+            stats.window_start = now
+            stats.window_received = stats.window_skipped = stats.window_failed = stats.window_dropped = 0
+            stats.window_times = []
+        received, skipped, failed, dropped = window
+        status_type = self._types.DiagnosticStatus
+        if failed:
+            level, message = status_type.ERROR, f'{failed} frame(s) failed: {last_error}'
+        elif skipped:
+            level, message = status_type.WARN, f'{skipped} frame(s) skipped: {last_error}'
+        elif dropped:
+            level, message = status_type.WARN, f'{dropped} frame(s) dropped: input faster than processing'
+        elif not self.ready.is_set():
+            level, message = status_type.OK, 'warming up (JIT compilation)'
+        elif totals['received'] == 0:
+            level, message = status_type.OK, f'waiting for input on {self.input_topic}'
+        else:
+            level, message = status_type.OK, 'extracting planes'
+        key_value = self._types.KeyValue
+        values = {
+            'input_topic': self.input_topic,
+            'input_rate_hz': f'{received / elapsed:.2f}',
+            'processing_time_mean_ms': f'{times.mean():.1f}' if times.size else 'nan',
+            'processing_time_max_ms': f'{times.max():.1f}' if times.size else 'nan',
+            'frames_received': str(totals['received']),
+            'frames_processed': str(totals['processed']),
+            'frames_dropped': str(totals['dropped']),
+            'frames_skipped': str(totals['skipped']),
+            'frames_failed': str(totals['failed']),
+            'skipped_by_kind': ', '.join(f'{k}={v}' for k, v in sorted(by_kind.items())),
+            'last_error': last_error,
+            'last_error_age_s': f'{last_error_age:.1f}',
+            'planes_last_frame': str(last_planes),
+        }
+        return status_type(
+            level=level,
+            name=f'{self.get_fully_qualified_name().lstrip("/")}: plane extraction',
+            message=message,
+            hardware_id=frame_id,
+            values=[key_value(key=k, value=v) for k, v in values.items()],
+        )
+
+    def _publish_diagnostics(self) -> None:
+        array = self._types.DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [self.diagnostics_status()]
+        self._diagnostics_pub.publish(array)
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def stop(self, timeout: float | None = None) -> bool:
+        """Ask the worker to finish its frame and exit, and join it; True once it has exited."""
+        self._stop_requested.set()
+        self._mailbox.close()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout)
+        return not self._worker.is_alive()
+
+    def destroy_node(self) -> None:
+        """Join the worker, then destroy the node."""
+        self.stop()
+        super().destroy_node()
+
+
+def warm_up_cloud(types: MessageTypes, height: int = 12, width: int = 16) -> Any:
+    """A small organized PointCloud2 of a floor and a wall (x forward, z up, 5 mm range noise) for the warm-up."""
+    elevation = np.radians(np.linspace(10.0, -40.0, height))[:, None]
+    azimuth = np.radians(np.linspace(-30.0, 30.0, width))[None, :]
+    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
+                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
+    with np.errstate(divide='ignore'):
+        to_wall = np.where(directions[..., 0] > 0, 4.0 / directions[..., 0], np.inf)
+        to_floor = np.where(directions[..., 2] < 0, -1.0 / directions[..., 2], np.inf)
+    ranges = np.minimum(to_wall, to_floor) + np.random.default_rng(0).normal(0.0, 0.005, (height, width))
+    points = (directions * ranges[..., None]).astype('<f4')
+    points[0, 0] = np.nan  # a no-return, as real clouds have
+    return xyz_to_pointcloud2(points, header=Header(frame_id='warm_up'), msg_class=types.PointCloud2,
+                              field_class=types.PointField)
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``ros2 run ppe_ros extractor``; exit code 0 on SIGINT/SIGTERM, 2 on bad parameters."""
+    rclpy.init(args=args)
+    node = None
+    exit_code = 0
+    try:
+        node = ExtractorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        print(f'extractor: error: {exc}', file=sys.stderr)
+        exit_code = 2
+    finally:
+        if node is not None:
+            node.stop()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return exit_code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

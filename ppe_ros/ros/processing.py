@@ -1,0 +1,466 @@
+"""One frame, one code path: PointCloud2 in, planes and three output messages out.
+
+Used by the live node (:mod:`ppe_ros.ros.node`) and the offline bag tool alike. Nothing here
+imports rclpy: the message classes come in through :class:`ppe_ros.ros.messages.MessageTypes`
+(rclpy's generated classes or a rosbags typestore's).
+
+Outputs, each with the input header (stamp and frame_id; all coordinates in that frame, metres):
+
+* labelled cloud (``planes/labeled_points``): the input's ``height x width``, fields ``x y z``
+  (float32), ``label`` (uint32, 0 = no plane, planes 1..J) and ``rgb`` (float32-packed
+  ``0x00RRGGBB``, a stable colour per label);
+* markers (``planes/markers``): CDR bytes of a ``visualization_msgs/MarkerArray``
+  (see :mod:`ppe_ros.ros.markers`);
+* plane table (``planes``): a PointCloud2 with height 1 and one point per plane, fields
+  :data:`PLANE_TABLE_FIELDS`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ppe_ros.core.planes import PlaneSet
+from ppe_ros.ros.markers import marker_array_cdr, plane_geometry
+from ppe_ros.ros.messages import MessageTypes, StampedFrame
+from ppe_ros.ros.pointcloud2 import (
+    PointCloudError,
+    label_colors,
+    pointcloud2_to_xyz,
+    structured_to_pointcloud2,
+    xyz_to_pointcloud2,
+)
+
+# --------------------------------------------------------------------------------------------
+# parameters
+# --------------------------------------------------------------------------------------------
+
+RELIABILITY_CHOICES = ('best_effort', 'reliable')
+
+#: ROS parameters every node has or that configure QoS; a params file may contain them.
+ROS_BUILTIN_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """A node parameter: its ROS type, default, description and allowed values.
+
+    ``kind`` is one of ``'double'``, ``'integer'``, ``'bool'``, ``'string'``, ``'double_array'``.
+    ``low``/``high`` bound numbers (inclusive; ``low_exclusive`` makes the lower bound strict);
+    ``choices`` lists the allowed strings; ``length`` fixes an array's length.
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    low_exclusive: bool = False
+    choices: tuple[str, ...] = ()
+    length: int | None = None
+    read_only: bool = False
+
+    def constraints(self) -> str:
+        """Human-readable allowed values (for the descriptor and error messages)."""
+        if self.choices:
+            return 'one of ' + ', '.join(repr(c) for c in self.choices)
+        if self.length is not None:
+            return f'{self.length} finite numbers'
+        if self.low is not None and self.high is not None:
+            left = '(' if self.low_exclusive else '['
+            return f'in {left}{self.low}, {self.high}]'
+        return ''
+
+    def validate(self, value: Any) -> Any:
+        """Return ``value`` normalized (tuple for arrays), or raise ValueError saying what is wrong."""
+        name = self.name
+        if self.kind == 'bool':
+            if not isinstance(value, bool | np.bool_):
+                raise ValueError(f'{name} must be true or false; got {value!r}')
+            return bool(value)
+        if self.kind == 'string':
+            if not isinstance(value, str) or (self.choices and value not in self.choices):
+                raise ValueError(f'{name} must be {self.constraints()}; got {value!r}')
+            return value
+        if self.kind == 'double_array':
+            if isinstance(value, str | bytes) or not hasattr(value, '__len__'):
+                raise ValueError(f'{name} must be a list of {self.constraints()}; got {value!r}')
+            items = list(value)
+            if (len(items) != self.length or any(isinstance(v, bool) for v in items)
+                    or not all(isinstance(v, int | float | np.number) and math.isfinite(v) for v in items)):
+                raise ValueError(f'{name} must be a list of {self.constraints()} (x y z, m); got {value!r}')
+            return tuple(float(v) for v in items)
+        if self.kind == 'integer':
+            if isinstance(value, bool) or not isinstance(value, int | np.integer):
+                raise ValueError(f'{name} must be an integer; got {value!r}')
+            number = int(value)
+        else:  # double (integers are accepted and converted, as the node does)
+            if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+                raise ValueError(f'{name} must be a number; got {value!r}')
+            number = float(value)
+            if math.isnan(number):
+                raise ValueError(f'{name} must be a number; got nan')
+        too_low = self.low is not None and (number <= self.low if self.low_exclusive else number < self.low)
+        too_high = self.high is not None and number > self.high
+        if too_low or too_high:
+            raise ValueError(f'{name} must be {self.constraints()}; got {value!r}')
+        return number
+
+
+#: Every parameter of the extractor node, in the order of config/extractor.yaml.
+PARAM_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec('max_error_increment', 'double', 0.01,
+              "PPE's threshold e (m^2): stop before the first merge whose error increment exceeds it",
+              low=0.0, high=1.0e6, low_exclusive=True),
+    ParamSpec('max_planes', 'integer', 0,
+              'stop once at most this many planes (atomic rays included) remain; 0 = no limit',
+              low=0, high=2**31 - 1),
+    ParamSpec('max_neighbor_distance', 'double', math.inf,
+              'largest distance (m) between neighbouring points that may join one plane; .inf = no limit',
+              low=0.0, high=math.inf, low_exclusive=True),
+    ParamSpec('min_plane_points', 'integer', 20,
+              'planes with fewer points are reported as no plane (label 0)', low=1, high=2**31 - 1),
+    ParamSpec('ray_origin', 'double_array', (0.0, 0.0, 0.0),
+              'start point x y z (m) of every ray, in the frame of the input cloud', length=3),
+    ParamSpec('max_points', 'integer', 2_000_000,
+              'clouds with more points (height x width) are skipped with a warning', low=1, high=2**31 - 1),
+    ParamSpec('input_reliability', 'string', 'best_effort',
+              'QoS reliability of the input subscription (best_effort matches every publisher)',
+              choices=RELIABILITY_CHOICES),
+    ParamSpec('publish_labeled_points', 'bool', True, 'publish planes/labeled_points'),
+    ParamSpec('publish_markers', 'bool', True, 'publish planes/markers'),
+    ParamSpec('publish_plane_table', 'bool', True, 'publish planes (the per-plane table)'),
+    ParamSpec('marker_alpha', 'double', 0.5,
+              'opacity of the plane meshes in RViz (0 = invisible, 1 = opaque)', low=0.0, high=1.0),
+    ParamSpec('marker_mesh_stride', 'integer', 1,
+              'mesh every n-th row and column (n^2 fewer triangles for big clouds)', low=1, high=64),
+    ParamSpec('numba_threads', 'integer', 0,
+              'threads of the extraction kernels; 0 = all cores numba sees', low=0, high=1024),
+)
+PARAM_SPEC_BY_NAME: dict[str, ParamSpec] = {spec.name: spec for spec in PARAM_SPECS}
+
+
+@dataclass(frozen=True)
+class ExtractorParams:
+    """Validated settings of the extractor (node parameters of the same names; see :data:`PARAM_SPECS`).
+
+    Construction validates every field and raises ValueError naming the parameter and the allowed
+    values. Use :meth:`replace` for a changed copy and :meth:`from_yaml` for a ROS params file.
+    """
+
+    max_error_increment: float = 0.01
+    max_planes: int = 0
+    max_neighbor_distance: float = math.inf
+    min_plane_points: int = 20
+    ray_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    max_points: int = 2_000_000
+    input_reliability: str = 'best_effort'
+    publish_labeled_points: bool = True
+    publish_markers: bool = True
+    publish_plane_table: bool = True
+    marker_alpha: float = 0.5
+    marker_mesh_stride: int = 1
+    numba_threads: int = 0
+
+    def __post_init__(self) -> None:
+        for spec in PARAM_SPECS:
+            object.__setattr__(self, spec.name, spec.validate(getattr(self, spec.name)))
+
+    def replace(self, **changes: Any) -> ExtractorParams:
+        """A validated copy with some values changed."""
+        unknown = sorted(set(changes) - set(PARAM_SPEC_BY_NAME))
+        if unknown:
+            raise ValueError(f'unknown extractor parameter(s) {unknown}; known: {sorted(PARAM_SPEC_BY_NAME)}')
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Parameter name -> value (arrays as lists), the layout of ``ros__parameters``."""
+        return {spec.name: list(v) if isinstance(v := getattr(self, spec.name), tuple) else v
+                for spec in PARAM_SPECS}
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], *, source: str = 'parameters') -> ExtractorParams:
+        """Validated params from a ``ros__parameters`` mapping; missing names keep their defaults."""
+        if not isinstance(values, Mapping):
+            raise ValueError(f'{source}: ros__parameters must be a mapping; got {type(values).__name__}')
+        unknown = sorted(
+            name for name in values
+            if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
+            and not str(name).startswith('qos_overrides')
+        )
+        if unknown:
+            raise ValueError(
+                f'{source}: unknown extractor parameter(s) {unknown}; known: {sorted(PARAM_SPEC_BY_NAME)}'
+            )
+        try:
+            return cls(**{name: value for name, value in values.items() if name in PARAM_SPEC_BY_NAME})
+        except ValueError as exc:
+            raise ValueError(f'{source}: {exc}') from None
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, node_name: str = 'extractor') -> ExtractorParams:
+        """Params from a ROS 2 params file (the file ``--ros-args --params-file`` takes).
+
+        The file maps node names to ``ros__parameters``. Sections that apply, merged in this order
+        (later wins, like ROS): ``/**``, then ``node_name``, ``/node_name`` or any ``/ns/node_name``.
+        """
+        import yaml
+
+        path = Path(path)
+        try:
+            document = yaml.safe_load(path.read_text())
+        except OSError as exc:
+            raise ValueError(f'cannot read params file {path}: {exc.strerror or exc}') from None
+        except yaml.YAMLError as exc:
+            raise ValueError(f'params file {path} is not valid YAML: {exc}') from None
+        if not isinstance(document, Mapping):
+            raise ValueError(f'params file {path} must map node names to ros__parameters')
+        bare = node_name.strip('/').split('/')[-1]
+        sections = [key for key in document if key == '/**']
+        sections += [key for key in document
+                     if key != '/**' and str(key).strip('/').split('/')[-1] == bare]
+        if not sections:
+            raise ValueError(
+                f'params file {path} has no section for node {bare!r}: expected a top-level "{bare}:" '
+                f'or "/**:" key with "ros__parameters:" under it; found {sorted(map(str, document))}'
+            )
+        merged: dict[str, Any] = {}
+        for key in sections:
+            section = document[key]
+            if not isinstance(section, Mapping) or 'ros__parameters' not in section:
+                raise ValueError(f'params file {path}: section {key!r} must contain "ros__parameters:"')
+            parameters = section['ros__parameters'] or {}
+            if not isinstance(parameters, Mapping):
+                raise ValueError(f'params file {path}: {key}.ros__parameters must be a mapping')
+            merged.update(parameters)
+        return cls.from_mapping(merged, source=f'params file {path}')
+
+
+# --------------------------------------------------------------------------------------------
+# skipped frames
+# --------------------------------------------------------------------------------------------
+
+
+class FrameSkipped(ValueError):
+    """An input frame the extractor cannot use; the node counts it, warns (throttled) and goes on.
+
+    Attributes:
+        kind: short machine-readable cause: ``'empty'``, ``'unorganized'``, ``'too_large'``,
+            ``'invalid_cloud'`` (missing x/y/z, unsupported datatype, inconsistent sizes) or
+            ``'no_valid_points'``.
+        reason: the full message.
+    """
+
+    def __init__(self, kind: str, reason: str) -> None:
+        super().__init__(reason)
+        self.kind = kind
+        self.reason = reason
+
+
+# --------------------------------------------------------------------------------------------
+# output messages
+# --------------------------------------------------------------------------------------------
+
+#: Fields of the labelled cloud: ``x y z`` float32 (m), ``label`` uint32, ``rgb`` float32-packed.
+LABELED_POINTS_FIELDS: tuple[str, ...] = ('x', 'y', 'z', 'label', 'rgb')
+
+#: Fields of the plane table, one point per plane (128 bytes per plane), all in the cloud frame:
+#: ``x y z`` centroid of the plane's points (m); ``normal_x normal_y normal_z`` unit normal
+#: (facing the sensor); ``d`` offset (m) with ``normal . p = d`` on the plane; ``rmse`` (m) and
+#: ``sse`` (m^2) of the radial residuals; ``cov_xx ... cov_zz`` the upper triangle of the 3x3
+#: covariance (m^2) of the closest-point vector ``d * normal``; ``point_count`` points of the
+#: plane; ``label`` its id in the labelled cloud.
+PLANE_TABLE_DTYPE = np.dtype([
+    ('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
+    ('normal_x', '<f8'), ('normal_y', '<f8'), ('normal_z', '<f8'), ('d', '<f8'),
+    ('rmse', '<f8'), ('sse', '<f8'),
+    ('cov_xx', '<f8'), ('cov_xy', '<f8'), ('cov_xz', '<f8'), ('cov_yy', '<f8'), ('cov_yz', '<f8'),
+    ('cov_zz', '<f8'),
+    ('point_count', '<u4'), ('label', '<u4'),
+])
+PLANE_TABLE_FIELDS: tuple[str, ...] = PLANE_TABLE_DTYPE.names
+
+
+def label_palette(num_planes: int) -> np.ndarray:
+    """``(J + 1,)`` uint32 ``0x00RRGGBB`` colours of labels 0..J (labelled cloud and markers)."""
+    return np.asarray(label_colors(np.arange(num_planes + 1, dtype=np.int64)), dtype=np.uint32)
+
+
+def labeled_points_message(points: np.ndarray, planes: PlaneSet, header: Any, types: MessageTypes) -> Any:
+    """The labelled cloud: the input grid with fields :data:`LABELED_POINTS_FIELDS`."""
+    labels = planes.labels
+    return xyz_to_pointcloud2(points, header=header, msg_class=types.PointCloud2, field_class=types.PointField,
+                              labels=labels, rgb=label_palette(planes.num_planes)[labels])
+
+
+def plane_table_message(planes: PlaneSet, header: Any, types: MessageTypes) -> Any:
+    """The plane table: height 1, one point per plane, fields :data:`PLANE_TABLE_FIELDS`."""
+    return structured_to_pointcloud2(plane_table_records(planes), header=header, msg_class=types.PointCloud2,
+                                     field_class=types.PointField, is_dense=True)
+
+
+def plane_table_records(planes: PlaneSet) -> np.ndarray:
+    """``(J,)`` records of :data:`PLANE_TABLE_DTYPE`, row j = plane j + 1."""
+    table = np.zeros(planes.num_planes, PLANE_TABLE_DTYPE)
+    if planes.num_planes == 0:
+        return table
+    table['x'], table['y'], table['z'] = planes.centroids.T
+    table['normal_x'], table['normal_y'], table['normal_z'] = planes.normals.T
+    table['d'] = planes.offsets
+    table['rmse'] = planes.rmse
+    table['sse'] = planes.sse
+    cov = planes.covariances
+    for name, (i, j) in zip(('cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz', 'cov_zz'),
+                            ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), strict=True):
+        table[name] = cov[:, i, j]
+    table['point_count'] = planes.point_counts
+    table['label'] = np.arange(1, planes.num_planes + 1)
+    return table
+
+
+# --------------------------------------------------------------------------------------------
+# one frame
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class OutputSelection:
+    """Which outputs :func:`process_cloud` builds."""
+
+    labeled_points: bool = True
+    markers: bool = True
+    plane_table: bool = True
+
+    @classmethod
+    def from_params(cls, params: ExtractorParams) -> OutputSelection:
+        return cls(params.publish_labeled_points, params.publish_markers, params.publish_plane_table)
+
+
+@dataclass
+class ProcessedFrame:
+    """The result of one frame.
+
+    Attributes:
+        header: the input header object (every output carries it).
+        stamped: its stamp and frame_id.
+        points: ``(H, W, 3)`` float64 input points (m, cloud frame), NaN = no return.
+        planes: the extracted planes.
+        labeled_points: PointCloud2 of the labelled cloud, or None if not built.
+        markers: CDR bytes of the MarkerArray (publish as is with rclpy; write as is with rosbags;
+            decode with ``types.decode_markers``), or None if not built.
+        plane_table: PointCloud2 of the plane table, or None if not built.
+        timings: seconds spent in ``convert``, ``extract``, ``labeled_points``, ``markers``,
+            ``plane_table``.
+    """
+
+    header: Any
+    stamped: StampedFrame
+    points: np.ndarray
+    planes: PlaneSet
+    labeled_points: Any = None
+    markers: bytes | None = None
+    plane_table: Any = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def overhead_s(self) -> float:
+        """Seconds spent outside extraction (conversion in and building outputs)."""
+        return sum(t for name, t in self.timings.items() if name != 'extract')
+
+
+def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
+    """Validate an input cloud and return its ``(H, W, 3)`` float64 points (NaN = no return).
+
+    Raises:
+        FrameSkipped: empty, unorganized, larger than ``params.max_points``, malformed, or no
+            finite point.
+    """
+    height, width = int(msg.height), int(msg.width)
+    if height == 0 or width == 0:
+        raise FrameSkipped('empty', f'empty cloud (height {height}, width {width}): nothing to extract')
+    if height == 1:
+        raise FrameSkipped(
+            'unorganized',
+            f'unorganized cloud (height 1, width {width}): plane extraction needs an organized cloud '
+            '(height = lidar rings or image rows, width = columns); '
+            "check the driver's organized-cloud option",
+        )
+    if height * width > params.max_points:
+        raise FrameSkipped(
+            'too_large',
+            f'cloud of {height} x {width} = {height * width} points exceeds max_points = {params.max_points}',
+        )
+    try:
+        points = pointcloud2_to_xyz(msg)
+    except PointCloudError as exc:
+        raise FrameSkipped('invalid_cloud', f'invalid PointCloud2: {exc}') from None
+    # pointcloud2_to_xyz makes a point with any non-finite coordinate all NaN: x alone tells
+    if np.isnan(points[..., 0]).all():
+        raise FrameSkipped('no_valid_points',
+                           f'cloud of {height} x {width} points has no finite point (all NaN)')
+    return points
+
+
+def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
+                  outputs: OutputSelection | None = None) -> ProcessedFrame:
+    """Convert, validate, extract planes and build the selected outputs of one PointCloud2.
+
+    Args:
+        msg: ``sensor_msgs/PointCloud2`` of either flavour.
+        params: extraction and output settings.
+        types: message classes of the flavour to build.
+        outputs: which outputs to build (default: the ``publish_*`` flags of ``params``).
+
+    Raises:
+        FrameSkipped: the cloud cannot be used (see :func:`cloud_points`).
+    """
+    from ppe_ros.core.extraction import extract_planes
+
+    start = time.perf_counter()
+    points = cloud_points(msg, params)
+    timings = {'convert': (mark := time.perf_counter()) - start}
+    planes = extract_planes(
+        points,
+        origins=np.asarray(params.ray_origin, dtype=np.float64),
+        max_error_increment=params.max_error_increment,
+        max_planes=params.max_planes or None,
+        max_neighbor_distance=params.max_neighbor_distance,
+        min_plane_points=params.min_plane_points,
+    )
+    if isinstance(planes, list):  # both thresholds set: one cut each; stop at whichever comes first
+        planes = min(planes, key=lambda cut: cut.actions)
+    timings['extract'] = time.perf_counter() - mark
+    frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=points,
+                           planes=planes, timings=timings)
+    build_outputs(frame, params, types, OutputSelection.from_params(params) if outputs is None else outputs)
+    return frame
+
+
+def build_outputs(frame: ProcessedFrame, params: ExtractorParams, types: MessageTypes,
+                  selection: OutputSelection) -> None:
+    """Build the selected output messages of ``frame`` in place (and their ``timings``)."""
+    points, planes, header, timings = frame.points, frame.planes, frame.header, frame.timings
+    mark = time.perf_counter()
+    if selection.labeled_points:
+        frame.labeled_points = labeled_points_message(points, planes, header, types)
+        timings['labeled_points'] = (now := time.perf_counter()) - mark
+        mark = now
+    if selection.markers:
+        geometry = plane_geometry(points, planes, ray_origin=np.asarray(params.ray_origin),
+                                  stride=params.marker_mesh_stride)
+        colors = label_palette(planes.num_planes)[1:]
+        frame.markers = marker_array_cdr(geometry, planes, frame.stamped, colors=colors,
+                                         mesh_alpha=params.marker_alpha)
+        timings['markers'] = (now := time.perf_counter()) - mark
+        mark = now
+    if selection.plane_table:
+        frame.plane_table = plane_table_message(planes, header, types)
+        timings['plane_table'] = time.perf_counter() - mark

@@ -1,0 +1,423 @@
+"""The extractor node in-process: outputs, bad input, parameters, dropped frames and a bag replay.
+
+Every test gets its own rclpy context and namespace; every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
+
+from ppe_ros.core.synthetic import plane_scan
+from ppe_ros.ros.node import ExtractorNode, LatestMailbox
+from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2, xyz_to_pointcloud2
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(300)]
+
+READY_TIMEOUT_S = 240.0  # the first node of a session may compile the numba kernels (cold cache)
+RELIABLE = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+_counter = itertools.count()
+
+
+@pytest.fixture
+def ros_context():
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=int(os.environ['ROS_DOMAIN_ID']))
+    try:
+        yield context
+    finally:
+        context.try_shutdown()
+
+
+@pytest.fixture
+def executor(ros_context):
+    executor = SingleThreadedExecutor(context=ros_context)
+    try:
+        yield executor
+    finally:
+        for node in list(executor.get_nodes()):
+            executor.remove_node(node)
+            node.destroy_node()  # ExtractorNode.destroy_node joins its worker first
+        executor.shutdown(timeout_sec=1.0)
+
+
+@pytest.fixture
+def namespace():
+    return f'/test_node_{os.getpid()}_{next(_counter)}'
+
+
+def spin_until(executor, predicate, timeout=10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        executor.spin_once(timeout_sec=0.02)
+    return True
+
+
+class Harness:
+    """An extractor node plus a probe node that publishes clouds and records every output."""
+
+    def __init__(self, context, executor, namespace, overrides=(), input_qos=RELIABLE):
+        self.executor = executor
+        params = [Parameter('min_plane_points', value=20), *overrides]
+        if not any(p.name == 'input_reliability' for p in params) and input_qos is RELIABLE:
+            params.append(Parameter('input_reliability', value='reliable'))
+        self.node = ExtractorNode(context=context, namespace=namespace, parameter_overrides=params)
+        executor.add_node(self.node)
+        self.probe = rclpy.create_node('probe', context=context, namespace=namespace)
+        executor.add_node(self.probe)
+        self.received = {'labeled_points': [], 'markers': [], 'planes': [], 'diagnostics': []}
+        self.probe.create_subscription(PointCloud2, 'planes/labeled_points',
+                                       self.received['labeled_points'].append, RELIABLE)
+        self.probe.create_subscription(MarkerArray, 'planes/markers', self.received['markers'].append, RELIABLE)
+        self.probe.create_subscription(PointCloud2, 'planes', self.received['planes'].append, RELIABLE)
+        self.probe.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        self.publisher = self.probe.create_publisher(PointCloud2, 'points', input_qos)
+        self.status_name = f'{namespace.strip("/")}/extractor: plane extraction'
+        assert spin_until(executor, self.node.ready.is_set, READY_TIMEOUT_S), 'JIT warm-up did not finish'
+        assert spin_until(executor, self.connected), 'node and probe did not discover each other'
+
+    def _on_diagnostics(self, msg):
+        self.received['diagnostics'] += [s for s in msg.status if s.name == self.status_name]
+
+    def connected(self) -> bool:
+        node = self.node
+        return (self.publisher.get_subscription_count() > 0
+                and node._labeled_points_pub.get_subscription_count() > 0
+                and node._markers_pub.get_subscription_count() > 0
+                and node._plane_table_pub.get_subscription_count() > 0)
+
+    def send(self, msg, *, wait_for: str = 'planes', timeout: float = 20.0):
+        """Publish a cloud and wait until the node has counted it (and, by default, a plane table arrived)."""
+        before = {k: len(v) for k, v in self.received.items()}
+        counts = self.node.frame_counts()
+        done_before = counts['processed'] + counts['skipped'] + counts['failed']
+        self.publisher.publish(msg)
+
+        def handled():
+            now = self.node.frame_counts()
+            return now['processed'] + now['skipped'] + now['failed'] > done_before
+
+        assert spin_until(self.executor, handled, timeout), 'the node did not handle the cloud'
+        if wait_for:
+            assert spin_until(self.executor, lambda: len(self.received[wait_for]) > before[wait_for], timeout)
+
+    def latest_status(self, timeout=5.0) -> DiagnosticStatus:
+        count = len(self.received['diagnostics'])
+        assert spin_until(self.executor, lambda: len(self.received['diagnostics']) > count, timeout)
+        return self.received['diagnostics'][-1]
+
+
+def make_cloud(points, frame_id='os_lidar', sec=1_700_000_000, nanosec=5):
+    header = Header(frame_id=frame_id)
+    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    return xyz_to_pointcloud2(points, header=header, msg_class=PointCloud2, field_class=PointField)
+
+
+@pytest.fixture(scope='module')
+def scan_points():
+    return plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=2).points
+
+
+def header_of(msg):
+    return msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id
+
+
+def values_of(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+# ------------------------------------------------------------------ outputs
+
+
+def test_every_output_carries_the_input_header(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace)
+    harness.send(make_cloud(scan_points, sec=1_700_000_001, nanosec=42))
+    assert spin_until(executor, lambda: harness.received['markers'] and harness.received['labeled_points'])
+    expected = (1_700_000_001, 42, 'os_lidar')
+
+    labeled = harness.received['labeled_points'][-1]
+    assert header_of(labeled) == expected
+    assert (labeled.height, labeled.width) == (24, 32)
+    assert [f.name for f in labeled.fields] == ['x', 'y', 'z', 'label', 'rgb']
+    labels = pointcloud2_to_structured(labeled)['label']
+    assert set(np.unique(labels)) == {0, 1, 2, 3}
+
+    table = harness.received['planes'][-1]
+    assert header_of(table) == expected and (table.height, table.width) == (1, 3)
+    rows = pointcloud2_to_structured(table)[0]
+    np.testing.assert_allclose(np.linalg.norm(np.stack([rows['normal_x'], rows['normal_y'], rows['normal_z']]),
+                                              axis=0), 1.0)
+    assert rows['point_count'].sum() == (labels > 0).sum()
+
+    markers = harness.received['markers'][-1].markers
+    assert markers[0].action == 3
+    assert len(markers) == 1 + 3 * 3
+    for marker in markers:
+        assert header_of(marker) == expected
+        assert (marker.texture.header.frame_id, marker.texture.header.stamp.sec) == ('os_lidar', 1_700_000_001)
+    assert {m.ns for m in markers[1:]} == {'plane_mesh', 'plane_outline', 'plane_normal'}
+    assert sorted({m.id for m in markers[1:]}) == [1, 2, 3]
+
+    status = harness.latest_status()
+    values = values_of(status)
+    assert status.level == DiagnosticStatus.OK and status.hardware_id == 'os_lidar'
+    assert values['frames_processed'] == '1' and values['frames_skipped'] == '0'
+    assert values['input_topic'] == f'{namespace}/points'
+    for key in ('input_rate_hz', 'processing_time_mean_ms', 'processing_time_max_ms', 'frames_dropped',
+                'last_error'):
+        assert key in values
+
+
+def test_default_best_effort_input_matches_a_sensor_data_publisher(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace, input_qos=qos_profile_sensor_data)
+    assert harness.node.params.input_reliability == 'best_effort'
+    harness.send(make_cloud(scan_points))
+    assert harness.received['planes'][-1].width == 3
+
+
+def test_outputs_nobody_subscribes_to_are_not_built(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace)
+    outputs = harness.node._wanted_outputs(harness.node.params)
+    assert (outputs.labeled_points, outputs.markers, outputs.plane_table) == (True, True, True)
+    harness.probe.destroy_subscription(next(s for s in harness.probe.subscriptions
+                                            if s.topic_name.endswith('planes/markers')))
+    assert spin_until(executor, lambda: harness.node._markers_pub.get_subscription_count() == 0)
+    assert harness.node._wanted_outputs(harness.node.params).markers is False
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def bad_clouds(points):
+    """(kind, message) for every kind of unusable cloud."""
+    good = make_cloud(points)
+    unorganized = make_cloud(points.reshape(-1, 3))
+    table = np.zeros((4, 5), [('x', '<f4'), ('y', '<f4'), ('intensity', '<f4')])
+    no_z = structured_to_pointcloud2(table, header=good.header, msg_class=PointCloud2, field_class=PointField)
+    unsupported = make_cloud(points)
+    unsupported.fields[1].datatype = 11
+    bad_row_step = make_cloud(points)
+    bad_row_step.row_step -= 4
+    short_data = make_cloud(points)
+    short_data.data = short_data.data[:-16]
+    empty = make_cloud(np.zeros((0, 4, 3)))
+    all_nan = make_cloud(np.full((6, 8, 3), np.nan))
+    too_large = make_cloud(np.ones((60, 40, 3)))
+    return [
+        ('unorganized', unorganized), ('invalid_cloud', no_z), ('invalid_cloud', unsupported),
+        ('invalid_cloud', bad_row_step), ('invalid_cloud', short_data), ('empty', empty),
+        ('no_valid_points', all_nan), ('too_large', too_large),
+    ]
+
+
+def test_bad_clouds_are_skipped_counted_and_the_node_keeps_running(ros_context, executor, namespace,
+                                                                   scan_points):
+    harness = Harness(ros_context, executor, namespace, overrides=[Parameter('max_points', value=2000)])
+    cases = bad_clouds(scan_points)
+    for number, (kind, msg) in enumerate(cases, start=1):
+        harness.send(msg, wait_for='')
+        counts = harness.node.frame_counts()
+        assert counts['skipped'] == number, kind
+        assert kind in counts['last_error'], counts['last_error']
+    counts = harness.node.frame_counts()
+    assert counts['skipped_by_kind'] == {'unorganized': 1, 'invalid_cloud': 4, 'empty': 1, 'no_valid_points': 1,
+                                         'too_large': 1}
+    assert counts['processed'] == 0 and counts['failed'] == 0
+    assert harness.received['planes'] == []
+    harness.send(make_cloud(scan_points))  # still alive and extracting
+    assert harness.node.frame_counts()['processed'] == 1
+    values = values_of(harness.latest_status())
+    assert values['frames_skipped'] == str(len(cases))
+    assert 'too_large' in values['last_error'] and 'max_points = 2000' in values['last_error']
+
+
+def test_skipped_frames_turn_diagnostics_to_warn(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace)
+    harness.latest_status()  # the window before the bad frame
+    harness.send(make_cloud(scan_points.reshape(-1, 3)), wait_for='')
+    status = harness.latest_status()
+    assert status.level == DiagnosticStatus.WARN
+    assert 'skipped' in status.message and 'unorganized' in status.message
+
+
+# ------------------------------------------------------------------ parameters
+
+
+def test_runtime_parameter_changes_are_validated_and_applied(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    rejected = {
+        'marker_alpha': (2.0, 'out of range'),
+        'max_error_increment': (0.0, 'max_error_increment must be in (0.0'),
+        'input_reliability': ('sometimes', "one of 'best_effort', 'reliable'"),
+        'ray_origin': ([0.0, 0.0], 'ray_origin must be a list of 3'),
+        'min_plane_points': (1.5, 'Wrong parameter type'),
+    }
+    for name, (value, reason) in rejected.items():
+        [result] = node.set_parameters([Parameter(name, value=value)])
+        assert not result.successful and reason in result.reason, (name, result.reason)
+    assert node.params.marker_alpha == 0.5
+
+    [result] = node.set_parameters([Parameter('marker_alpha', value=0.25)])
+    assert result.successful and node.params.marker_alpha == 0.25
+    [result] = node.set_parameters([Parameter('max_error_increment', value=1)])  # integer for a double
+    assert result.successful and node.params.max_error_increment == 1.0
+    node.set_parameters([Parameter('max_error_increment', value=0.01)])
+    harness.send(make_cloud(scan_points))
+    assert spin_until(executor, lambda: harness.received['markers'])
+    assert harness.received['markers'][-1].markers[1].color.a == 0.25
+
+    counts = pointcloud2_to_structured(harness.received['planes'][-1])['point_count'][0]
+    assert counts.min() < 300 <= counts.max()
+    node.set_parameters([Parameter('publish_markers', value=False), Parameter('min_plane_points', value=300)])
+    markers_before = len(harness.received['markers'])
+    harness.send(make_cloud(scan_points, sec=7))
+    assert harness.received['planes'][-1].header.stamp.sec == 7
+    assert harness.received['planes'][-1].width == (counts >= 300).sum()  # only the big planes remain
+    spin_until(executor, lambda: False, timeout=0.3)
+    assert len(harness.received['markers']) == markers_before
+
+
+def test_input_reliability_change_resubscribes(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace)  # reliable in, reliable publisher
+    [result] = harness.node.set_parameters([Parameter('input_reliability', value='best_effort')])
+    assert result.successful
+    assert spin_until(executor, lambda: harness.publisher.get_subscription_count() == 1)
+    harness.send(make_cloud(scan_points, sec=11))  # a reliable writer matches a best-effort reader
+    assert harness.received['planes'][-1].header.stamp.sec == 11
+
+
+def test_numba_threads_parameter(ros_context, executor, namespace, scan_points):
+    import numba
+
+    harness = Harness(ros_context, executor, namespace)
+    [result] = harness.node.set_parameters([Parameter('numba_threads', value=1)])
+    assert result.successful
+    harness.send(make_cloud(scan_points))
+    assert harness.node._numba_threads_applied == 1
+    too_many = numba.config.NUMBA_NUM_THREADS + 1
+    [result] = harness.node.set_parameters([Parameter('numba_threads', value=too_many)])
+    assert not result.successful and 'NUMBA_NUM_THREADS' in result.reason
+
+
+def test_invalid_start_parameters_raise_a_clear_error(ros_context):
+    with pytest.raises(ValueError, match=r"invalid parameter 'marker_alpha'.*out of range"):
+        ExtractorNode(context=ros_context, parameter_overrides=[Parameter('marker_alpha', value=3.0)])
+    with pytest.raises(ValueError, match=r"invalid parameter 'max_error_increment'.*\(0.0"):
+        ExtractorNode(context=ros_context, parameter_overrides=[Parameter('max_error_increment', value=0.0)])
+
+
+def test_params_file_is_loaded(tmp_path):
+    """The layout of config/extractor.yaml; a key 'extractor' applies to the node in the root namespace."""
+    path = tmp_path / 'params.yaml'
+    path.write_text('extractor:\n  ros__parameters:\n    marker_alpha: 0.75\n    max_points: 12\n'
+                    '    max_neighbor_distance: 2\n')
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=int(os.environ['ROS_DOMAIN_ID']),
+               args=['--ros-args', '--params-file', str(path)])
+    node = None
+    try:
+        node = ExtractorNode(context=context)
+        assert (node.params.marker_alpha, node.params.max_points, node.params.max_neighbor_distance) == (
+            0.75, 12, 2.0)
+        assert node.ready.wait(READY_TIMEOUT_S)
+        assert node.frame_counts()['failed'] == 0  # the warm-up ignores max_points
+    finally:
+        if node is not None:
+            node.destroy_node()
+        context.try_shutdown()
+
+
+# ------------------------------------------------------------------ mailbox and dropped frames
+
+
+def test_mailbox_keeps_the_newest_item():
+    mailbox = LatestMailbox()
+    assert mailbox.take(timeout=0.01) is None
+    assert mailbox.put('a') is False
+    assert mailbox.put('b') is True  # replaced 'a': a dropped frame
+    assert mailbox.take(timeout=0.01) == 'b'
+    assert mailbox.take(timeout=0.01) is None
+    mailbox.close()
+    start = time.monotonic()
+    assert mailbox.take(timeout=5.0) is None and time.monotonic() - start < 1.0
+
+
+def test_frames_arriving_while_busy_are_dropped_and_counted(ros_context, executor, namespace, scan_points):
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    assert node.stop(timeout=10.0)  # no worker: every cloud waits in the mailbox
+    for sec in (1, 2, 3):
+        node._on_cloud(make_cloud(scan_points, sec=sec))
+    counts = node.frame_counts()
+    assert (counts['received'], counts['dropped']) == (3, 2)
+    assert node._mailbox.take(timeout=0.1).header.stamp.sec == 3  # the newest one waits
+    values = values_of(node.diagnostics_status())
+    assert values['frames_dropped'] == '2' and values['frames_received'] == '3'
+
+
+# ------------------------------------------------------------------ replay of a bag
+
+
+def write_bag(path: Path, clouds: list[PointCloud2], period_ns: int) -> None:
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection('/lidar/points', 'sensor_msgs/msg/PointCloud2', typestore=typestore)
+        for index, msg in enumerate(clouds):
+            writer.write(connection, 1_000_000_000 + index * period_ns, serialize_message(msg))
+
+
+def test_bag_replay_at_recorded_timestamps(ros_context, executor, namespace, scan_points, tmp_path):
+    from rclpy.serialization import deserialize_message
+    from rosbags.highlevel import AnyReader
+
+    clouds = [make_cloud(scan_points + 0.001 * k, frame_id=f'lidar_{k % 2}', sec=1_700_000_100 + k,
+                         nanosec=1000 * k) for k in range(5)]
+    bag = tmp_path / 'clouds'
+    write_bag(bag, clouds, period_ns=300_000_000)
+    harness = Harness(ros_context, executor, namespace)
+
+    sent = []
+    with AnyReader([bag]) as reader:
+        connections = [c for c in reader.connections if c.topic == '/lidar/points']
+        start_wall = time.monotonic()
+        first_ns = None
+        for _, timestamp, raw in reader.messages(connections=connections):
+            first_ns = timestamp if first_ns is None else first_ns
+            due = start_wall + (timestamp - first_ns) * 1e-9
+            spin_until(executor, lambda due=due: time.monotonic() >= due, timeout=5.0)
+            msg = deserialize_message(bytes(raw), PointCloud2)
+            harness.publisher.publish(msg)
+            sent.append(header_of(msg))
+    assert sent == [header_of(c) for c in clouds]
+
+    def all_outputs():
+        return all(len(harness.received[k]) >= len(sent) for k in ('labeled_points', 'markers', 'planes'))
+
+    assert spin_until(executor, all_outputs, timeout=30.0), {k: len(v) for k, v in harness.received.items()}
+    assert [header_of(m) for m in harness.received['labeled_points']] == sent
+    assert [header_of(m) for m in harness.received['planes']] == sent
+    for array, expected in zip(harness.received['markers'], sent, strict=True):
+        assert {header_of(m) for m in array.markers} == {expected}
+        assert {(m.texture.header.frame_id, m.texture.header.stamp.sec) for m in array.markers} == {
+            (expected[2], expected[0])}
+    assert harness.node.frame_counts()['dropped'] == 0

@@ -1,0 +1,178 @@
+"""The ``extractor`` console script as a separate process, talked to over DDS on localhost.
+
+Each test starts the node with config/extractor.yaml on its own ROS domain id (localhost discovery
+only), checks that it answers a cloud, stops it with SIGINT or SIGTERM and checks the exit code and
+that no C++ "terminate" message appeared. Every wait is bounded.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from ppe_ros.core.synthetic import plane_scan
+from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, xyz_to_pointcloud2
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(420)]
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / 'config' / 'extractor.yaml'
+EXTRACTOR = Path(sys.executable).parent / 'extractor'
+READY_TIMEOUT_S = 300.0  # a cold numba cache compiles the kernels in the child
+EXIT_TIMEOUT_S = 30.0
+
+
+def unique_domain_id(offset: int) -> int:
+    """A domain id of its own (the in-process tests use 100 + pid % 100)."""
+    return 1 + (os.getpid() * 7 + offset) % 99
+
+
+class ExtractorProcess:
+    """``extractor --ros-args --params-file config/extractor.yaml`` with its output collected by a thread."""
+
+    def __init__(self, domain_id: int, *extra_args: str) -> None:
+        assert EXTRACTOR.is_file(), f'{EXTRACTOR} is missing: run `make venv` (editable install)'
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                   PYTHONUNBUFFERED='1', RCUTILS_LOGGING_BUFFERED_STREAM='0')
+        self.process = subprocess.Popen(
+            [str(EXTRACTOR), '--ros-args', '--params-file', str(CONFIG), *extra_args],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        self.lines: list[str] = []
+        self.ready = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self.lines.append(line)
+            if 'ready: waiting for organized PointCloud2' in line:
+                self.ready.set()
+
+    @property
+    def output(self) -> str:
+        return ''.join(self.lines)
+
+    def stop(self, sig: int) -> int:
+        """Send ``sig`` and wait (bounded) for the exit code; kill as a last resort."""
+        if self.process.poll() is None:
+            self.process.send_signal(sig)
+        try:
+            return self.process.wait(timeout=EXIT_TIMEOUT_S)
+        finally:
+            if self.process.poll() is None:
+                self.process.kill()
+                self.process.wait(timeout=10)
+            self._reader.join(timeout=10)
+
+
+@pytest.fixture
+def client_factory():
+    """A context + executor + node on a given domain; torn down in order."""
+    created = []
+
+    def make(domain_id: int):
+        context = rclpy.context.Context()
+        rclpy.init(context=context, domain_id=domain_id)
+        executor = SingleThreadedExecutor(context=context)
+        node = rclpy.create_node('process_probe', context=context)
+        executor.add_node(node)
+        created.append((context, executor, node))
+        return executor, node
+
+    yield make
+    for context, executor, node in created:
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        context.try_shutdown()
+
+
+def spin_until(executor, predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        executor.spin_once(timeout_sec=0.05)
+    return True
+
+
+def make_cloud(sec: int) -> PointCloud2:
+    points = plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=3).points
+    header = Header(frame_id='proc_lidar')
+    header.stamp.sec = sec
+    return xyz_to_pointcloud2(points, header=header, msg_class=PointCloud2, field_class=PointField)
+
+
+@pytest.mark.parametrize('stop_signal', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_console_script_answers_over_dds_and_exits_cleanly(client_factory, stop_signal):
+    domain_id = unique_domain_id(int(stop_signal))
+    extractor = ExtractorProcess(domain_id)
+    try:
+        assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
+        executor, probe = client_factory(domain_id)
+        tables = []
+        probe.create_subscription(PointCloud2, '/planes', tables.append,
+                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+        publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
+        assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
+        # the node builds /planes only once it sees our subscription; resend until a table arrives
+        deadline = time.monotonic() + 60.0
+        while not tables and time.monotonic() < deadline:
+            publisher.publish(make_cloud(sec=123))
+            spin_until(executor, lambda: bool(tables), 1.0)
+        assert tables, f'no plane table from the extractor process:\n{extractor.output}'
+        table = tables[-1]
+        assert (table.header.frame_id, table.header.stamp.sec) == ('proc_lidar', 123)
+        assert pointcloud2_to_structured(table)['point_count'].sum() > 500
+    finally:
+        exit_code = extractor.stop(stop_signal)
+    output = extractor.output
+    assert exit_code == 0, f'exit code {exit_code}:\n{output}'
+    assert 'terminate called' not in output and 'Traceback' not in output, output
+    assert 'JIT warm-up done' in output
+
+
+def test_invalid_parameter_exits_with_code_2_and_says_why():
+    extractor = ExtractorProcess(unique_domain_id(50), '-p', 'marker_alpha:=4.0')
+    try:
+        exit_code = extractor.process.wait(timeout=120)
+    finally:
+        extractor.stop(signal.SIGKILL)
+    assert exit_code == 2, extractor.output
+    assert "invalid parameter 'marker_alpha'" in extractor.output
+    assert 'Traceback' not in extractor.output
+
+
+def test_skipped_frames_do_not_stop_the_process(client_factory):
+    domain_id = unique_domain_id(60)
+    extractor = ExtractorProcess(domain_id)
+    try:
+        assert extractor.ready.wait(READY_TIMEOUT_S), extractor.output
+        executor, probe = client_factory(domain_id)
+        publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
+        assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0)
+        unorganized = make_cloud(sec=1)
+        unorganized.height, unorganized.width = 1, unorganized.height * unorganized.width
+        unorganized.row_step = unorganized.point_step * unorganized.width
+        deadline = time.monotonic() + 30.0
+        while 'frame skipped: unorganized cloud' not in extractor.output and time.monotonic() < deadline:
+            publisher.publish(unorganized)
+            spin_until(executor, lambda: False, 0.5)
+        assert 'frame skipped: unorganized cloud (height 1, width 768)' in extractor.output
+        assert extractor.process.poll() is None
+    finally:
+        exit_code = extractor.stop(signal.SIGINT)
+    assert exit_code == 0, extractor.output
