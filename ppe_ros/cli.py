@@ -12,8 +12,13 @@ import sys
 
 SUBCOMMANDS: tuple[str, ...] = (
     'info',
+    'dataset',
+    'eval',
+    'tune',
+    'score',
     'extract',
     'demo',
+    'bag',
 )
 
 

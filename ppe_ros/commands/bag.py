@@ -1,0 +1,25 @@
+"""``ppe bag IN OUT``: the same as ``ros2 run ppe_ros process_bag IN OUT`` (see :mod:`ppe_ros.ros.bag`)."""
+
+from __future__ import annotations
+
+import argparse
+
+from ppe_ros.ros.bag import add_arguments, run
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        'bag',
+        help='extract planes from every PointCloud2 of a bag into a new rosbag2 (= process_bag)',
+        description='Extract planes from every organized PointCloud2 of a bag (rosbag2 mcap/sqlite3 or ROS 1), '
+        'as the extractor node would with the same parameter file, and write its outputs (labelled cloud, '
+        'markers, plane table) under each input topic\'s namespace to a new rosbag2. Exit codes: 0 done, '
+        '1 damaged input or stopped on an error (OUT holds the frames before it), 2 bad arguments or input, '
+        '130 interrupted (Ctrl-C).',
+    )
+    add_arguments(parser)
+    parser.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    return run(args, prog='ppe bag')
