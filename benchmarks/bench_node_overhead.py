@@ -10,7 +10,10 @@ floor and ceiling: 30 planes fitted to the true faces, 98 % of pixels planar (th
 the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` with the planes that
 ``extract_planes`` finds (about a thousand small ones: the worst case for the number of markers).
 
-    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster]
+    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster] [--params FILE.yaml]
+
+``--params`` takes the node's params file (default: the node defaults, as in config/extractor.yaml);
+e.g. ``marker_mesh_stride: 2`` shows what a coarser mesh saves.
 
 Prints a markdown table (median and max over the repeats, milliseconds; wall time per step and the
 thread's CPU time for the total, which other processes on a busy machine do not inflate).
@@ -97,8 +100,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
     parser.add_argument('--cloud', choices=('synthetic', 'ouster'), default='synthetic')
+    parser.add_argument('--params', default=None, metavar='FILE.yaml',
+                        help="the node's params file (default: the node defaults)")
     args = parser.parse_args(argv)
-    params = ExtractorParams()
+    params = ExtractorParams.from_yaml(args.params) if args.params else ExtractorParams()
     types = rclpy_message_types()
     start = time.perf_counter()
     if args.cloud == 'ouster':
@@ -108,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         points = np.load(OUSTER / OUSTER_FILE).astype(np.float64)
         msg = driver_message(points, types)
         planes = extract_planes(cloud_points(msg, params), max_error_increment=params.max_error_increment,
+                                max_neighbor_distance=params.max_neighbor_distance,
                                 min_plane_points=params.min_plane_points)
         description = f'Ouster {OUSTER_FILE}, planes from extract_planes'
     else:  # the true faces, fitted: the overhead does not depend on how the planes were found
@@ -142,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     height, width, _ = points.shape
     print(f'Cloud: {description}, {height} x {width}, {planes.num_planes} planes '
           f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
-          f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats.\n')
+          f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats; '
+          f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}).\n')
     print('| step | median ms | max ms |')
     print('|---|---|---|')
     labels = {'convert': 'conversion in (PointCloud2 -> validated points)', 'labeled_points': 'labelled cloud',

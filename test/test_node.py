@@ -421,3 +421,13 @@ def test_bag_replay_at_recorded_timestamps(ros_context, executor, namespace, sca
         assert {(m.texture.header.frame_id, m.texture.header.stamp.sec) for m in array.markers} == {
             (expected[2], expected[0])}
     assert harness.node.frame_counts()['dropped'] == 0
+
+
+def test_unknown_parameter_names_and_non_ros_arguments():
+    from ppe_ros.ros.node import _non_ros_arguments, unknown_parameter_names
+
+    assert unknown_parameter_names(['max_error_increment', 'use_sim_time', 'qos_overrides./points.reliability',
+                                    'min_plane_point', 'zzz']) == ['min_plane_point', 'zzz']
+    argv = ['extractor', '--help', '--ros-args', '-p', 'a:=1', '--params-file', 'f.yaml', '--', 'x']
+    assert _non_ros_arguments(argv) == ['--help', 'x']
+    assert _non_ros_arguments(['extractor', '--ros-args', '-r', 'points:=/lidar']) == []

@@ -176,3 +176,35 @@ def test_skipped_frames_do_not_stop_the_process(client_factory):
     finally:
         exit_code = extractor.stop(signal.SIGINT)
     assert exit_code == 0, extractor.output
+
+
+def test_help_prints_the_topics_and_parameters_and_starts_nothing():
+    result = subprocess.run([str(EXTRACTOR), '--help'], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith('usage: ros2 run ppe_ros extractor')
+    for name in ('planes/labeled_points', 'planes/markers', 'max_error_increment', 'input_reliability'):
+        assert name in result.stdout
+    assert 'JIT warm-up' not in result.stdout + result.stderr
+
+
+def test_unreadable_params_file_exits_with_code_2_without_a_traceback(tmp_path):
+    missing = tmp_path / 'missing.yaml'
+    env = dict(os.environ, ROS_DOMAIN_ID=str(unique_domain_id(70)), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    result = subprocess.run([str(EXTRACTOR), '--ros-args', '--params-file', str(missing)], capture_output=True,
+                            text=True, timeout=60, env=env)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert 'extractor: error: invalid ROS arguments' in result.stderr and str(missing) in result.stderr
+    assert 'Traceback' not in result.stderr
+
+
+def test_unknown_parameter_names_are_warned_about():
+    extractor = ExtractorProcess(unique_domain_id(80), '-p', 'max_error_incremnt:=0.1')
+    try:
+        deadline = time.monotonic() + 120.0
+        while 'ignoring unknown parameter' not in extractor.output and extractor.process.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        exit_code = extractor.stop(signal.SIGINT)
+    assert "ignoring unknown parameter(s) ['max_error_incremnt']" in extractor.output, extractor.output
+    assert exit_code == 0, extractor.output

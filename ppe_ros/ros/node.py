@@ -49,6 +49,7 @@ from ppe_ros.ros.pointcloud2 import xyz_to_pointcloud2
 from ppe_ros.ros.processing import (
     PARAM_SPEC_BY_NAME,
     PARAM_SPECS,
+    ROS_BUILTIN_PARAMETERS,
     ExtractorParams,
     FrameSkipped,
     OutputSelection,
@@ -115,6 +116,15 @@ def _as_declared_type(spec: ParamSpec, value: Any) -> Any:
             isinstance(v, int | float) and not isinstance(v, bool) for v in value):
         return [float(v) for v in value]
     return value
+
+
+def unknown_parameter_names(names: Any) -> list[str]:
+    """Names given to the node (params file, ``-p``) that it does not have (ROS's own ones excepted)."""
+    return sorted(
+        str(name) for name in names
+        if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
+        and not str(name).startswith('qos_overrides')
+    )
 
 
 class LatestMailbox:
@@ -244,6 +254,12 @@ class ExtractorNode(Node):
             self._check_numba_threads(params.numba_threads)
         except ValueError as exc:
             raise ValueError(f'invalid parameters: {exc}') from None
+        unknown = unknown_parameter_names(overrides)
+        if unknown:
+            self.get_logger().warning(
+                f'ignoring unknown parameter(s) {unknown} (a typo in the params file?); '
+                f'known: {sorted(PARAM_SPEC_BY_NAME)}'
+            )
         return params
 
     @staticmethod
@@ -525,9 +541,70 @@ def warm_up_cloud(types: MessageTypes, height: int = 12, width: int = 16) -> Any
                               field_class=types.PointField)
 
 
+def usage() -> str:
+    """The text of ``extractor --help``: topics, parameters with defaults and allowed values, how to start it."""
+    lines = [
+        'usage: ros2 run ppe_ros extractor [--ros-args [--params-file FILE.yaml] [-p NAME:=VALUE ...] '
+        '[-r points:=TOPIC ...]]',
+        '',
+        'Plane extraction (PPE) on organized sensor_msgs/PointCloud2 clouds.',
+        '',
+        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability)',
+        f'  out  {LABELED_POINTS_TOPIC} (sensor_msgs/PointCloud2: x y z label rgb)',
+        f'       {MARKERS_TOPIC} (visualization_msgs/MarkerArray)',
+        f'       {PLANE_TABLE_TOPIC} (sensor_msgs/PointCloud2, one point per plane)',
+        f'       {DIAGNOSTICS_TOPIC} (diagnostic_msgs/DiagnosticArray, about 1 Hz)',
+        '',
+        'parameters (config/extractor.yaml lists them all; change at runtime with ros2 param set):',
+    ]
+    for spec in PARAM_SPECS:
+        default = spec.default
+        if isinstance(default, bool):
+            shown = str(default).lower()
+        elif isinstance(default, tuple):
+            shown = f'[{", ".join(map(str, default))}]'
+        else:
+            shown = '.inf' if default == math.inf else str(default)
+        allowed = f'; {spec.constraints()}' if spec.constraints() else ''
+        lines.append(f'  {spec.name} (default {shown}{allowed}): {spec.description}')
+    lines += ['', 'Exit codes: 0 stopped by SIGINT/SIGTERM, 2 invalid parameters or ROS arguments.']
+    return '\n'.join(lines)
+
+
+def _non_ros_arguments(argv: list[str]) -> list[str]:
+    """The arguments outside ``--ros-args ... [--]`` (without the program name)."""
+    rest, inside = [], False
+    for argument in argv[1:]:
+        if argument == '--ros-args':
+            inside = True
+        elif inside and argument == '--':
+            inside = False
+        elif not inside:
+            rest.append(argument)
+    return rest
+
+
 def main(args: list[str] | None = None) -> int:
-    """Entry point of ``ros2 run ppe_ros extractor``; exit code 0 on SIGINT/SIGTERM, 2 on bad parameters."""
-    rclpy.init(args=args)
+    """Entry point of ``ros2 run ppe_ros extractor``.
+
+    Exit code 0 on SIGINT/SIGTERM (and for ``--help``), 2 on invalid parameters or ROS arguments
+    (e.g. an unreadable ``--params-file``).
+    """
+    argv = list(sys.argv if args is None else args)
+    extra = _non_ros_arguments(argv)
+    if '-h' in extra or '--help' in extra:
+        print(usage())
+        return 0
+    if extra:
+        print(f'extractor: warning: ignoring arguments {extra} (ROS arguments go after --ros-args; see --help)',
+              file=sys.stderr)
+    from rclpy._rclpy_pybind11 import RCLError
+
+    try:
+        rclpy.init(args=argv)
+    except RCLError as exc:
+        print(f'extractor: error: invalid ROS arguments: {exc}', file=sys.stderr)
+        return 2
     node = None
     exit_code = 0
     try:
