@@ -7,8 +7,9 @@ classes. The planes are found once, untimed.
 
 Input (``--cloud``): by default a synthetic 128 x 1024 spinning-lidar scan of a 28-sided room with
 floor and ceiling: 30 planes fitted to the true faces, 98 % of pixels planar (the worst case for
-the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` with the planes that
-``extract_planes`` finds (about a thousand small ones: the worst case for the number of markers).
+the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` (or
+``$PPE_SHARED_DATA/ouster``) with the planes that ``extract_planes`` finds (about a thousand small
+ones: the worst case for the number of markers).
 
     .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster] [--params FILE.yaml]
 
@@ -42,7 +43,7 @@ from ppe_ros.ros.processing import (
     cloud_points,
 )
 
-OUSTER = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'ouster'
+OUSTER = Path(os.environ.get('PPE_SHARED_DATA', Path(__file__).resolve().parents[2] / 'shared' / 'data')) / 'ouster'
 OUSTER_FILE = 'OS-1-128_v2.3.0_1024x10_lb_n3_frame1795_xyz_m.npy'
 BUDGET_MS = 15.0
 
