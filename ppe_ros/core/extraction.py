@@ -331,10 +331,11 @@ def _point_terms(endpoints, directions, k, w0, w1, w2):
     vy = directions[k, 1]
     vz = directions[k, 2]
     den = w0 * vx + w1 * vy + w2 * vz
-    f = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) / den
-    g0 = (endpoints[k, 0] - f * vx) / den
-    g1 = (endpoints[k, 1] - f * vy) / den
-    g2 = (endpoints[k, 2] - f * vz) / den
+    inv_den = 1.0 / den
+    f = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
+    g0 = (endpoints[k, 0] - f * vx) * inv_den
+    g1 = (endpoints[k, 1] - f * vy) * inv_den
+    g2 = (endpoints[k, 2] - f * vz) * inv_den
     return f, g0, g1, g2
 
 
@@ -490,7 +491,8 @@ def _sse_rays(endpoints, directions, idx, count, w0, w1, w2):
     for t in range(count):
         k = idx[t]
         den = w0 * directions[k, 0] + w1 * directions[k, 1] + w2 * directions[k, 2]
-        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) / den
+        inv_den = 1.0 / den
+        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
         sse += res * res
     return sse
 

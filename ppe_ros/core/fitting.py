@@ -33,37 +33,28 @@ FIT_MAX_ITERATIONS = 50
 
 @nb.njit(cache=True, inline='always')
 def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
-    """Solve the symmetric positive definite 3x3 system A x = b (Jacobi-scaled Cholesky).
+    """Solve the symmetric positive definite 3x3 system A x = b (adjugate, one division).
 
+    Positive definiteness is tested on the Jacobi-scaled matrix D^-1/2 A D^-1/2 (unit diagonal):
+    its leading 2x2 minor and its determinant must exceed 1e-15 (the squared pivots of its
+    Cholesky factor), so the test does not depend on the units of A.
     Returns (x0, x1, x2, ok); ok is False when A is not numerically positive definite.
     """
     if not (a00 > 0.0 and a11 > 0.0 and a22 > 0.0):
         return 0.0, 0.0, 0.0, False
-    s0 = 1.0 / np.sqrt(a00)
-    s1 = 1.0 / np.sqrt(a11)
-    s2 = 1.0 / np.sqrt(a22)
-    # scaled matrix has unit diagonal
-    c01 = a01 * s0 * s1
-    c02 = a02 * s0 * s2
-    c12 = a12 * s1 * s2
-    l11 = 1.0 - c01 * c01
-    if l11 <= 1e-15:
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    # scaled minor c22 / (a00 a11) > 1e-15 and scaled det / scaled minor = det / (a22 c22) > 1e-15
+    if not (c22 > 1e-15 * a00 * a11 and det > 1e-15 * a22 * c22):
         return 0.0, 0.0, 0.0, False
-    l11 = np.sqrt(l11)
-    l21 = (c12 - c02 * c01) / l11
-    l22 = 1.0 - c02 * c02 - l21 * l21
-    if l22 <= 1e-15:
-        return 0.0, 0.0, 0.0, False
-    l22 = np.sqrt(l22)
-    # forward substitution L y = s*b  (L: [1,0,0],[c01,l11,0],[c02,l21,l22])
-    y0 = b0 * s0
-    y1 = (b1 * s1 - c01 * y0) / l11
-    y2 = (b2 * s2 - c02 * y0 - l21 * y1) / l22
-    # back substitution L^T z = y
-    z2 = y2 / l22
-    z1 = (y1 - l21 * z2) / l11
-    z0 = y0 - c01 * z1 - c02 * z2
-    return z0 * s0, z1 * s1, z2 * s2, True
+    inv = 1.0 / det
+    return ((c00 * b0 + c01 * b1 + c02 * b2) * inv, (c01 * b0 + c11 * b1 + c12 * b2) * inv,
+            (c02 * b0 + c12 * b1 + c22 * b2) * inv, True)
 
 
 @nb.njit(cache=True)
@@ -103,67 +94,78 @@ def _linear_init(endpoints, idx, count):
 
 
 @nb.njit(cache=True)
+def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
+    """One pass over rays idx[:count] at w: SSE, Gauss-Newton information J^T J (6) and J^T r (3)."""
+    sse = 0.0
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    b0 = b1 = b2 = 0.0
+    for t in range(count):
+        k = idx[t]
+        vx = directions[k, 0]
+        vy = directions[k, 1]
+        vz = directions[k, 2]
+        px = endpoints[k, 0]
+        py = endpoints[k, 1]
+        pz = endpoints[k, 2]
+        den = w0 * vx + w1 * vy + w2 * vz
+        inv_den = 1.0 / den
+        res = (w0 * px + w1 * py + w2 * pz - 1.0) * inv_den
+        sse += res * res
+        # d res / d w = (p - res v) / (w . v)
+        g0 = (px - res * vx) * inv_den
+        g1 = (py - res * vy) * inv_den
+        g2 = (pz - res * vz) * inv_den
+        a00 += g0 * g0
+        a01 += g0 * g1
+        a02 += g0 * g2
+        a11 += g1 * g1
+        a12 += g1 * g2
+        a22 += g2 * g2
+        b0 += g0 * res
+        b1 += g1 * res
+        b2 += g2 * res
+    return sse, a00, a01, a02, a11, a12, a22, b0, b1, b2
+
+
+@nb.njit(cache=True)
 def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """Minimise the radial SSE over w from the start (w0, w1, w2).
 
+    Each iteration is one pass over the rays: the pass at a trial point gives its SSE (accept or
+    halve the step) and, when accepted, the next Gauss-Newton system. Converged when the
+    Gauss-Newton predicted decrease b^T H^-1 b (the decrease of the linearised SSE, which bounds
+    how far the SSE is above its minimum to second order) is at most ``relative_tolerance * sse``.
+
     Returns (sse, w0, w1, w2, converged). sse is inf when the fit is degenerate.
     """
-    sse = _sse_at(endpoints, directions, idx, count, w0, w1, w2)
+    sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = _gn_pass(endpoints, directions, idx, count, w0, w1, w2)
     if not np.isfinite(sse):
         return np.inf, w0, w1, w2, False
     for _ in range(max_iterations):
-        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-        b0 = b1 = b2 = 0.0
-        for t in range(count):
-            k = idx[t]
-            vx = directions[k, 0]
-            vy = directions[k, 1]
-            vz = directions[k, 2]
-            px = endpoints[k, 0]
-            py = endpoints[k, 1]
-            pz = endpoints[k, 2]
-            den = w0 * vx + w1 * vy + w2 * vz
-            res = (w0 * px + w1 * py + w2 * pz - 1.0) / den
-            # d res / d w = (p - res v) / (w . v)
-            g0 = (px - res * vx) / den
-            g1 = (py - res * vy) / den
-            g2 = (pz - res * vz) / den
-            a00 += g0 * g0
-            a01 += g0 * g1
-            a02 += g0 * g2
-            a11 += g1 * g1
-            a12 += g1 * g2
-            a22 += g2 * g2
-            b0 += g0 * res
-            b1 += g1 * res
-            b2 += g2 * res
         d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
         if not ok:
             return sse, w0, w1, w2, False
-        # Gauss-Newton predicted decrease b^T H^-1 b: converged when negligible
         predicted = d0 * b0 + d1 * b1 + d2 * b2
         if not predicted > relative_tolerance * sse:
             return sse, w0, w1, w2, True
         step = 1.0
         improved = False
-        new_sse = sse
         for _halving in range(30):
             n0 = w0 - step * d0
             n1 = w1 - step * d1
             n2 = w2 - step * d2
-            new_sse = _sse_at(endpoints, directions, idx, count, n0, n1, n2)
-            if new_sse <= sse:
+            trial = _gn_pass(endpoints, directions, idx, count, n0, n1, n2)
+            if trial[0] <= sse:
                 improved = True
                 break
             step *= 0.5
         if not improved:
             return sse, w0, w1, w2, True
-        decrease = sse - new_sse
         w0, w1, w2 = n0, n1, n2
-        sse = new_sse
+        sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = trial
         wn = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         dn = step * np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        if decrease <= relative_tolerance * sse or dn <= 1e-15 * wn:
+        if dn <= 1e-15 * wn:
             return sse, w0, w1, w2, True
     return sse, w0, w1, w2, False
 
@@ -197,10 +199,11 @@ def _gn_information(endpoints, directions, idx, count, w0, w1, w2, out):
         vy = directions[k, 1]
         vz = directions[k, 2]
         den = w0 * vx + w1 * vy + w2 * vz
-        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) / den
-        g0 = (endpoints[k, 0] - res * vx) / den
-        g1 = (endpoints[k, 1] - res * vy) / den
-        g2 = (endpoints[k, 2] - res * vz) / den
+        inv_den = 1.0 / den
+        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
+        g0 = (endpoints[k, 0] - res * vx) * inv_den
+        g1 = (endpoints[k, 1] - res * vy) * inv_den
+        g2 = (endpoints[k, 2] - res * vz) * inv_den
         out[0] += g0 * g0
         out[1] += g0 * g1
         out[2] += g0 * g2
