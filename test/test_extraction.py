@@ -612,3 +612,24 @@ def test_covariance_of_the_closest_point_matches_monte_carlo():
     ratios = np.einsum('ij,jk,ki->i', axes.T, sample, axes) / values
     assert np.all((ratios > 0.75) & (ratios < 1.33)), f'Monte-Carlo / reported variance per axis: {ratios}'
     assert np.linalg.norm(sample - model) < 0.25 * np.linalg.norm(model)
+
+
+@pytest.mark.parametrize('name, rows, cols', [('pc_01', slice(250, 350), slice(200, 300)),
+                                              ('pc_02', slice(0, 100), slice(300, 400)),
+                                              ('pc_02', slice(None, None, 5), slice(None, None, 5))])
+def test_default_settings_segment_synpeb_crops_like_exact_settings(shared_data, name, rows, cols):
+    """On 100 x 100 pieces of the benchmark scans (the whole scans are too large for exact settings,
+    whose cost grows with the square of the plane size) the default settings' segmentation at the
+    paper's parameters matches the exact ordering's and scores the same against the ground truth."""
+    from ppe_ros.core.evaluation import score_segmentation
+    from ppe_ros.io import load_scan
+
+    scan = load_scan(shared_data / 'synpeb' / f'{name}.pcd')
+    points, truth = scan.points[rows, cols], scan.labels[rows, cols]
+    settings = {'max_neighbor_distance': 0.18, 'max_error_increment': 0.0484}
+    fast = extract_plane_hierarchy(points, **settings).cut(max_error_increment=0.0484)
+    exact = extract_plane_hierarchy(points, **settings, **EXACT).cut(max_error_increment=0.0484)
+    # measured (docs/algorithm.md): 5, 22 and 40 pixels of 10000
+    assert partition_difference(fast.labels, exact.labels) <= 100
+    correct = [score_segmentation(planes.labels, truth).n_correct for planes in (fast, exact)]
+    assert abs(correct[0] - correct[1]) <= 1, f'correct planes, default / exact settings: {correct}'

@@ -76,6 +76,8 @@ DEFAULT_EXACT_PLANE_SIZE = 32
 RELINEARISATION_DRIFT = 1e-3
 #: Model merge increments above this multiple of the stopping threshold are not queued.
 MODEL_CUTOFF_FACTOR = 4.0
+#: Model merge increments are queued this fraction below their value (refined exactly when popped).
+MODEL_MERGE_KEY_MARGIN = 0.05
 #: Relative slack subtracted from cached lower bounds (round-off and model error).
 BOUND_SLACK = 1e-7
 
@@ -511,7 +513,7 @@ def _grow_f(arr, new_rows):
 
 @nb.njit(cache=True)
 def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse,
-                exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack):
+                exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment) and its length.
 
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
@@ -1048,7 +1050,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
                 else:
-                    inc = _model_merge(pf, a, b)[0]
+                    # queued below its model value so that it is refined (exactly) before any
+                    # action it could precede even where the model overestimates the increment
+                    inc = _model_merge(pf, a, b)[0] * model_key_factor
                     gkind = _G_MERGE_MODEL
                 if inc < 0.0:
                     inc = 0.0
@@ -1244,7 +1248,7 @@ def extract_plane_hierarchy(
     kinds, a_ids, b_ids, incs, stats = _ppe_kernel(
         scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
         TETROMINO_OFFSETS, seed_sse, int(exact_plane_size), int(exact_merge_size), float(relinearisation_drift),
-        stop_increment, stop_count, BOUND_SLACK,
+        stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN,
     )
     seconds = time.perf_counter() - start
     actions = np.empty(len(kinds), ACTION_DTYPE)
