@@ -194,34 +194,42 @@ def _g_less(gkey, gint, i, j):
     return gint[i, 2] < gint[j, 2]
 
 
-@nb.njit(cache=True)
-def _g_swap(gkey, gint, i, j):
-    tk = gkey[i]
-    gkey[i] = gkey[j]
-    gkey[j] = tk
+@nb.njit(cache=True, inline='always')
+def _g_before(key, kind, a, b, gkey, gint, j):
+    """True when the entry (key, kind, a, b) comes before heap slot j."""
+    if key != gkey[j]:
+        return key < gkey[j]
+    if kind != gint[j, 0]:
+        return kind < gint[j, 0]
+    if a != gint[j, 1]:
+        return a < gint[j, 1]
+    return b < gint[j, 2]
+
+
+@nb.njit(cache=True, inline='always')
+def _g_move(gkey, gint, dst, src):
+    gkey[dst] = gkey[src]
     for c in range(5):
-        t = gint[i, c]
-        gint[i, c] = gint[j, c]
-        gint[j, c] = t
+        gint[dst, c] = gint[src, c]
 
 
 @nb.njit(cache=True)
 def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     """Push an entry; the caller guarantees capacity. Returns the new size."""
     i = size
+    while i > 0:
+        parent = (i - 1) >> 1
+        if _g_before(key, kind, a, b, gkey, gint, parent):
+            _g_move(gkey, gint, i, parent)
+            i = parent
+        else:
+            break
     gkey[i] = key
     gint[i, 0] = kind
     gint[i, 1] = a
     gint[i, 2] = b
     gint[i, 3] = va
     gint[i, 4] = vb
-    while i > 0:
-        parent = (i - 1) >> 1
-        if _g_less(gkey, gint, i, parent):
-            _g_swap(gkey, gint, i, parent)
-            i = parent
-        else:
-            break
     return size + 1
 
 
@@ -229,21 +237,33 @@ def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
 def _g_pop(gkey, gint, size):
     """Remove the minimum (moved to index size-1, where the caller reads it). Returns the new size."""
     last = size - 1
-    _g_swap(gkey, gint, 0, last)
+    # the former last entry sifts down from the root through a hole
+    key = gkey[last]
+    kind = gint[last, 0]
+    a = gint[last, 1]
+    b = gint[last, 2]
+    va = gint[last, 3]
+    vb = gint[last, 4]
+    _g_move(gkey, gint, last, 0)
     i = 0
     while True:
-        left = 2 * i + 1
-        if left >= last:
+        child = 2 * i + 1
+        if child >= last:
             break
-        child = left
-        right = left + 1
-        if right < last and _g_less(gkey, gint, right, left):
+        right = child + 1
+        if right < last and _g_less(gkey, gint, right, child):
             child = right
-        if _g_less(gkey, gint, child, i):
-            _g_swap(gkey, gint, child, i)
-            i = child
-        else:
+        if _g_before(key, kind, a, b, gkey, gint, child):
             break
+        _g_move(gkey, gint, i, child)
+        i = child
+    if last > 0:
+        gkey[i] = key
+        gint[i, 0] = kind
+        gint[i, 1] = a
+        gint[i, 2] = b
+        gint[i, 3] = va
+        gint[i, 4] = vb
     return last
 
 
