@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -26,6 +26,9 @@ PPE_DEFAULT_MAX_ERROR_INCREMENT = 0.0484
 
 ERROR_GRID = tuple((0.02 * i) ** 2 for i in range(1, 51))
 """The reference's e grid (m^2): ``(0.02:0.02:1)^2``."""
+
+LEVEL_MATCH_TOLERANCE = 5e-5
+"""Per-level parameters apply to scans whose radial sigma is within this many metres (0.05 mm)."""
 
 
 class MethodUnavailable(RuntimeError):
@@ -75,6 +78,10 @@ class PlaneMethod:
         """Segment an organized ``(H, W, 3)`` scan (metres, NaN = no return) into planes."""
         raise NotImplementedError
 
+    def for_noise(self, radial_sigma: float | None) -> PlaneMethod:
+        """The method to run on scans of this radial noise (m; None = unknown): ``self`` unless per-level params."""
+        return self
+
     def describe(self) -> str:
         """``name (key=value, ...)``."""
         params = ', '.join(f'{k}={_format_value(v)}' for k, v in self.parameters().items())
@@ -86,6 +93,8 @@ def _format_value(value: Any) -> str:
         return f'{value:.6g}'
     if isinstance(value, list | tuple):
         return '[' + ', '.join(_format_value(v) for v in value) + ']'
+    if isinstance(value, dict):
+        return '{' + ', '.join(f'{k}={_format_value(v)}' for k, v in value.items()) + '}'
     return str(value)
 
 
@@ -106,6 +115,10 @@ class PpeMethod(PlaneMethod):
         sweep_errors: also return the labels of these e values (m^2) from the same run (for the
             f-over-sqrt(e) curve and tuning); the run then continues up to the largest of them,
             and ``seconds`` includes that.
+        level_params: per radial noise level: ``{sigma (m): (lmax (m), e (m^2))}`` used instead of
+            the two above on scans of that noise (matched within :data:`LEVEL_MATCH_TOLERANCE`),
+            e.g. parameters tuned on each level's train split. Scans of other or unknown noise use
+            the two above.
     """
 
     name = 'ppe'
@@ -113,7 +126,8 @@ class PpeMethod(PlaneMethod):
 
     def __init__(self, max_neighbor_distance: float = PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE,
                  max_error_increment: float = PPE_DEFAULT_MAX_ERROR_INCREMENT, *, min_plane_points: int = 4,
-                 sweep_errors: Sequence[float] | None = None) -> None:
+                 sweep_errors: Sequence[float] | None = None,
+                 level_params: Mapping[float, tuple[float, float]] | None = None) -> None:
         self.max_neighbor_distance = _check_positive(max_neighbor_distance, 'max_neighbor_distance (lmax, m)',
                                                      allow_inf=True)
         self.max_error_increment = float(max_error_increment)
@@ -125,10 +139,28 @@ class PpeMethod(PlaneMethod):
         self.sweep_errors = None if sweep_errors is None else tuple(float(e) for e in sweep_errors)
         if self.sweep_errors is not None and any(not (math.isfinite(e) and e >= 0) for e in self.sweep_errors):
             raise ValueError(f'sweep_errors must be finite values >= 0 (m^2); got {sweep_errors}')
+        self._levels: dict[float, PpeMethod] = {}
+        for sigma, (lmax, error) in sorted((level_params or {}).items()):
+            if not (math.isfinite(sigma) and sigma >= 0.0):
+                raise ValueError(f'level_params: radial sigma must be finite and >= 0 (m); got {sigma!r}')
+            if any(abs(sigma - known) <= LEVEL_MATCH_TOLERANCE for known in self._levels):
+                raise ValueError(f'level_params: two entries for radial sigma {sigma * 1000:g} mm')
+            self._levels[float(sigma)] = PpeMethod(lmax, error, min_plane_points=self.min_plane_points,
+                                                   sweep_errors=self.sweep_errors)
 
     def parameters(self) -> dict[str, Any]:
-        return {'lmax': self.max_neighbor_distance, 'e': self.max_error_increment,
-                'sqrt_e': math.sqrt(self.max_error_increment)}
+        params: dict[str, Any] = {'lmax': self.max_neighbor_distance, 'e': self.max_error_increment,
+                                  'sqrt_e': math.sqrt(self.max_error_increment)}
+        for sigma, method in self._levels.items():
+            params[f'at {sigma * 1000:g} mm'] = method.parameters()
+        return params
+
+    def for_noise(self, radial_sigma: float | None) -> PpeMethod:
+        if radial_sigma is not None:
+            for sigma, method in self._levels.items():
+                if abs(radial_sigma - sigma) <= LEVEL_MATCH_TOLERANCE:
+                    return method
+        return self
 
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
         from ppe_ros.core.extraction import extract_plane_hierarchy
@@ -172,6 +204,20 @@ def hierarchy_labels(hierarchy, max_error_increment: float, min_plane_points: in
     return labels.reshape(hierarchy.scan.height, hierarchy.scan.width)
 
 
+class PpePaperMethod(PpeMethod):
+    """PPE with the reference's parameters tuned on SynPEB (lmax 0.18 m, e 0.0484 m^2), one extraction, no sweep.
+
+    Shown beside the tuned ``ppe`` row: the paper's setting on this data without any tuning.
+    """
+
+    name = 'ppe-paper'
+    description = "PPE with the paper's SynPEB parameters (lmax 0.18 m, e 0.0484 m^2)"
+
+    def __init__(self, *, min_plane_points: int = 4) -> None:
+        super().__init__(PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE, PPE_DEFAULT_MAX_ERROR_INCREMENT,
+                         min_plane_points=min_plane_points)
+
+
 class MsacMethod(PlaneMethod):
     """The paper's baseline: sequential MSAC (:func:`ppe_ros.core.msac.extract_planes_msac`).
 
@@ -208,7 +254,7 @@ def method_names() -> tuple[str, ...]:
     """Every known method name (available or not)."""
     from ppe_ros.benchmark.peers import PEERS
 
-    return ('ppe', 'msac', *PEERS)
+    return ('ppe', 'ppe-paper', 'msac', *PEERS)
 
 
 def make_method(name: str, **params) -> PlaneMethod:
@@ -219,7 +265,8 @@ def make_method(name: str, **params) -> PlaneMethod:
     """
     from ppe_ros.benchmark.peers import PEERS
 
-    classes: dict[str, type[PlaneMethod]] = {'ppe': PpeMethod, 'msac': MsacMethod, **PEERS}
+    classes: dict[str, type[PlaneMethod]] = {'ppe': PpeMethod, 'ppe-paper': PpePaperMethod, 'msac': MsacMethod,
+                                             **PEERS}
     if name not in classes:
         raise ValueError(f'unknown method {name!r}; known: {", ".join(classes)}')
     return classes[name](**params)

@@ -119,8 +119,8 @@ def score_prediction(points: np.ndarray, origins: np.ndarray | None, gt_labels: 
 
 
 def run_method_on_scan(method: PlaneMethod, scan: LabelledScan) -> ScanResult:
-    """Segment one scan with one method and score it (and its sweep, if any)."""
-    segmentation: Segmentation = method.segment(scan.points, scan.origins)
+    """Segment one scan with one method (its parameters for the scan's noise level) and score it (and its sweep)."""
+    segmentation: Segmentation = method.for_noise(scan.radial_sigma).segment(scan.points, scan.origins)
     score = score_prediction(scan.points, scan.origins, scan.labels, segmentation.labels,
                              gt_min_label=scan.gt_min_label, residuals=segmentation.residuals)
     sweep_correct = None

@@ -27,10 +27,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         'eval',
         help='benchmark PPE against MSAC and peers on a data set',
         description='Run the methods on a data set made by `ppe dataset make` (and on extra labelled scans), score '
-        'them with the paper\'s metrics and print the paper\'s table per noise level (f %%, k %%, RMSE mm, n_o, n_u, '
-        'n_m, n_s, seconds per scan). Writes the tables as markdown (with the command, the machine and the date) and '
-        'a PNG of PPE\'s f over sqrt(e) per noise level. Methods whose optional package is missing are skipped with '
-        'the reason.',
+        'them with the paper\'s metrics and print the paper\'s table per noise level (f %, k %, k over all rays '
+        '%, RMSE mm, n_o, n_u, n_m, n_s, seconds per scan). Writes the tables as markdown (with the command, the '
+        'machine and the date) and a PNG of PPE\'s f over sqrt(e) per noise level. Methods whose optional package '
+        'is missing are skipped with the reason.',
     )
     parser.add_argument('dataset', help='data set directory (with dataset.json)')
     parser.add_argument('--methods', nargs='+', default=list(DEFAULT_METHODS), metavar='NAME',
@@ -40,12 +40,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument('--noise', type=float, nargs='+', default=None, metavar='MM',
                         help='radial noise levels in mm to evaluate, e.g. 14.1 20 (default: all levels)')
     parser.add_argument('--max-scans', type=int, default=None, metavar='N', help='at most N scans per level')
-    parser.add_argument('--params', default=None, metavar='YAML',
-                        help='PPE parameters from a params file (as written by `ppe tune`)')
+    parser.add_argument('--params', nargs='+', default=[], metavar='[MM=]YAML',
+                        help='PPE parameters from params files (as written by `ppe tune`): a plain YAML applies to '
+                        'every scan, MM=YAML only to the noise level of radial sigma MM mm (e.g. --params '
+                        'tuned_14.1mm.yaml 20=tuned_20mm.yaml)')
     parser.add_argument('--lmax', type=positive_float, default=None,
-                        help=f'PPE lmax in m (default {PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE}, or from --params)')
+                        help=f'PPE lmax in m (default {PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE}, or from a plain --params; '
+                        'MM=YAML levels keep theirs)')
     parser.add_argument('-e', '--max-error-increment', type=non_negative_float, default=None, metavar='E',
-                        help=f'PPE e in m^2 (default {PPE_DEFAULT_MAX_ERROR_INCREMENT}, or from --params)')
+                        help=f'PPE e in m^2 (default {PPE_DEFAULT_MAX_ERROR_INCREMENT}, or from a plain --params; '
+                        'MM=YAML levels keep theirs)')
     parser.add_argument('--msac-distance', type=positive_float, default=0.034, help='MSAC/Open3D inlier distance (m)')
     parser.add_argument('--msac-fraction', type=float, default=0.03,
                         help='MSAC/Open3D: stop when this fraction of the points is left (default 0.03)')
@@ -66,20 +70,51 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def ppe_parameters(args: argparse.Namespace) -> tuple[float, float]:
-    """(lmax, e): command line, else --params, else the reference's SynPEB values."""
-    lmax, error = PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE, PPE_DEFAULT_MAX_ERROR_INCREMENT
-    if args.params:
-        from ppe_ros.benchmark.tuning import read_params_yaml
+def split_params_argument(entry: str) -> tuple[float | None, str]:
+    """``'20=tuned.yaml'`` -> (0.020 m, 'tuned.yaml'); ``'tuned.yaml'`` -> (None, 'tuned.yaml').
 
-        params = read_params_yaml(args.params)
+    Raises:
+        ValueError: ``MM=`` that is not a non-negative number of millimetres.
+    """
+    head, sep, tail = entry.partition('=')
+    if not sep:
+        return None, entry
+    try:
+        sigma_mm = float(head)
+    except ValueError:
+        raise ValueError(f'--params {entry!r}: expected YAML or MM=YAML with MM the radial sigma in mm') from None
+    if not (sigma_mm >= 0.0 and sigma_mm < float('inf')) or not tail:
+        raise ValueError(f'--params {entry!r}: expected YAML or MM=YAML with MM the radial sigma in mm')
+    return sigma_mm / 1000.0, tail
+
+
+def ppe_parameters(args: argparse.Namespace) -> tuple[float, float, dict[float, tuple[float, float]]]:
+    """(lmax, e, per-level {sigma m: (lmax, e)}): command line, else a plain --params, else the reference's values.
+
+    Raises:
+        ValueError: more than one plain --params file.
+    """
+    from ppe_ros.benchmark.tuning import read_params_yaml
+
+    lmax, error = PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE, PPE_DEFAULT_MAX_ERROR_INCREMENT
+    entries = [split_params_argument(entry) for entry in args.params]
+    plain = [path for sigma, path in entries if sigma is None]
+    if len(plain) > 1:
+        raise ValueError(f'at most one --params file without MM= (for every scan); got {", ".join(plain)}')
+    if plain:
+        params = read_params_yaml(plain[0])
         lmax = params.get('max_neighbor_distance', lmax)
         error = params.get('max_error_increment', error)
     if args.lmax is not None:
         lmax = args.lmax
     if args.max_error_increment is not None:
         error = args.max_error_increment
-    return lmax, error
+    levels = {}
+    for sigma, path in entries:
+        if sigma is not None:
+            params = read_params_yaml(path)
+            levels[sigma] = (params.get('max_neighbor_distance', lmax), params.get('max_error_increment', error))
+    return lmax, error, levels
 
 
 def canonical_command(args: argparse.Namespace) -> str:
@@ -90,7 +125,7 @@ def canonical_command(args: argparse.Namespace) -> str:
     if args.max_scans is not None:
         parts += ['--max-scans', str(args.max_scans)]
     if args.params:
-        parts += ['--params', args.params]
+        parts += ['--params', *args.params]
     if args.lmax is not None:
         parts += ['--lmax', f'{args.lmax:g}']
     if args.max_error_increment is not None:
@@ -113,12 +148,13 @@ def canonical_command(args: argparse.Namespace) -> str:
     return shlex.join(parts)
 
 
-def build_methods(args: argparse.Namespace, lmax: float, error: float) -> list:
+def build_methods(args: argparse.Namespace, lmax: float, error: float,
+                  levels: dict[float, tuple[float, float]] | None = None) -> list:
     methods = []
     for name in dict.fromkeys(args.methods):
         if name == 'ppe':
             methods.append(make_method('ppe', max_neighbor_distance=lmax, max_error_increment=error,
-                                       sweep_errors=None if args.no_sweep else ERROR_GRID))
+                                       sweep_errors=None if args.no_sweep else ERROR_GRID, level_params=levels))
         elif name in ('msac', 'open3d'):
             methods.append(make_method(name, distance=args.msac_distance, fraction=args.msac_fraction, seed=args.seed))
         else:
@@ -139,9 +175,27 @@ def dataset_note(directory: str, manifest: dict, split: str) -> str:
             f"{split} scan on average). Split evaluated: **{split}**.")
 
 
+def kept_after_report(path: Path) -> str:
+    """The part of an existing report after :data:`REPORT_END` (kept when the report is written again)."""
+    from ppe_ros.benchmark.report import REPORT_END
+
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return ''
+    _, sep, tail = text.partition(REPORT_END + '\n')
+    return tail if sep else ''
+
+
 def run(args: argparse.Namespace) -> int:
     from ppe_ros.benchmark.report import format_table, markdown_report, plot_sweeps
-    from ppe_ros.benchmark.runner import dataset_scans, evaluate, load_labelled_scan, load_previous_results
+    from ppe_ros.benchmark.runner import (
+        available_methods,
+        dataset_scans,
+        evaluate,
+        load_labelled_scan,
+        load_previous_results,
+    )
 
     unknown = [m for m in args.methods if m not in method_names()]
     if unknown:
@@ -158,8 +212,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError('refusing to overwrite an input scan with an output')
     previous = load_previous_results(args.reuse) if args.reuse else None
     manifest = read_manifest(args.dataset)
-    lmax, error = ppe_parameters(args)
-    methods = build_methods(args, lmax, error)
+    lmax, error, levels = ppe_parameters(args)
+    methods = build_methods(args, lmax, error, levels)
 
     extra_groups, scans = [], []
     for path in args.extra:  # the few extra scans first, then the data set level by level
@@ -179,7 +233,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(scans) * len(methods), unit='run', file=sys.stderr, desc='ppe eval')
+        usable, _ = available_methods(methods)  # skipped methods do not run: not in the bar's total
+        bar = tqdm(total=len(scans) * len(usable), unit='run', file=sys.stderr, desc='ppe eval')
     try:
         evaluation = evaluate(scans, methods, previous=previous, checkpoint=save_raw if args.raw else None,
                               progress=(lambda text: (bar.set_postfix_str(text), bar.update(1))) if bar else None)
@@ -204,8 +259,13 @@ def run(args: argparse.Namespace) -> int:
                 curves[group] = curve
     plot_name = None
     if curves:
-        plot_sweeps(plot, curves, marks={f'e = {error:g} m²': error},
-                    title=f'PPE on the {args.split} split: f over sqrt(e) (lmax = {lmax:g} m)')
+        marks = {f'e = {error:g} m²': error}
+        for sigma, (_, level_error) in levels.items():
+            if level_error != error:
+                marks[f'e = {level_error:g} m² (σ {sigma * 1000:g} mm)'] = level_error
+        lmaxes = {lmax, *(level_lmax for level_lmax, _ in levels.values())}
+        lmax_text = f'lmax = {lmax:g} m' if len(lmaxes) == 1 else 'lmax per level as in the tables'
+        plot_sweeps(plot, curves, marks=marks, title=f'PPE on the {args.split} split: f over sqrt(e) ({lmax_text})')
         plot_name = plot.name if plot.parent.resolve() == out.parent.resolve() else str(plot)
     notes = []
     if previous:
@@ -218,15 +278,17 @@ def run(args: argparse.Namespace) -> int:
         for group, curve in curves.items():
             e_best = max(curve, key=lambda e: (curve[e], -e))
             best.append(f'{group}: best f {curve[e_best] * 100:.1f} % at sqrt(e) = {e_best ** 0.5:.2f} m')
-        notes.append('PPE\'s s/scan include running its hierarchy on to the largest e of the sweep (1 m²) and cutting '
-                     'it at every e; a single extraction at the chosen e takes about as long (most of the time goes '
-                     'into the first, small-increment actions).')
-        notes.append('PPE sweep over the e grid (same lmax; chosen on the evaluated split, for information only — '
-                     'parameters are tuned on the train split with `ppe tune`): ' + '; '.join(best) + '.')
+        single = (' `ppe-paper` runs a single extraction at its e without a sweep: its s/scan is the time of one '
+                  'extraction.' if any(m.name == 'ppe-paper' for m in evaluation.methods) else '')
+        notes.append('`ppe`\'s s/scan include running its hierarchy on to the largest e of the sweep (1 m²) and '
+                     'cutting it at every e.' + single)
+        notes.append('`ppe` sweep over the e grid (lmax as in the table; best e chosen on the evaluated split, for '
+                     'information only — parameters are tuned on the train split with `ppe tune`): '
+                     + '; '.join(best) + '.')
     text = markdown_report(evaluation, command=canonical_command(args),
                            dataset_note=dataset_note(args.dataset, manifest, args.split), extra_groups=extra_groups,
                            plot_name=plot_name, notes=notes)
-    out.write_text(text)
+    out.write_text(text + kept_after_report(out))
     print(f'\nwrote {out}' + (f' and {plot}' if plot_name else ''))
     if args.raw:
         save_raw(evaluation)
