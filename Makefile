@@ -24,7 +24,9 @@ test: venv
 	$(PY) -m pytest
 
 bench: venv
-	$(PY) benchmarks/run.py
+	$(PY) benchmarks/bench_extraction.py
+	$(PY) benchmarks/bench_node_overhead.py
+	$(PY) benchmarks/bench_bag.py
 
 clean:
 	rm -rf $(VENV) build install log demo-output .pytest_cache
