@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test lint bench clean
+.PHONY: venv demo test lint bench peers clean
 
 venv: $(STAMP)
 
@@ -22,6 +22,10 @@ demo: venv
 test: venv
 	$(VENV)/bin/ruff check ppe_ros test benchmarks
 	$(PY) -m pytest
+
+# optional peers of `ppe eval` (pinned in requirements.txt on the `# peers:` line)
+peers: venv
+	$(PY) -m pip install --quiet $$(sed -n 's/^# peers: //p' requirements.txt)
 
 bench: venv
 	$(PY) benchmarks/bench_extraction.py

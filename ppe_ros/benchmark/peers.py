@@ -2,8 +2,8 @@
 
 * ``open3d``: Open3D's ``PointCloud.segment_plane`` (RANSAC) applied iteratively, the common user
   recipe: detect a plane, remove its inliers, repeat until ``fraction`` of the pixels is left.
-  Install: ``pip install open3d`` (CPython 3.8-3.12 wheels, about 400 MB; on Debian/Ubuntu it
-  also needs ``apt-get install libusb-1.0-0``).
+  Install: ``make peers`` (the open3d pinned in requirements.txt; CPython 3.8-3.12 wheels, about
+  400 MB; on Debian/Ubuntu it also needs ``apt-get install libusb-1.0-0``).
 * ``open3d-patches``: Open3D's ``detect_planar_patches`` (robust planar patch detection on
   estimated normals); every point is given to the nearest returned patch within ``distance``
   of its plane and inside its oriented box.
@@ -47,7 +47,7 @@ class Open3dSegmentPlane(PlaneMethod):
 
     name = 'open3d'
     description = 'Open3D segment_plane applied iteratively (RANSAC)'
-    install = 'install it with: pip install open3d  (Debian/Ubuntu also: apt-get install libusb-1.0-0)'
+    install = 'install it with: make peers  (Debian/Ubuntu also: apt-get install libusb-1.0-0)'
 
     def __init__(self, distance: float = 0.034, fraction: float = 0.03, *, iterations: int = 1000, seed: int = 0,
                  max_planes: int | None = None) -> None:

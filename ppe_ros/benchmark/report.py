@@ -178,7 +178,8 @@ def markdown_report(evaluation: Evaluation, *, command: str, dataset_note: str, 
     methods = ', '.join(f'`{m.describe()}`' for m in evaluation.methods)
     lines += [f'Methods: {methods}.', '',
               'Peers are optional extras, imported only when asked for: Open3D (`open3d`, `open3d-patches`) needs '
-              '`pip install open3d` (about 400 MB; on Debian/Ubuntu also `apt-get install libusb-1.0-0`); Polylidar3D '
+              '`make peers` (pip installs the pinned open3d, about 400 MB; on Debian/Ubuntu also '
+              '`apt-get install libusb-1.0-0`); Polylidar3D '
               '(`polylidar`) has PyPI wheels for CPython ≤ 3.10 only. A peer that is not installed is skipped with '
               'the reason below.', '']
     for name, reason in evaluation.skipped.items():
