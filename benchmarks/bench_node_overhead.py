@@ -33,6 +33,7 @@ import numpy as np
 
 from ppe_ros.core.extraction import extract_planes
 from ppe_ros.core.fitting import fit_labeled_planes
+from ppe_ros.core.synthetic import polygon_room_lidar_scan
 from ppe_ros.ros.messages import StampedFrame, rclpy_message_types
 from ppe_ros.ros.pointcloud2 import FLOAT32, structured_to_pointcloud2
 from ppe_ros.ros.processing import (
@@ -62,24 +63,7 @@ def synthetic_room(height: int = 128, width: int = 1024, sides: int = 28,
 
     Returns ``(H, W, 3)`` points and ``(H, W)`` true face labels (0 = no return, faces 1..sides + 2).
     """
-    rng = np.random.default_rng(seed)
-    elevation = np.radians(np.linspace(22.5, -22.5, height))[:, None]
-    azimuth = np.linspace(0.0, 2 * np.pi, width, endpoint=False)[None, :]
-    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
-                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
-    angles = (np.arange(sides) + 0.5) * 2 * np.pi / sides
-    outward = np.concatenate([np.stack([np.cos(angles), np.sin(angles), np.zeros(sides)], 1),
-                              [[0, 0, 1.0], [0, 0, -1.0]]])
-    distances = np.concatenate([np.full(sides, 8.0), [2.5, 1.5]])
-    with np.errstate(divide='ignore'):
-        along = directions @ outward.T
-        distance = np.where(along > 1e-9, distances / along, np.inf)
-    labels = np.argmin(distance, axis=-1) + 1
-    hit = distance.min(axis=-1)
-    points = directions * (hit + rng.normal(0.0, 0.01, hit.shape))[..., None]
-    missing = rng.random(hit.shape) < 0.02
-    points[missing] = np.nan
-    labels[missing] = 0
+    points, labels, _, _ = polygon_room_lidar_scan(height, width, sides=sides, no_return_fraction=0.02, seed=seed)
     return points, labels
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.synthetic import polygon_room_lidar_scan
 from ppe_ros.ros.markers import (
     ARROW,
     DELETEALL,
@@ -49,28 +50,12 @@ def polygon_room(height: int = 128, width: int = 1024, sides: int = 28, seed: in
 
     Returns points (NaN = no return, 5 %), and a PlaneSet built from the true planes (sides + 2 of them).
     """
-    rng = np.random.default_rng(seed)
-    elevation = np.radians(np.linspace(22.5, -22.5, height))[:, None]
-    azimuth = np.linspace(0.0, 2 * np.pi, width, endpoint=False)[None, :]
-    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
-                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
-    angles = (np.arange(sides) + 0.5) * 2 * np.pi / sides
-    outward = np.concatenate([np.stack([np.cos(angles), np.sin(angles), np.zeros(sides)], 1),
-                              [[0, 0, 1.0], [0, 0, -1.0]]])
-    distances = np.concatenate([np.full(sides, 8.0), [2.5, 1.5]])
-    along = directions @ outward.T
-    with np.errstate(divide='ignore'):
-        hit = np.where(along > 1e-9, distances / along, np.inf)
-    labels = np.argmin(hit, axis=-1).astype(np.int32) + 1
-    ranges = hit.min(axis=-1) + rng.normal(0.0, 0.01, labels.shape)
-    points = directions * ranges[..., None]
-    dropped = rng.random(labels.shape) < 0.05
-    points[dropped] = np.nan
-    labels[dropped] = 0
-    num_planes = outward.shape[0]
+    points, labels, normals, offsets = polygon_room_lidar_scan(height, width, sides=sides, no_return_fraction=0.05,
+                                                               seed=seed)
+    num_planes = len(normals)
     counts = np.bincount(labels.ravel(), minlength=num_planes + 1)[1:]
     centroids = np.array([points[labels == j + 1].mean(axis=0) for j in range(num_planes)])
-    planes = PlaneSet(labels=labels, normals=-outward, offsets=-distances, centroids=centroids,
+    planes = PlaneSet(labels=labels, normals=normals, offsets=offsets, centroids=centroids,
                       point_counts=counts, sse=np.zeros(num_planes), rmse=np.zeros(num_planes),
                       covariances=np.zeros((num_planes, 3, 3)))
     return points, planes

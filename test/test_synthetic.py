@@ -532,3 +532,18 @@ def test_scene_validation():
         plane_scene(4)
     with pytest.raises(KeyError):
         plane_scene(2).face(99)
+
+
+def test_polygon_room_lidar_scan_points_lie_on_their_faces():
+    from ppe_ros.core.synthetic import polygon_room_lidar_scan
+
+    points, labels, normals, offsets = polygon_room_lidar_scan(16, 64, sides=6, noise=0.0, no_return_fraction=0.1)
+    assert points.shape == (16, 64, 3) and labels.shape == (16, 64) and normals.shape == (8, 3)
+    valid = labels > 0
+    assert np.array_equal(valid, np.isfinite(points).all(axis=2)) and 0.8 < valid.mean() < 0.97
+    distance = np.einsum('ij,ij->i', points[valid], normals[labels[valid] - 1]) - offsets[labels[valid] - 1]
+    assert np.abs(distance).max() < 1e-9
+    # normals face the sensor at the origin (offsets < 0 with n . x = d and the origin inside)
+    assert np.all(offsets < 0)
+    with pytest.raises(ValueError, match='sides'):
+        polygon_room_lidar_scan(sides=2)

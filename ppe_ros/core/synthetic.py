@@ -1343,3 +1343,48 @@ def plane_scan(
         ray_origins=ray_origins,
         min_region_pixels=min_region_pixels,
     )
+
+
+def polygon_room_lidar_scan(
+    height: int = 128,
+    width: int = 1024,
+    *,
+    sides: int = 28,
+    radius: float = 8.0,
+    ceiling: float = 2.5,
+    floor: float = 1.5,
+    noise: float = 0.01,
+    no_return_fraction: float = 0.02,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A spinning-lidar scan (sensor at the origin, elevation +22.5..-22.5 deg, full turn) of a
+    ``sides``-gon room: walls ``radius`` m from the sensor, ceiling ``ceiling`` m above, floor
+    ``floor`` m below. Fast, for node and marker workloads of lidar size.
+
+    Returns:
+        ``(points, labels, normals, offsets)``: ``(H, W, 3)`` points in metres with radial noise
+        ``noise`` (m) and NaN for the dropped ``no_return_fraction`` of the rays; ``(H, W)`` int32
+        true faces (0 = no return, walls 1..sides, then ceiling and floor); ``(sides + 2, 3)``
+        unit normals facing the sensor and offsets with ``normal . x = offset``.
+    """
+    if sides < 3:
+        raise ValueError(f'a polygon room needs sides >= 3; got {sides}')
+    rng = np.random.default_rng(seed)
+    elevation = np.radians(np.linspace(22.5, -22.5, height))[:, None]
+    azimuth = np.linspace(0.0, 2 * np.pi, width, endpoint=False)[None, :]
+    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
+                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
+    angles = (np.arange(sides) + 0.5) * 2 * np.pi / sides
+    outward = np.concatenate([np.stack([np.cos(angles), np.sin(angles), np.zeros(sides)], 1),
+                              [[0, 0, 1.0], [0, 0, -1.0]]])
+    distances = np.concatenate([np.full(sides, float(radius)), [float(ceiling), float(floor)]])
+    along = directions @ outward.T
+    with np.errstate(divide='ignore'):
+        hit = np.where(along > 1e-9, distances / along, np.inf)
+    labels = np.argmin(hit, axis=-1).astype(np.int32) + 1
+    ranges = hit.min(axis=-1) + rng.normal(0.0, noise, labels.shape)
+    points = directions * ranges[..., None]
+    dropped = rng.random(labels.shape) < no_return_fraction
+    points[dropped] = np.nan
+    labels[dropped] = 0
+    return points, labels, -outward, -distances
