@@ -179,7 +179,7 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
 
 
 # --------------------------------------------------------------------------------------------
-# global binary heap: key, then (kind, a, b); int payload columns kind a b va vb
+# global 4-ary heap: key, then (kind, a, b); int payload columns kind a b va vb
 # --------------------------------------------------------------------------------------------
 
 
@@ -218,7 +218,7 @@ def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     """Push an entry; the caller guarantees capacity. Returns the new size."""
     i = size
     while i > 0:
-        parent = (i - 1) >> 1
+        parent = (i - 1) >> 2
         if _g_before(key, kind, a, b, gkey, gint, parent):
             _g_move(gkey, gint, i, parent)
             i = parent
@@ -247,12 +247,14 @@ def _g_pop(gkey, gint, size):
     _g_move(gkey, gint, last, 0)
     i = 0
     while True:
-        child = 2 * i + 1
-        if child >= last:
+        first = 4 * i + 1
+        if first >= last:
             break
-        right = child + 1
-        if right < last and _g_less(gkey, gint, right, child):
-            child = right
+        child = first
+        end = min(first + 4, last)
+        for other in range(first + 1, end):
+            if _g_less(gkey, gint, other, child):
+                child = other
         if _g_before(key, kind, a, b, gkey, gint, child):
             break
         _g_move(gkey, gint, i, child)
