@@ -562,7 +562,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # global heap
     gcap = max(2 * n_pixels, 1024)
     gkey = np.empty(gcap)
-    gint = np.empty((gcap, 5), np.int64)
+    gint = np.empty((gcap, 5), np.int32)  # kind, ids and versions all < 2^31 (ids < H*W)
     gsize = 0
 
     # skew heap node pool
@@ -1255,6 +1255,8 @@ def extract_plane_hierarchy(
     lmax = float(max_neighbor_distance)
     if not (lmax > 0):
         raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {max_neighbor_distance!r}')
+    if scan.size >= 2**30:
+        raise ValueError(f'scans of up to 2^30 rays are supported; got {scan.height} x {scan.width}')
     if int(exact_plane_size) < 4:
         raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
     stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
