@@ -14,12 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from ppe_ros.benchmark.report import machine_description
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / 'shared' / 'data'
@@ -67,18 +68,6 @@ def run_row(spec: dict, env: dict | None = None) -> dict:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                cpu = line.split(':', 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f'{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}'
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--repeats', type=int, default=5)
@@ -100,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = (125, 250, 500) if args.quick else (125, 250, 500, 1000)
     for n in sizes:
         rows.append((f'generated room, {n}x{n}', {'kind': 'generated', 'size': n, 'lmax': LMAX_SYNPEB, 'e': E_SYNPEB}))
-    print(f'machine: {machine()}; command: python benchmarks/bench_extraction.py --repeats {args.repeats}'
+    print(f'machine: {machine_description()}; command: python benchmarks/bench_extraction.py --repeats {args.repeats}'
           f'{" --quick" if args.quick else ""}; {time.strftime("%Y-%m-%d")}\n')
     print('| input | grid | valid | planes | actions | median s | min s | first call s | peak MB |')
     print('|---|---|---|---|---|---|---|---|---|')
