@@ -31,10 +31,12 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.fitting import (
+    _fit,
     _fit_pixel_groups,
     _fit_rays,
-    _gn_information,
+    _ray_terms,
     _solve_sym3,
+    _sse_at,
 )
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan, make_ray_scan
@@ -337,7 +339,8 @@ def _gather(pi, nextpix, p, buf):
 @nb.njit(cache=True)
 def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
-    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS, _FIT_TOLERANCE)
+    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS,
+                                        _FIT_TOLERANCE)
     pf[p, _PE] = sse
     pf[p, _PW] = w0
     pf[p, _PW + 1] = w1
@@ -345,22 +348,8 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     pf[p, _PWL] = w0
     pf[p, _PWL + 1] = w1
     pf[p, _PWL + 2] = w2
-    _gn_information(endpoints, directions, idx, count, w0, w1, w2, pf[p, _PH:_PH + 6])
-
-
-@nb.njit(cache=True)
-def _point_terms(endpoints, directions, k, w0, w1, w2):
-    """Residual f and gradient g of ray k at w."""
-    vx = directions[k, 0]
-    vy = directions[k, 1]
-    vz = directions[k, 2]
-    den = w0 * vx + w1 * vy + w2 * vz
-    inv_den = 1.0 / den
-    f = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
-    g0 = (endpoints[k, 0] - f * vx) * inv_den
-    g1 = (endpoints[k, 1] - f * vy) * inv_den
-    g2 = (endpoints[k, 2] - f * vz) * inv_den
-    return f, g0, g1, g2
+    for i in range(6):
+        pf[p, _PH + i] = information[i]
 
 
 @nb.njit(cache=True)
@@ -372,7 +361,7 @@ def _model_extension(endpoints, directions, pf, p, k):
     w0 = pf[p, _PW]
     w1 = pf[p, _PW + 1]
     w2 = pf[p, _PW + 2]
-    f, g0, g1, g2 = _point_terms(endpoints, directions, k, w0, w1, w2)
+    f, g0, g1, g2 = _ray_terms(endpoints, directions, k, w0, w1, w2)
     h = pf[p, _PH:_PH + 6]
     x0, x1, x2, ok = _solve_sym3(h[0], h[1], h[2], h[3], h[4], h[5], g0, g1, g2)
     if not ok or not np.isfinite(f):
@@ -422,7 +411,7 @@ def _hybrid_objective(endpoints, directions, pf, big, idx, count, x0, x1, x2):
     e2 = x2 - pf[big, _PW + 2]
     quad = (h[0] * e0 * e0 + h[3] * e1 * e1 + h[5] * e2 * e2
             + 2.0 * (h[1] * e0 * e1 + h[2] * e0 * e2 + h[4] * e1 * e2))
-    return pf[big, _PE] + quad + _sse_rays(endpoints, directions, idx, count, x0, x1, x2)
+    return pf[big, _PE] + quad + _sse_at(endpoints, directions, idx, count, x0, x1, x2)
 
 
 @nb.njit(cache=True)
@@ -447,7 +436,7 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
         for i in range(6):
             info[i] = h[i]
         for t in range(count):
-            f, g0, g1, g2 = _point_terms(endpoints, directions, idx[t], w0, w1, w2)
+            f, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
             info[0] += g0 * g0
             info[1] += g0 * g1
             info[2] += g0 * g2
@@ -507,18 +496,6 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
         if sse < best:
             best, b0, b1, b2 = sse, w0, w1, w2
     return best, b0, b1, b2
-
-
-@nb.njit(cache=True)
-def _sse_rays(endpoints, directions, idx, count, w0, w1, w2):
-    sse = 0.0
-    for t in range(count):
-        k = idx[t]
-        den = w0 * directions[k, 0] + w1 * directions[k, 1] + w2 * directions[k, 2]
-        inv_den = 1.0 / den
-        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
-        sse += res * res
-    return sse
 
 
 # --------------------------------------------------------------------------------------------

@@ -64,8 +64,7 @@ def _sse_at(endpoints, directions, idx, count, w0, w1, w2):
     for t in range(count):
         k = idx[t]
         den = w0 * directions[k, 0] + w1 * directions[k, 1] + w2 * directions[k, 2]
-        num = w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0
-        res = num / den
+        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * (1.0 / den)
         sse += res * res
     return sse
 
@@ -93,6 +92,18 @@ def _linear_init(endpoints, idx, count):
     return _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
 
 
+@nb.njit(cache=True, inline='always')
+def _ray_terms(endpoints, directions, k, w0, w1, w2):
+    """Radial residual f = (w . p - 1) / (w . v) of ray k at w (m) and its gradient df/dw = (p - f v) / (w . v)."""
+    vx = directions[k, 0]
+    vy = directions[k, 1]
+    vz = directions[k, 2]
+    inv_den = 1.0 / (w0 * vx + w1 * vy + w2 * vz)
+    f = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
+    return f, (endpoints[k, 0] - f * vx) * inv_den, (endpoints[k, 1] - f * vy) * inv_den, \
+        (endpoints[k, 2] - f * vz) * inv_den
+
+
 @nb.njit(cache=True)
 def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     """One pass over rays idx[:count] at w: SSE, Gauss-Newton information J^T J (6) and J^T r (3)."""
@@ -100,21 +111,8 @@ def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
     b0 = b1 = b2 = 0.0
     for t in range(count):
-        k = idx[t]
-        vx = directions[k, 0]
-        vy = directions[k, 1]
-        vz = directions[k, 2]
-        px = endpoints[k, 0]
-        py = endpoints[k, 1]
-        pz = endpoints[k, 2]
-        den = w0 * vx + w1 * vy + w2 * vz
-        inv_den = 1.0 / den
-        res = (w0 * px + w1 * py + w2 * pz - 1.0) * inv_den
+        res, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
         sse += res * res
-        # d res / d w = (p - res v) / (w . v)
-        g0 = (px - res * vx) * inv_den
-        g1 = (py - res * vy) * inv_den
-        g2 = (pz - res * vz) * inv_den
         a00 += g0 * g0
         a01 += g0 * g1
         a02 += g0 * g2
@@ -136,18 +134,20 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
     Gauss-Newton predicted decrease b^T H^-1 b (the decrease of the linearised SSE, which bounds
     how far the SSE is above its minimum to second order) is at most ``relative_tolerance * sse``.
 
-    Returns (sse, w0, w1, w2, converged). sse is inf when the fit is degenerate.
+    Returns (sse, w0, w1, w2, converged, information): information is the Gauss-Newton J^T J
+    (a00 a01 a02 a11 a12 a22) at the returned w, from the pass that accepted it. sse is inf when
+    the fit is degenerate.
     """
     sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = _gn_pass(endpoints, directions, idx, count, w0, w1, w2)
     if not np.isfinite(sse):
-        return np.inf, w0, w1, w2, False
+        return np.inf, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
     for _ in range(max_iterations):
         d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
         if not ok:
-            return sse, w0, w1, w2, False
+            return sse, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
         predicted = d0 * b0 + d1 * b1 + d2 * b2
         if not predicted > relative_tolerance * sse:
-            return sse, w0, w1, w2, True
+            return sse, w0, w1, w2, True, (a00, a01, a02, a11, a12, a22)
         step = 1.0
         improved = False
         for _halving in range(30):
@@ -160,56 +160,42 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
                 break
             step *= 0.5
         if not improved:
-            return sse, w0, w1, w2, True
+            return sse, w0, w1, w2, True, (a00, a01, a02, a11, a12, a22)
         w0, w1, w2 = n0, n1, n2
         sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = trial
         wn = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         dn = step * np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         if dn <= 1e-15 * wn:
-            return sse, w0, w1, w2, True
-    return sse, w0, w1, w2, False
+            return sse, w0, w1, w2, True, (a00, a01, a02, a11, a12, a22)
+    return sse, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
+
+
+@nb.njit(cache=True)
+def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
+    """Exact fit of rays idx[:count]; starts from (w0, w1, w2) if finite, else the algebraic fit.
+
+    Returns (sse, w0, w1, w2, information) with the Gauss-Newton information J^T J
+    (a00 a01 a02 a11 a12 a22) at the returned w; sse = inf (and w, information NaN when there is
+    no plane to start from) for a degenerate set (fewer than 3 independent rays).
+    """
+    nan6 = (np.nan, np.nan, np.nan, np.nan, np.nan, np.nan)
+    if count < 3:
+        return np.inf, np.nan, np.nan, np.nan, nan6
+    if not (np.isfinite(w0) and np.isfinite(w1) and np.isfinite(w2)):
+        w0, w1, w2, ok = _linear_init(endpoints, idx, count)
+        if not ok:
+            return np.inf, np.nan, np.nan, np.nan, nan6
+    sse, w0, w1, w2, _, information = _gauss_newton(
+        endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance
+    )
+    return sse, w0, w1, w2, information
 
 
 @nb.njit(cache=True)
 def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
-    """Exact fit of rays idx[:count]; starts from (w0, w1, w2) if finite, else the algebraic fit.
-
-    Returns (sse, w0, w1, w2); sse = inf for a degenerate set (fewer than 3 independent rays).
-    """
-    if count < 3:
-        return np.inf, np.nan, np.nan, np.nan
-    if not (np.isfinite(w0) and np.isfinite(w1) and np.isfinite(w2)):
-        w0, w1, w2, ok = _linear_init(endpoints, idx, count)
-        if not ok:
-            return np.inf, np.nan, np.nan, np.nan
-    sse, w0, w1, w2, _ = _gauss_newton(
-        endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance
-    )
+    """:func:`_fit` without the information: (sse, w0, w1, w2)."""
+    sse, w0, w1, w2, _ = _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance)
     return sse, w0, w1, w2
-
-
-@nb.njit(cache=True)
-def _gn_information(endpoints, directions, idx, count, w0, w1, w2, out):
-    """Gauss-Newton information sum g g^T at w into out[0..5] (a00 a01 a02 a11 a12 a22)."""
-    for i in range(6):
-        out[i] = 0.0
-    for t in range(count):
-        k = idx[t]
-        vx = directions[k, 0]
-        vy = directions[k, 1]
-        vz = directions[k, 2]
-        den = w0 * vx + w1 * vy + w2 * vz
-        inv_den = 1.0 / den
-        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
-        g0 = (endpoints[k, 0] - res * vx) * inv_den
-        g1 = (endpoints[k, 1] - res * vy) * inv_den
-        g2 = (endpoints[k, 2] - res * vz) * inv_den
-        out[0] += g0 * g0
-        out[1] += g0 * g1
-        out[2] += g0 * g2
-        out[3] += g1 * g1
-        out[4] += g1 * g2
-        out[5] += g2 * g2
 
 
 @nb.njit(cache=True, parallel=True)
@@ -219,14 +205,15 @@ def _fit_groups(endpoints, directions, members, starts, max_iterations, relative
     n_groups = len(starts) - 1
     for g in nb.prange(n_groups):
         idx = members[starts[g]:starts[g + 1]]
-        sse, w0, w1, w2 = _fit_rays(
+        sse, w0, w1, w2, information = _fit(
             endpoints, directions, idx, len(idx), np.nan, np.nan, np.nan, max_iterations, relative_tolerance
         )
         out_sse[g] = sse
         out_w[g, 0] = w0
         out_w[g, 1] = w1
         out_w[g, 2] = w2
-        _gn_information(endpoints, directions, idx, len(idx), w0, w1, w2, out_info[g])
+        for i in range(6):
+            out_info[g, i] = information[i]
 
 
 # --------------------------------------------------------------------------------------------
