@@ -372,12 +372,12 @@ class _MarkerEncoder:
         self._head = (stamped.sec, stamped.nanosec, len(frame_id := stamped.frame_id.encode('utf-8') + b'\x00'),
                       frame_id)
         self._frame_id_length = len(frame_id)
-        self._structs: dict[tuple[bytes, int], struct.Struct] = {}
         tail = CdrWriter()
         _write_marker_tail(tail, stamped)
         self._tail = tail.getvalue()[len(CDR_LE_HEADER):]
 
     def _prefix(self, ns: bytes, phase: int) -> struct.Struct:
+        """Everything of an ADD marker before its vertices, in namespace ``ns``, starting at ``phase`` (mod 8)."""
         parts = ['<']
         offset = phase
 
@@ -400,29 +400,18 @@ class _MarkerEncoder:
         add('B', 1, 1)  # frame_locked
         add('I', 4, 4)  # len(points)
         add('', 0, 8)  # the vertex block is 8-byte aligned
-        self._structs[ns, phase] = prefix = struct.Struct(''.join(parts))
-        return prefix
+        return struct.Struct(''.join(parts))
 
     def packers(self, ns: bytes) -> list:
         """The bound ``pack`` of the prefix struct of namespace ``ns`` for each alignment phase 0..7."""
-        return [(self._structs.get((ns, phase)) or self._prefix(ns, phase)).pack for phase in range(8)]
-
-    def write(self, ns: bytes, marker_id: int, marker_type: int, scale: tuple[float, float, float],
-              rgba: tuple[float, float, float, float], block: memoryview) -> None:
-        """One ADD marker whose points are ``block``: the bytes of N > 0 little-endian float64 x y z."""
-        phase = self._size & 7
-        prefix = self._structs.get((ns, phase)) or self._prefix(ns, phase)
-        head = prefix.pack(*self._head, len(ns), ns, marker_id, marker_type, ADD,
-                           0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, *scale, *rgba, 0, 0, 0, len(block) // 24)
-        self._chunks += (head, block, self._tail)
-        self._size += len(head) + len(block) + len(self._tail)
+        return [self._prefix(ns, phase).pack for phase in range(8)]
 
     def write_planes(self, namespaces: tuple[bytes, bytes, bytes], rgb: list, alphas: tuple[float, float],
                      line_width: float, lengths: list, blocks: tuple[memoryview, memoryview, memoryview],
                      ends: tuple[list, list]) -> None:
         """Per plane j (id j + 1): its mesh if it has triangles, its outline if it has segments, its
-        arrow; byte for byte what :meth:`write` gives marker by marker, with the loop's lookups hoisted
-        (thousands of markers per frame)."""
+        arrow; each byte for byte what :func:`_write_marker` writes for an ADD marker, with the loop's
+        lookups hoisted (thousands of markers per frame)."""
         mesh_ns, outline_ns, normal_ns = namespaces
         mesh_pack, outline_pack, normal_pack = (self.packers(ns) for ns in namespaces)
         mesh_head = (*self._head, len(mesh_ns), mesh_ns)
