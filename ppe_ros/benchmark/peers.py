@@ -37,7 +37,24 @@ def _polylidar_hint() -> str:
             f'needs >= 3.11); where it is installed the adapter runs it')
 
 
-class Open3dSegmentPlane(PlaneMethod):
+class _Open3dMethod(PlaneMethod):
+    """What both Open3D adapters share: the optional import and the valid points of the grid."""
+
+    install = 'install it with: make peers  (Debian/Ubuntu also: apt-get install libusb-1.0-0)'
+
+    def check_available(self) -> None:
+        _import('open3d', self.install)
+
+    def _open3d_and_points(self, points: np.ndarray) -> tuple[Any, int, int, np.ndarray, np.ndarray]:
+        """(open3d module, height, width, (H*W, 3) points, flat indices of the finite ones)."""
+        o3d = _import('open3d', self.install)
+        cloud = np.asarray(points, dtype=np.float64)
+        height, width = cloud.shape[:2]
+        flat = cloud.reshape(-1, 3)
+        return o3d, height, width, flat, np.flatnonzero(np.isfinite(flat).all(axis=1))
+
+
+class Open3dSegmentPlane(_Open3dMethod):
     """Open3D ``segment_plane`` in a loop (RANSAC, remove inliers, repeat).
 
     Args:
@@ -47,7 +64,6 @@ class Open3dSegmentPlane(PlaneMethod):
 
     name = 'open3d'
     description = 'Open3D segment_plane applied iteratively (RANSAC)'
-    install = 'install it with: make peers  (Debian/Ubuntu also: apt-get install libusb-1.0-0)'
 
     def __init__(self, distance: float = 0.034, fraction: float = 0.03, *, iterations: int = 1000, seed: int = 0,
                  max_planes: int | None = None) -> None:
@@ -63,15 +79,8 @@ class Open3dSegmentPlane(PlaneMethod):
         return {'distance': self.distance, 'fraction': self.fraction, 'iterations': self.iterations,
                 'seed': self.seed}
 
-    def check_available(self) -> None:
-        _import('open3d', self.install)
-
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
-        o3d = _import('open3d', self.install)
-        cloud = np.asarray(points, dtype=np.float64)
-        height, width = cloud.shape[:2]
-        flat = cloud.reshape(-1, 3)
-        remaining = np.flatnonzero(np.isfinite(flat).all(axis=1))
+        o3d, height, width, flat, remaining = self._open3d_and_points(points)
         labels = np.zeros(height * width, np.int64)
         stop = max(self.fraction * height * width, 2)
         start = time.perf_counter()
@@ -94,7 +103,7 @@ class Open3dSegmentPlane(PlaneMethod):
         return Segmentation(labels=labels.reshape(height, width), seconds=seconds, info={'planes': label})
 
 
-class Open3dPlanarPatches(PlaneMethod):
+class Open3dPlanarPatches(_Open3dMethod):
     """Open3D ``detect_planar_patches`` with every point assigned to its nearest patch.
 
     Args:
@@ -105,7 +114,6 @@ class Open3dPlanarPatches(PlaneMethod):
 
     name = 'open3d-patches'
     description = 'Open3D detect_planar_patches (points assigned to the nearest patch)'
-    install = Open3dSegmentPlane.install
 
     def __init__(self, distance: float = 0.03, *, normal_radius: float = 0.1, normal_neighbors: int = 30) -> None:
         self.distance = _check_positive(distance, 'distance (m)')
@@ -116,15 +124,8 @@ class Open3dPlanarPatches(PlaneMethod):
         return {'distance': self.distance, 'normal_radius': self.normal_radius,
                 'normal_neighbors': self.normal_neighbors}
 
-    def check_available(self) -> None:
-        _import('open3d', self.install)
-
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
-        o3d = _import('open3d', self.install)
-        cloud = np.asarray(points, dtype=np.float64)
-        height, width = cloud.shape[:2]
-        flat = cloud.reshape(-1, 3)
-        valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
+        o3d, height, width, flat, valid = self._open3d_and_points(points)
         xyz = flat[valid]
         start = time.perf_counter()
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
