@@ -486,15 +486,14 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
     """
     best, b0, b1, b2 = _fit_rays(endpoints, directions, idx, count, pf[a, _PW], pf[a, _PW + 1], pf[a, _PW + 2],
                                  _FIT_ITERATIONS, _FIT_TOLERANCE)
-    for start in range(2):
-        if start == 0:
-            sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1],
-                                        pf[b, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
-        else:
-            sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, np.nan, np.nan, np.nan,
-                                        _FIT_ITERATIONS, _FIT_TOLERANCE)
-        if sse < best:
-            best, b0, b1, b2 = sse, w0, w1, w2
+    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1], pf[b, _PW + 2],
+                                _FIT_ITERATIONS, _FIT_TOLERANCE)
+    if sse < best:
+        best, b0, b1, b2 = sse, w0, w1, w2
+    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
+                                _FIT_TOLERANCE)
+    if sse < best:
+        best, b0, b1, b2 = sse, w0, w1, w2
     return best, b0, b1, b2
 
 
