@@ -190,11 +190,30 @@ def test_fit_labeled_planes_bookkeeping():
         assert planes.sse[j] == pytest.approx(fit.sse, rel=1e-9)
         assert np.allclose(planes.normals[j], fit.normal, atol=1e-9)
         assert np.allclose(result.residuals[mask], fit.residuals, atol=1e-9)
+        assert np.allclose(planes.covariances[j], fit.covariance, rtol=1e-6, atol=1e-15)
+        assert np.allclose(planes.centroids[j], scan.points.reshape(-1, 3)[pixels].mean(axis=0), atol=1e-12)
     # no plane: the small label, ignored labels, the no-return pixel
     outside = planes.labels == 0
     assert np.array_equal(outside, ~np.isin(labels, [5, 9, 7]) | ~valid)
     assert np.all(np.isnan(result.residuals[outside]))
     assert np.all(np.isfinite(result.residuals[~outside]))
+
+
+def test_a_degenerate_group_gets_nan_parameters_without_spoiling_the_others():
+    scan, labels = _labeled_scan()
+    labels = labels.copy()
+    valid = np.isfinite(scan.points).all(axis=2)
+    row = int(np.flatnonzero(valid.all(axis=1))[0])
+    labels[row, :2] = 42  # two rays: no plane to fit
+    result = fit_labeled_planes(scan.points, labels, origins=scan.origins, min_plane_points=2)
+    planes = result.planes
+    bad = np.flatnonzero(result.label_ids == 42)
+    assert len(bad) == 1
+    j = int(bad[0])
+    assert np.all(np.isnan(planes.normals[j])) and np.isnan(planes.offsets[j])
+    assert np.all(np.isnan(planes.covariances[j])) and np.all(np.isnan(result.residuals[row, :2]))
+    others = np.arange(planes.num_planes) != j
+    assert np.all(np.isfinite(planes.normals[others])) and np.all(np.isfinite(planes.covariances[others]))
 
 
 def test_fit_labeled_planes_options():

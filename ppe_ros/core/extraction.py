@@ -18,8 +18,9 @@ without its quirks):
 Plane ids in the action log: a plane created from a seed gets the row-major pixel id of the seed's
 anchor; a merge keeps the smaller id. Increments are computed exactly (Gauss-Newton to convergence)
 for planes of up to ``exact_plane_size`` rays and for every merge that is executed; larger planes
-use their Gauss-Newton quadratic model, re-linearised exactly whenever the plane doubles in size or
-its parameters drift (see docs/algorithm.md for the error bound and how it is tested).
+use their Gauss-Newton quadratic model, re-linearised (one Gauss-Newton step on all their rays)
+whenever the plane doubles in size or its parameters drift (see docs/algorithm.md for the error
+bound and how it is tested).
 """
 
 from __future__ import annotations
@@ -34,9 +35,9 @@ from ppe_ros.core.fitting import (
     _fit,
     _fit_pixel_groups,
     _fit_rays,
+    _gn_pass,
     _ray_terms,
     _solve_sym3,
-    _sse_at,
 )
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan, make_ray_scan
@@ -74,7 +75,7 @@ ACTION_DTYPE = np.dtype([('kind', np.int8), ('a', np.int64), ('b', np.int64), ('
 
 #: Planes of up to this many rays are evaluated with exact fits; larger ones with their model.
 DEFAULT_EXACT_PLANE_SIZE = 32
-#: Relative drift of predicted ranges that triggers an exact re-linearisation of a large plane.
+#: Relative drift of predicted ranges that triggers a re-linearisation of a large plane.
 RELINEARISATION_DRIFT = 1e-3
 #: Model merge increments above this multiple of the stopping threshold are not queued.
 MODEL_CUTOFF_FACTOR = 4.0
@@ -336,11 +337,9 @@ def _gather(pi, nextpix, p, buf):
     return n
 
 
-@nb.njit(cache=True)
-def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
-    """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
-    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS,
-                                        _FIT_TOLERANCE)
+@nb.njit(cache=True, inline='always')
+def _store_state(pf, p, sse, w0, w1, w2, information):
+    """Store plane p's E, w (also as its linearisation point) and information."""
     pf[p, _PE] = sse
     pf[p, _PW] = w0
     pf[p, _PW + 1] = w1
@@ -350,6 +349,34 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     pf[p, _PWL + 2] = w2
     for i in range(6):
         pf[p, _PH + i] = information[i]
+
+
+@nb.njit(cache=True)
+def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
+    """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
+    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS,
+                                        _FIT_TOLERANCE)
+    _store_state(pf, p, sse, w0, w1, w2, information)
+
+
+@nb.njit(cache=True)
+def _relinearise(endpoints, directions, pf, idx, count, p):
+    """Re-linearise large plane p on its rays idx[:count]: one Gauss-Newton step from its current w.
+
+    The model's w is already close to the minimiser (rank-one updates), so one step brings it to
+    within the Gauss-Newton rate of convergence; E becomes the SSE at the new w predicted by the
+    linearisation and the information is the Gauss-Newton J^T J at the current w.
+    """
+    w0 = pf[p, _PW]
+    w1 = pf[p, _PW + 1]
+    w2 = pf[p, _PW + 2]
+    sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = _gn_pass(endpoints, directions, idx, count, w0, w1, w2)
+    d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+    if not (ok and np.isfinite(sse)):
+        _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2)
+        return
+    _store_state(pf, p, max(sse - (d0 * b0 + d1 * b1 + d2 * b2), 0.0), w0 - d0, w1 - d1, w2 - d2,
+                 (a00, a01, a02, a11, a12, a22))
 
 
 @nb.njit(cache=True)
@@ -403,49 +430,45 @@ def _model_merge(pf, a, b):
 
 
 @nb.njit(cache=True)
-def _hybrid_objective(endpoints, directions, pf, big, idx, count, x0, x1, x2):
-    """model_big(x) + exact radial SSE of rays idx[:count] at x."""
+def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
+    """model_big(w) + exact radial SSE of rays idx[:count] at w, with its Gauss-Newton system.
+
+    Returns (value, info6, r0, r1, r2): info6 = H_big + J^T J and r = H_big (w - w_big) + J^T f.
+    """
     h = pf[big, _PH:_PH + 6]
-    e0 = x0 - pf[big, _PW]
-    e1 = x1 - pf[big, _PW + 1]
-    e2 = x2 - pf[big, _PW + 2]
-    quad = (h[0] * e0 * e0 + h[3] * e1 * e1 + h[5] * e2 * e2
-            + 2.0 * (h[1] * e0 * e1 + h[2] * e0 * e2 + h[4] * e1 * e2))
-    return pf[big, _PE] + quad + _sse_at(endpoints, directions, idx, count, x0, x1, x2)
+    e0 = w0 - pf[big, _PW]
+    e1 = w1 - pf[big, _PW + 1]
+    e2 = w2 - pf[big, _PW + 2]
+    r0 = h[0] * e0 + h[1] * e1 + h[2] * e2
+    r1 = h[1] * e0 + h[3] * e1 + h[4] * e2
+    r2 = h[2] * e0 + h[4] * e1 + h[5] * e2
+    value = pf[big, _PE] + e0 * r0 + e1 * r1 + e2 * r2
+    info = h.copy()
+    for t in range(count):
+        f, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
+        value += f * f
+        info[0] += g0 * g0
+        info[1] += g0 * g1
+        info[2] += g0 * g2
+        info[3] += g1 * g1
+        info[4] += g1 * g2
+        info[5] += g2 * g2
+        r0 += g0 * f
+        r1 += g1 * f
+        r2 += g2 * f
+    return value, info, r0, r1, r2
 
 
 @nb.njit(cache=True)
 def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving).
 
-    Returns (value, w0, w1, w2, info6) where info6 is the information matrix at the minimum.
+    One pass over the rays per iteration (the pass at a trial point gives its value and, when
+    accepted, the next system). Returns (value, w0, w1, w2, info6) where info6 is the information
+    matrix at the returned w.
     """
-    h = pf[big, _PH:_PH + 6]
-    c0 = pf[big, _PW]
-    c1 = pf[big, _PW + 1]
-    c2 = pf[big, _PW + 2]
-    info = np.zeros(6)
-    value = _hybrid_objective(endpoints, directions, pf, big, idx, count, w0, w1, w2)
+    value, info, r0, r1, r2 = _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2)
     for _ in range(_FIT_ITERATIONS):
-        e0 = w0 - c0
-        e1 = w1 - c1
-        e2 = w2 - c2
-        r0 = h[0] * e0 + h[1] * e1 + h[2] * e2
-        r1 = h[1] * e0 + h[3] * e1 + h[4] * e2
-        r2 = h[2] * e0 + h[4] * e1 + h[5] * e2
-        for i in range(6):
-            info[i] = h[i]
-        for t in range(count):
-            f, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
-            info[0] += g0 * g0
-            info[1] += g0 * g1
-            info[2] += g0 * g2
-            info[3] += g1 * g1
-            info[4] += g1 * g2
-            info[5] += g2 * g2
-            r0 += g0 * f
-            r1 += g1 * f
-            r2 += g2 * f
         d0, d1, d2, ok = _solve_sym3(info[0], info[1], info[2], info[3], info[4], info[5], r0, r1, r2)
         if not ok:
             break
@@ -453,24 +476,20 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
             break
         step = 1.0
         improved = False
-        new_value = value
-        n0 = w0
-        n1 = w1
-        n2 = w2
         for _h in range(30):
             n0 = w0 - step * d0
             n1 = w1 - step * d1
             n2 = w2 - step * d2
-            new_value = _hybrid_objective(endpoints, directions, pf, big, idx, count, n0, n1, n2)
-            if new_value <= value:
+            trial = _hybrid_pass(endpoints, directions, pf, big, idx, count, n0, n1, n2)
+            if trial[0] <= value:
                 improved = True
                 break
             step *= 0.5
         if not improved:
             break
-        decrease = value - new_value
+        decrease = value - trial[0]
         w0, w1, w2 = n0, n1, n2
-        value = new_value
+        value, info, r0, r1, r2 = trial
         if decrease <= _FIT_TOLERANCE * value:
             break
     return value, w0, w1, w2, info
@@ -921,8 +940,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 n = _gather(pi, nextpix, p, buf)
                 stats[_ST_RELINS] += 1
                 stats[_ST_RELIN_RAYS] += n
-                _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
-                                 pf[p, _PW + 2])
+                _relinearise(endpoints, directions, pf, buf, n, p)
                 pi[p, _PCOUNTLIN] = n
         # versions are unique across planes: the candidates a merged plane inherits from the
         # absorbed plane can never pass for current ones

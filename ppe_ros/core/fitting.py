@@ -241,37 +241,40 @@ class PlaneFit:
     residuals: np.ndarray
 
 
-def _plane_from_w(w: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, float]:
-    """Normal facing the internal origin and offset in the input frame, from internal w."""
-    norm = np.linalg.norm(w)
-    normal = -w / norm
-    offset = float(normal @ center - 1.0 / norm)
-    return normal, offset
+def _planes_from_w(w: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normals facing the internal origin and offsets in the input frame, from internal ``(J, 3)`` w."""
+    norm = np.linalg.norm(w, axis=1)
+    normals = -w / norm[:, None]
+    return normals, normals @ center - 1.0 / norm
 
 
-def _closest_point_covariance(w: np.ndarray, center: np.ndarray, info6: np.ndarray, sse: float,
-                              count: int) -> np.ndarray:
-    """Covariance of d*n (input frame) from Cov(w) = sigma^2 (sum g g^T)^-1, sigma^2 = sse/(count-3)."""
-    info = np.array(
-        [[info6[0], info6[1], info6[2]], [info6[1], info6[3], info6[4]], [info6[2], info6[4], info6[5]]]
-    )
-    dof = max(count - 3, 1)
+def _closest_point_covariances(w: np.ndarray, center: np.ndarray, info6: np.ndarray, sse: np.ndarray,
+                               counts: np.ndarray) -> np.ndarray:
+    """Covariances ``(J, 3, 3)`` of d*n (input frame) from Cov(w) = sigma^2 (sum g g^T)^-1, sigma^2 = sse/(count-3).
+
+    NaN for a plane whose information matrix is singular.
+    """
+    info = info6[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    dof = np.maximum(counts - 3, 1)
+    inv_info = np.full_like(info, np.nan)
     try:
-        cov_w = (sse / dof) * np.linalg.inv(info)
+        inv_info[:] = np.linalg.inv(info)
     except np.linalg.LinAlgError:
-        return np.full((3, 3), np.nan)
-    norm = np.linalg.norm(w)
-    normal = -w / norm
+        for j in range(len(info)):
+            try:
+                inv_info[j] = np.linalg.inv(info[j])
+            except np.linalg.LinAlgError:
+                pass
+    cov_w = (sse / dof)[:, None, None] * inv_info
+    norm = np.linalg.norm(w, axis=1)
+    normal = -w / norm[:, None]
     offset = normal @ center - 1.0 / norm
-    d_normal = -(np.eye(3) - np.outer(normal, normal)) / norm  # d n / d w (symmetric)
-    d_offset = d_normal @ center - normal / norm**2  # gradient of d w.r.t. w (d/dw of -1/|w| is -n/|w|^2)
-    jac = np.outer(normal, d_offset) + offset * d_normal  # d (d n) / d w
-    cov = jac @ cov_w @ jac.T
-    return 0.5 * (cov + cov.T)
-
-
-def _residuals(endpoints: np.ndarray, directions: np.ndarray, w: np.ndarray) -> np.ndarray:
-    return (endpoints @ w - 1.0) / (directions @ w)
+    # d n / d w (symmetric), gradient of d w.r.t. w (d/dw of -1/|w| is -n/|w|^2), d (d n) / d w
+    d_normal = -(np.eye(3) - normal[:, :, None] * normal[:, None, :]) / norm[:, None, None]
+    d_offset = d_normal @ center - normal / norm[:, None] ** 2
+    jac = normal[:, :, None] * d_offset[:, None, :] + offset[:, None, None] * d_normal
+    cov = jac @ cov_w @ jac.transpose(0, 2, 1)
+    return 0.5 * (cov + cov.transpose(0, 2, 1))
 
 
 def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit:
@@ -358,24 +361,25 @@ def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points:
     _fit_groups(scan.endpoints, scan.directions, members, starts, FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE,
                 out_w, out_sse, out_info)
     labels = np.zeros(scan.size, np.int32)
-    labels[members] = (np.repeat(np.arange(n_planes), counts[order]) + 1).astype(np.int32)
-    normals = np.empty((n_planes, 3))
-    offsets = np.empty(n_planes)
-    centroids = np.empty((n_planes, 3))
-    covariances = np.empty((n_planes, 3, 3))
+    member_plane = np.repeat(np.arange(n_planes), counts[order])
+    labels[members] = (member_plane + 1).astype(np.int32)
     point_counts = counts[order].astype(np.int64)
-    for j in range(n_planes):
-        idx = members[starts[j]:starts[j + 1]]
-        w = out_w[j]
-        centroids[j] = scan.endpoints[idx].mean(axis=0) + scan.center
-        if not np.all(np.isfinite(w)):
-            normals[j] = np.nan
-            offsets[j] = np.nan
-            covariances[j] = np.nan
-            continue
-        normals[j], offsets[j] = _plane_from_w(w, scan.center)
-        covariances[j] = _closest_point_covariance(w, scan.center, out_info[j], out_sse[j], len(idx))
-        residual_image[idx] = _residuals(scan.endpoints[idx], scan.directions[idx], w)
+    centroids = np.stack([np.bincount(member_plane, weights=scan.endpoints[members, c], minlength=n_planes)
+                          for c in range(3)], axis=1) / point_counts[:, None] + scan.center
+    normals = np.full((n_planes, 3), np.nan)
+    offsets = np.full(n_planes, np.nan)
+    covariances = np.full((n_planes, 3, 3), np.nan)
+    fitted = np.flatnonzero(np.isfinite(out_w).all(axis=1))
+    if len(fitted):
+        w = out_w[fitted]
+        normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
+        covariances[fitted] = _closest_point_covariances(w, scan.center, out_info[fitted], out_sse[fitted],
+                                                         point_counts[fitted])
+        on_fitted = np.isfinite(out_w[member_plane]).all(axis=1)
+        idx = members[on_fitted]
+        w_of_pixel = out_w[member_plane[on_fitted]]
+        residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
+            'ij,ij->i', scan.directions[idx], w_of_pixel)
     planes = PlaneSet(
         labels=labels.reshape(height, width),
         normals=normals,
