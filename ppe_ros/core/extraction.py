@@ -99,7 +99,8 @@ _PW = 1  # w (3)
 _PH = 4  # GN information (6)
 _PWL = 10  # w at the last exact linearisation (3)
 _PRMAX = 13  # max |p| of the plane's endpoints
-_NPF = 14
+_PDEFER = 14  # least key of the merges deferred on the plane's adjacency nodes (inf: none)
+_NPF = 15
 # plane int fields
 _PCOUNT = 0
 _PCOUNTLIN = 1
@@ -571,6 +572,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     acap = max(4 * n_pixels, 1024)
     aval = np.empty(acap, np.int64)
     anext = np.empty(acap, np.int64)
+    # a merge deferred on the owner's node: its key (inf: none), kind and the two versions it was valued at
+    adef = np.empty(acap)
+    adkind = np.empty(acap, np.int64)
+    adva = np.empty(acap, np.int64)
+    advb = np.empty(acap, np.int64)
     aused = 0
     afree = -1
 
@@ -744,6 +750,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     else:
                         pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
                 # push the plane's proxy with its current top
+                proxy_key = np.inf
                 root = pi[p, _PROOT]
                 if root >= 0:
                     if hi[root, 1] == pi[p, _PVER]:
@@ -753,6 +760,25 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     pi[p, _PSTAMP] += 1
                     if pkey <= cutoff:
                         gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
+                        proxy_key = pkey
+                # release the merges deferred behind the old proxy that the new one does not precede
+                if gsize + pi[p, _PADJN] + 8 >= gcap:
+                    gcap = 2 * (gcap + pi[p, _PADJN])
+                    gkey = _grow_f(gkey, gcap)
+                    gint = _grow_f(gint, gcap)
+                if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
+                    least = np.inf
+                    x = pi[p, _PADJ]
+                    while x >= 0:
+                        if adef[x] <= proxy_key and adef[x] < np.inf:
+                            q = aval[x]
+                            gsize = _g_push(gkey, gint, gsize, adef[x], adkind[x], min(p, q), max(p, q), adva[x],
+                                            advb[x])
+                            adef[x] = np.inf
+                        elif adef[x] < least:
+                            least = adef[x]
+                        x = anext[x]
+                    pf[p, _PDEFER] = least
             else:
                 a = ea
                 b = eb
@@ -956,6 +982,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             acap *= 2
             aval = _grow_f(aval, acap)
             anext = _grow_f(anext, acap)
+            adef = _grow_f(adef, acap)
+            adkind = _grow_f(adkind, acap)
+            adva = _grow_f(adva, acap)
+            advb = _grow_f(advb, acap)
 
         # new neighbours of the added pixels: extension candidates and adjacent planes
         for t in range(new_pixels):
@@ -1019,11 +1049,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                                 node = aused
                                 aused += 1
                             aval[node] = y
+                            adef[node] = np.inf
                             anext[node] = pi[x, _PADJ]
                             pi[x, _PADJ] = node
                             pi[x, _PADJN] += 1
 
         # proxy of p's extension candidates
+        proxy_key = np.inf
         root = pi[p, _PROOT]
         if gsize + 2 + pi[p, _PADJN] >= gcap:
             gcap = 2 * (gcap + pi[p, _PADJN])
@@ -1037,12 +1069,17 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[p, _PSTAMP] += 1
             if pkey <= cutoff:
                 gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
+                proxy_key = pkey
 
-        # merges with every neighbouring plane (compacting p's adjacency list)
+        # merges with every neighbouring plane (compacting p's adjacency list). A merge whose key
+        # exceeds p's proxy key is deferred on p's node instead of queued: p's proxy comes first,
+        # and p either changes (and re-evaluates every merge here) or re-queues its proxy, which
+        # releases the deferred merges its new key no longer precedes
         seen_stamp += 1
         x = pi[p, _PADJ]
         new_head = -1
         n_adj = 0
+        least = np.inf
         while x >= 0:
             nxt = anext[x]
             q = _find(parent, aval[x])
@@ -1072,11 +1109,20 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     gkind = _G_MERGE_MODEL
                 if inc < 0.0:
                     inc = 0.0
+                adef[x] = np.inf
                 if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
-                    gsize = _g_push(gkey, gint, gsize, inc, gkind, a, b, pi[a, _PVER], pi[b, _PVER])
+                    if inc <= proxy_key:
+                        gsize = _g_push(gkey, gint, gsize, inc, gkind, a, b, pi[a, _PVER], pi[b, _PVER])
+                    else:
+                        adef[x] = inc
+                        least = min(least, inc)
+                        adkind[x] = gkind
+                        adva[x] = pi[a, _PVER]
+                        advb[x] = pi[b, _PVER]
             x = nxt
         pi[p, _PADJ] = new_head
         pi[p, _PADJN] = n_adj
+        pf[p, _PDEFER] = least
 
     stats[_ST_HEAP_PEAK] = gcap
     return (log_kind[:n_actions].copy(), log_a[:n_actions].copy(), log_b[:n_actions].copy(),
