@@ -309,6 +309,20 @@ def _h_meld(hf, hi, x, y):
     return root
 
 
+@nb.njit(cache=True)
+def _h_drop_taken(hf, hi, owner, root, hfree):
+    """Remove the tops of a plane's candidate heap whose ray another (or the same) plane has taken.
+
+    Returns (root, hfree).
+    """
+    while root >= 0 and owner[hi[root, 0]] >= 0:
+        newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
+        hi[root, 2] = hfree
+        hfree = root
+        root = newroot
+    return root, hfree
+
+
 # --------------------------------------------------------------------------------------------
 # helpers on plane state
 # --------------------------------------------------------------------------------------------
@@ -703,16 +717,12 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 p = ea
                 if pi[p, _PALIVE] == 0 or eva != pi[p, _PSTAMP]:
                     continue
-                root = pi[p, _PROOT]
-                if root < 0:
-                    continue
-                k = hi[root, 0]
-                if owner[k] >= 0:
-                    # candidate ray was taken by another plane: drop the node
-                    newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
-                    hi[root, 2] = hfree
-                    hfree = root
-                    pi[p, _PROOT] = newroot
+                # candidate rays taken by another plane since: drop them
+                root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
+                pi[p, _PROOT] = root
+                k = hi[root, 0] if root >= 0 else -1
+                if root < 0 or k != eb:
+                    pass  # the proxy's candidate was dropped: re-queue the proxy for the new top
                 elif hi[root, 1] == pi[p, _PVER]:
                     inc = hf[root, 1] - pf[p, _PE]
                     if key >= inc:
@@ -1054,9 +1064,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                             pi[x, _PADJ] = node
                             pi[x, _PADJN] += 1
 
-        # proxy of p's extension candidates
+        # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
         proxy_key = np.inf
-        root = pi[p, _PROOT]
+        root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
+        pi[p, _PROOT] = root
         if gsize + 2 + pi[p, _PADJN] >= gcap:
             gcap = 2 * (gcap + pi[p, _PADJN])
             gkey = _grow_f(gkey, gcap)
