@@ -998,6 +998,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             advb = _grow_f(advb, acap)
 
         # new neighbours of the added pixels: extension candidates and adjacent planes
+        n_gathered = -1  # p's rays are gathered into buf once, for its first exact candidate fit
         for t in range(new_pixels):
             k = buf2[t]
             i = k // width
@@ -1021,10 +1022,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     # extension candidate (p, q), exact value for the current version
                     stats[_ST_NEW_CANDIDATES] += 1
                     if count + 1 <= exact_plane_size:
-                        n = _gather(pi, nextpix, p, buf)
-                        buf[n] = q
-                        sse, _, _, _ = _fit_rays(endpoints, directions, buf, n + 1, pf[p, _PW], pf[p, _PW + 1],
-                                                 pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+                        if n_gathered < 0:
+                            n_gathered = _gather(pi, nextpix, p, buf)
+                        buf[n_gathered] = q
+                        sse, _, _, _ = _fit_rays(endpoints, directions, buf, n_gathered + 1, pf[p, _PW],
+                                                 pf[p, _PW + 1], pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
                         inc = sse - pf[p, _PE]
                     else:
                         inc = _model_extension(endpoints, directions, pf, p, q)[0]
