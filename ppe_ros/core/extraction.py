@@ -76,7 +76,7 @@ ACTION_DTYPE = np.dtype([('kind', np.int8), ('a', np.int64), ('b', np.int64), ('
 #: Planes of up to this many rays are evaluated with exact fits; larger ones with their model.
 DEFAULT_EXACT_PLANE_SIZE = 32
 #: Relative drift of predicted ranges that triggers a re-linearisation of a large plane.
-RELINEARISATION_DRIFT = 1e-3
+RELINEARISATION_DRIFT = 1e-2
 #: Model merge increments above this multiple of the stopping threshold are not queued.
 MODEL_CUTOFF_FACTOR = 4.0
 #: Model merge increments are queued this fraction below their value (refined exactly when popped).
