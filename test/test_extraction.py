@@ -266,6 +266,24 @@ def _exact_increment(points, origins, ids, action, width):
     return sse(np.r_[first, second]) - sse(first) - sse(second)
 
 
+@pytest.mark.parametrize('exact', [False, True])
+def test_deferring_merges_does_not_change_the_action_log(exact):
+    """Merges kept off the queue behind a plane's proxy must come back in time: the log is the same
+    as when every merge is queued at once (default and exact settings, a full run to the end)."""
+    scan = medium_scan()
+    settings = EXACT if exact else {}
+    deferred = extract_plane_hierarchy(scan.points, origins=scan.origins, **settings)
+    queued = extract_plane_hierarchy(scan.points, origins=scan.origins, defer_merges=False, **settings)
+    assert (deferred.actions['kind'] == KIND_MERGE).sum() > 50
+    assert np.array_equal(deferred.actions, queued.actions)
+    # and at a threshold with a distance limit, where merges are cut off
+    deferred = extract_plane_hierarchy(scan.points, origins=scan.origins, max_neighbor_distance=0.15,
+                                       max_error_increment=0.02, **settings)
+    queued = extract_plane_hierarchy(scan.points, origins=scan.origins, max_neighbor_distance=0.15,
+                                     max_error_increment=0.02, defer_merges=False, **settings)
+    assert np.array_equal(deferred.actions, queued.actions)
+
+
 def test_default_increments_are_close_to_exact_refits():
     scan = medium_scan()
     hierarchy = medium_hierarchy(exact=False)

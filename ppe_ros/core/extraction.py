@@ -545,7 +545,8 @@ def _grow_f(arr, new_rows):
 
 @nb.njit(cache=True)
 def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse,
-                exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor):
+                exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
+                defer_merges):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment) and its length.
 
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
@@ -1124,7 +1125,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     inc = 0.0
                 adef[x] = np.inf
                 if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
-                    if inc <= proxy_key:
+                    if inc <= proxy_key or not defer_merges:
                         gsize = _g_push(gkey, gint, gsize, inc, gkind, a, b, pi[a, _PVER], pi[b, _PVER])
                     else:
                         adef[x] = inc
@@ -1283,6 +1284,7 @@ def extract_plane_hierarchy(
     exact_plane_size: int = DEFAULT_EXACT_PLANE_SIZE,
     exact_merge_size: int = 0,
     relinearisation_drift: float = RELINEARISATION_DRIFT,
+    defer_merges: bool = True,
 ) -> PlaneHierarchy:
     """Run PPE and return its action log.
 
@@ -1300,7 +1302,10 @@ def extract_plane_hierarchy(
             they become candidates; larger ones enter the queue with their model increment and are
             refined when they reach the front.
         relinearisation_drift: relative change of a large plane's predicted ranges since its last
-            exact fit that triggers an exact re-linearisation.
+            linearisation that triggers a re-linearisation (one Gauss-Newton step on all its rays).
+        defer_merges: keep merges whose key exceeds the changed plane's proxy key off the queue until
+            they are due (False queues every merge at once: the same action log, more heap work;
+            for tests).
     """
     import time
 
@@ -1325,7 +1330,7 @@ def extract_plane_hierarchy(
     kinds, a_ids, b_ids, incs, stats = _ppe_kernel(
         scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
         TETROMINO_OFFSETS, seed_sse, int(exact_plane_size), int(exact_merge_size), float(relinearisation_drift),
-        stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN,
+        stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, bool(defer_merges),
     )
     seconds = time.perf_counter() - start
     actions = np.empty(len(kinds), ACTION_DTYPE)
