@@ -182,6 +182,13 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
             out[anchor, c] = sse if np.isfinite(sse) else np.inf
 
 
+@nb.njit(cache=True)
+def _grow_f(arr, new_rows):
+    out = np.empty((new_rows,) + arr.shape[1:], arr.dtype)  # noqa: RUF005 (numba-typed tuple)
+    out[: arr.shape[0]] = arr
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # global 4-ary heap: key, then (kind, a, b); int payload columns kind a b va vb
 # --------------------------------------------------------------------------------------------
@@ -217,6 +224,12 @@ def _g_move(gkey, gint, dst, src):
         gint[dst, c] = gint[src, c]
 
 
+@nb.njit(cache=True, inline='always')
+def _g_entry(gkey, gint, i):
+    """Heap slot i as (key, kind, a, b, va, vb)."""
+    return gkey[i], gint[i, 0], gint[i, 1], gint[i, 2], gint[i, 3], gint[i, 4]
+
+
 @nb.njit(cache=True)
 def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     """Push an entry; the caller guarantees capacity. Returns the new size."""
@@ -242,12 +255,7 @@ def _g_pop(gkey, gint, size):
     """Remove the minimum (moved to index size-1, where the caller reads it). Returns the new size."""
     last = size - 1
     # the former last entry sifts down from the root through a hole
-    key = gkey[last]
-    kind = gint[last, 0]
-    a = gint[last, 1]
-    b = gint[last, 2]
-    va = gint[last, 3]
-    vb = gint[last, 4]
+    key, kind, a, b, va, vb = _g_entry(gkey, gint, last)
     _g_move(gkey, gint, last, 0)
     i = 0
     while True:
@@ -531,16 +539,29 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
     return best, b0, b1, b2
 
 
+@nb.njit(cache=True, inline='always')
+def _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff):
+    """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
+
+    Its key is the top's exact increment when that is current, else the top's lower bound; a new
+    stamp makes earlier proxies of p stale. Returns (gsize, proxy key; inf when none is queued).
+    """
+    root = pi[p, _PROOT]
+    if root < 0:
+        return gsize, np.inf
+    if hi[root, 1] == pi[p, _PVER]:
+        pkey = hf[root, 1] - pf[p, _PE]
+    else:
+        pkey = hf[root, 0] - pf[p, _PE]
+    pi[p, _PSTAMP] += 1
+    if pkey > cutoff:
+        return gsize, np.inf
+    return _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0), pkey
+
+
 # --------------------------------------------------------------------------------------------
 # the greedy kernel
 # --------------------------------------------------------------------------------------------
-
-
-@nb.njit(cache=True)
-def _grow_f(arr, new_rows):
-    out = np.empty((new_rows,) + arr.shape[1:], arr.dtype)  # noqa: RUF005 (numba-typed tuple)
-    out[: arr.shape[0]] = arr
-    return out
 
 
 @nb.njit(cache=True)
@@ -671,12 +692,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 seed_ptr += 1
             else:
                 gsize = _g_pop(gkey, gint, gsize)
-                key = gkey[gsize]
-                kind = gint[gsize, 0]
-                ea = gint[gsize, 1]
-                eb = gint[gsize, 2]
-                eva = gint[gsize, 3]
-                evb = gint[gsize, 4]
+                key, kind, ea, eb, eva, evb = _g_entry(gkey, gint, gsize)
             stats[_ST_POPS] += 1
             if kind == _G_SEED:
                 anchor = ea
@@ -760,19 +776,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         pi[p, _PROOT] = newroot
                     else:
                         pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
-                # push the plane's proxy with its current top
-                proxy_key = np.inf
-                root = pi[p, _PROOT]
-                if root >= 0:
-                    if hi[root, 1] == pi[p, _PVER]:
-                        pkey = hf[root, 1] - pf[p, _PE]
-                    else:
-                        pkey = hf[root, 0] - pf[p, _PE]
-                    pi[p, _PSTAMP] += 1
-                    if pkey <= cutoff:
-                        gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
-                        proxy_key = pkey
-                # release the merges deferred behind the old proxy that the new one does not precede
+                # push the plane's proxy with its current top, then release the merges deferred
+                # behind the old proxy that the new one does not precede
+                gsize, proxy_key = _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff)
                 if gsize + pi[p, _PADJN] + 8 >= gcap:
                     gcap = 2 * (gcap + pi[p, _PADJN])
                     gkey = _grow_f(gkey, gcap)
@@ -1068,22 +1074,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                             pi[x, _PADJN] += 1
 
         # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
-        proxy_key = np.inf
         root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
         pi[p, _PROOT] = root
         if gsize + 2 + pi[p, _PADJN] >= gcap:
             gcap = 2 * (gcap + pi[p, _PADJN])
             gkey = _grow_f(gkey, gcap)
             gint = _grow_f(gint, gcap)
-        if root >= 0:
-            if hi[root, 1] == pi[p, _PVER]:
-                pkey = hf[root, 1] - pf[p, _PE]
-            else:
-                pkey = hf[root, 0] - pf[p, _PE]
-            pi[p, _PSTAMP] += 1
-            if pkey <= cutoff:
-                gsize = _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0)
-                proxy_key = pkey
+        gsize, proxy_key = _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff)
 
         # merges with every neighbouring plane (compacting p's adjacency list). A merge whose key
         # exceeds p's proxy key is deferred on p's node instead of queued: p's proxy comes first,

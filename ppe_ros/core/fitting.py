@@ -267,8 +267,7 @@ def _closest_point_covariances(w: np.ndarray, center: np.ndarray, info6: np.ndar
                 pass
     cov_w = (sse / dof)[:, None, None] * inv_info
     norm = np.linalg.norm(w, axis=1)
-    normal = -w / norm[:, None]
-    offset = normal @ center - 1.0 / norm
+    normal, offset = _planes_from_w(w, center)
     # d n / d w (symmetric), gradient of d w.r.t. w (d/dw of -1/|w| is -n/|w|^2), d (d n) / d w
     d_normal = -(np.eye(3) - normal[:, :, None] * normal[:, None, :]) / norm[:, None, None]
     d_offset = d_normal @ center - normal / norm[:, None] ** 2
@@ -369,13 +368,14 @@ def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points:
     normals = np.full((n_planes, 3), np.nan)
     offsets = np.full(n_planes, np.nan)
     covariances = np.full((n_planes, 3, 3), np.nan)
-    fitted = np.flatnonzero(np.isfinite(out_w).all(axis=1))
+    plane_fitted = np.isfinite(out_w).all(axis=1)
+    fitted = np.flatnonzero(plane_fitted)
     if len(fitted):
         w = out_w[fitted]
         normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
         covariances[fitted] = _closest_point_covariances(w, scan.center, out_info[fitted], out_sse[fitted],
                                                          point_counts[fitted])
-        on_fitted = np.isfinite(out_w[member_plane]).all(axis=1)
+        on_fitted = plane_fitted[member_plane]
         idx = members[on_fitted]
         w_of_pixel = out_w[member_plane[on_fitted]]
         residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
