@@ -25,6 +25,7 @@ bound and how it is tested).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -92,6 +93,16 @@ _G_SEED = 0
 _G_EXTEND = 1
 _G_MERGE_MODEL = 2
 _G_MERGE_EXACT = 3
+
+# queue state fields (far buckets of the two-level queue)
+_QCUR = 0  # buckets up to this index live in the heap
+_QFREE = 1  # free list of far-bucket nodes
+_QUSED = 2  # far-bucket nodes ever allocated
+_QCOUNT = 3  # entries in far buckets
+_NQS = 4
+#: Far buckets per octave of the key (4: a bucket spans keys within a factor 2^(1/4)).
+_Q_PER_OCTAVE = 4
+_Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
 
 # plane float fields
 _PE = 0  # error (m^2)
@@ -230,6 +241,17 @@ def _g_entry(gkey, gint, i):
     return gkey[i], gint[i, 0], gint[i, 1], gint[i, 2], gint[i, 3], gint[i, 4]
 
 
+@nb.njit(cache=True, inline='always')
+def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
+    """Write the entry (key, kind, a, b, va, vb) into slot i."""
+    gkey[i] = key
+    gint[i, 0] = kind
+    gint[i, 1] = a
+    gint[i, 2] = b
+    gint[i, 3] = va
+    gint[i, 4] = vb
+
+
 @nb.njit(cache=True)
 def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     """Push an entry; the caller guarantees capacity. Returns the new size."""
@@ -241,13 +263,27 @@ def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
             i = parent
         else:
             break
-    gkey[i] = key
-    gint[i, 0] = kind
-    gint[i, 1] = a
-    gint[i, 2] = b
-    gint[i, 3] = va
-    gint[i, 4] = vb
+    _g_set(gkey, gint, i, key, kind, a, b, va, vb)
     return size + 1
+
+
+@nb.njit(cache=True, inline='always')
+def _g_sift_down(gkey, gint, size, i, key, kind, a, b, va, vb):
+    """Place an entry into the hole at slot i of a heap of size slots (smaller children move up)."""
+    while True:
+        first = 4 * i + 1
+        if first >= size:
+            break
+        child = first
+        end = min(first + 4, size)
+        for other in range(first + 1, end):
+            if _g_less(gkey, gint, other, child):
+                child = other
+        if _g_before(key, kind, a, b, gkey, gint, child):
+            break
+        _g_move(gkey, gint, i, child)
+        i = child
+    _g_set(gkey, gint, i, key, kind, a, b, va, vb)
 
 
 @nb.njit(cache=True)
@@ -257,28 +293,106 @@ def _g_pop(gkey, gint, size):
     # the former last entry sifts down from the root through a hole
     key, kind, a, b, va, vb = _g_entry(gkey, gint, last)
     _g_move(gkey, gint, last, 0)
-    i = 0
-    while True:
-        first = 4 * i + 1
-        if first >= last:
-            break
-        child = first
-        end = min(first + 4, last)
-        for other in range(first + 1, end):
-            if _g_less(gkey, gint, other, child):
-                child = other
-        if _g_before(key, kind, a, b, gkey, gint, child):
-            break
-        _g_move(gkey, gint, i, child)
-        i = child
     if last > 0:
-        gkey[i] = key
-        gint[i, 0] = kind
-        gint[i, 1] = a
-        gint[i, 2] = b
-        gint[i, 3] = va
-        gint[i, 4] = vb
+        _g_sift_down(gkey, gint, last, 0, key, kind, a, b, va, vb)
     return last
+
+
+@nb.njit(cache=True)
+def _g_heapify(gkey, gint, size):
+    """Arrange slots 0..size-1 into a 4-ary heap (sift-down from the last parent)."""
+    for top in range((size - 2) // 4, -1, -1):
+        key, kind, a, b, va, vb = _g_entry(gkey, gint, top)
+        _g_sift_down(gkey, gint, size, top, key, kind, a, b, va, vb)
+
+
+# --------------------------------------------------------------------------------------------
+# two-level queue: the heap holds the entries whose key falls in a bucket up to qstate[_QCUR];
+# later buckets (a bucket per quarter octave of the key) are unsorted linked lists, moved into
+# the heap one bucket at a time when the heap runs empty. The greedy's keys grow over many
+# orders of magnitude, so the heap stays small (cache-resident) and the far entries are never
+# sifted; entries that went stale while waiting are dropped when their bucket is loaded.
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _q_bucket(key):
+    """Bucket index of a key >= 0, non-decreasing in the key."""
+    if not key > 0.0:
+        return 0
+    if not key < np.inf:
+        return _Q_BUCKETS - 1
+    mantissa, exponent = math.frexp(key)  # key = mantissa 2^exponent, mantissa in [0.5, 1)
+    return (exponent + 1100) * _Q_PER_OCTAVE + int((mantissa - 0.5) * (2 * _Q_PER_OCTAVE))
+
+
+@nb.njit(cache=True)
+def _q_new(capacity):
+    """An empty queue: heap (gkey, gint), far-bucket node pool (fkey, fint, fnext), bucket heads, state."""
+    qstate = np.zeros(_NQS, np.int64)
+    qstate[_QCUR] = -1
+    qstate[_QFREE] = -1
+    return (np.empty(capacity), np.empty((capacity, 5), np.int32), np.empty(capacity),
+            np.empty((capacity, 5), np.int32), np.empty(capacity, np.int64), np.full(_Q_BUCKETS, -1, np.int64), qstate)
+
+
+@nb.njit(cache=True)
+def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b, va, vb):
+    """Push an entry into the heap or its far bucket (the caller guarantees capacity). Returns the heap size."""
+    bucket = _q_bucket(key)
+    if bucket <= qstate[_QCUR]:
+        return _g_push(gkey, gint, gsize, key, kind, a, b, va, vb)
+    node = qstate[_QFREE]
+    if node >= 0:
+        qstate[_QFREE] = fnext[node]
+    else:
+        node = qstate[_QUSED]
+        qstate[_QUSED] += 1
+    _g_set(fkey, fint, node, key, kind, a, b, va, vb)  # a pool node has a heap slot's layout
+    fnext[node] = bhead[bucket]
+    bhead[bucket] = node
+    qstate[_QCOUNT] += 1
+    return gsize
+
+
+@nb.njit(cache=True)
+def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
+    """Move the next non-empty far bucket(s) into the empty heap, dropping stale entries.
+
+    An extension proxy is stale when its plane is gone or has a newer stamp, a merge when either
+    plane is gone or changed (ids and versions never come back, so stale stays stale). Returns the
+    heap size (0 only when the far buckets are exhausted).
+    """
+    size = 0
+    while size == 0 and qstate[_QCOUNT] > 0:
+        j = qstate[_QCUR] + 1
+        while bhead[j] < 0:
+            j += 1
+        qstate[_QCUR] = j
+        node = bhead[j]
+        bhead[j] = -1
+        while node >= 0:
+            nxt = fnext[node]
+            kind = fint[node, 0]
+            a = fint[node, 1]
+            b = fint[node, 2]
+            keep = True
+            if kind == _G_EXTEND:
+                keep = pi[a, _PALIVE] != 0 and fint[node, 3] == pi[a, _PSTAMP]
+            elif kind != _G_SEED:
+                keep = (pi[a, _PALIVE] != 0 and pi[b, _PALIVE] != 0 and fint[node, 3] == pi[a, _PVER]
+                        and fint[node, 4] == pi[b, _PVER])
+            if keep:
+                gkey[size] = fkey[node]
+                for c in range(5):
+                    gint[size, c] = fint[node, c]
+                size += 1
+            qstate[_QCOUNT] -= 1
+            fnext[node] = qstate[_QFREE]
+            qstate[_QFREE] = node
+            node = nxt
+    _g_heapify(gkey, gint, size)
+    return size
 
 
 # --------------------------------------------------------------------------------------------
@@ -412,8 +526,8 @@ def _model_extension(endpoints, directions, pf, p, k):
     w1 = pf[p, _PW + 1]
     w2 = pf[p, _PW + 2]
     f, g0, g1, g2 = _ray_terms(endpoints, directions, k, w0, w1, w2)
-    h = pf[p, _PH:_PH + 6]
-    x0, x1, x2, ok = _solve_sym3(h[0], h[1], h[2], h[3], h[4], h[5], g0, g1, g2)
+    x0, x1, x2, ok = _solve_sym3(pf[p, _PH], pf[p, _PH + 1], pf[p, _PH + 2], pf[p, _PH + 3], pf[p, _PH + 4],
+                                 pf[p, _PH + 5], g0, g1, g2)
     if not ok or not np.isfinite(f):
         return np.inf, 0.0, 0.0, 0.0, f, g0, g1, g2
     denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
@@ -423,24 +537,27 @@ def _model_extension(endpoints, directions, pf, p, k):
 @nb.njit(cache=True)
 def _model_merge(pf, a, b):
     """Merge increment of planes a, b under their quadratic models and the merged w."""
-    ha = pf[a, _PH:_PH + 6]
-    hb = pf[b, _PH:_PH + 6]
+    # scalar reads (no array views: a view costs reference counting in the hot loop)
+    ha0, ha1, ha2, ha3, ha4, ha5 = pf[a, _PH], pf[a, _PH + 1], pf[a, _PH + 2], pf[a, _PH + 3], pf[a, _PH + 4], \
+        pf[a, _PH + 5]
+    hb0, hb1, hb2, hb3, hb4, hb5 = pf[b, _PH], pf[b, _PH + 1], pf[b, _PH + 2], pf[b, _PH + 3], pf[b, _PH + 4], \
+        pf[b, _PH + 5]
     d0 = pf[a, _PW] - pf[b, _PW]
     d1 = pf[a, _PW + 1] - pf[b, _PW + 1]
     d2 = pf[a, _PW + 2] - pf[b, _PW + 2]
     # Ha d, Hb d
-    ad0 = ha[0] * d0 + ha[1] * d1 + ha[2] * d2
-    ad1 = ha[1] * d0 + ha[3] * d1 + ha[4] * d2
-    ad2 = ha[2] * d0 + ha[4] * d1 + ha[5] * d2
-    bd0 = hb[0] * d0 + hb[1] * d1 + hb[2] * d2
-    bd1 = hb[1] * d0 + hb[3] * d1 + hb[4] * d2
-    bd2 = hb[2] * d0 + hb[4] * d1 + hb[5] * d2
-    s0 = ha[0] + hb[0]
-    s1 = ha[1] + hb[1]
-    s2 = ha[2] + hb[2]
-    s3 = ha[3] + hb[3]
-    s4 = ha[4] + hb[4]
-    s5 = ha[5] + hb[5]
+    ad0 = ha0 * d0 + ha1 * d1 + ha2 * d2
+    ad1 = ha1 * d0 + ha3 * d1 + ha4 * d2
+    ad2 = ha2 * d0 + ha4 * d1 + ha5 * d2
+    bd0 = hb0 * d0 + hb1 * d1 + hb2 * d2
+    bd1 = hb1 * d0 + hb3 * d1 + hb4 * d2
+    bd2 = hb2 * d0 + hb4 * d1 + hb5 * d2
+    s0 = ha0 + hb0
+    s1 = ha1 + hb1
+    s2 = ha2 + hb2
+    s3 = ha3 + hb3
+    s4 = ha4 + hb4
+    s5 = ha5 + hb5
     y0, y1, y2, ok = _solve_sym3(s0, s1, s2, s3, s4, s5, bd0, bd1, bd2)
     if not ok:
         return np.inf, np.nan, np.nan, np.nan
@@ -456,30 +573,31 @@ def _model_merge(pf, a, b):
 def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """model_big(w) + exact radial SSE of rays idx[:count] at w, with its Gauss-Newton system.
 
-    Returns (value, info6, r0, r1, r2): info6 = H_big + J^T J and r = H_big (w - w_big) + J^T f.
+    Returns (value, info6, r0, r1, r2): info6 = H_big + J^T J (a tuple a00 a01 a02 a11 a12 a22) and
+    r = H_big (w - w_big) + J^T f.
     """
-    h = pf[big, _PH:_PH + 6]
+    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
+        pf[big, _PH + 5]
     e0 = w0 - pf[big, _PW]
     e1 = w1 - pf[big, _PW + 1]
     e2 = w2 - pf[big, _PW + 2]
-    r0 = h[0] * e0 + h[1] * e1 + h[2] * e2
-    r1 = h[1] * e0 + h[3] * e1 + h[4] * e2
-    r2 = h[2] * e0 + h[4] * e1 + h[5] * e2
+    r0 = h0 * e0 + h1 * e1 + h2 * e2
+    r1 = h1 * e0 + h3 * e1 + h4 * e2
+    r2 = h2 * e0 + h4 * e1 + h5 * e2
     value = pf[big, _PE] + e0 * r0 + e1 * r1 + e2 * r2
-    info = h.copy()
     for t in range(count):
         f, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
         value += f * f
-        info[0] += g0 * g0
-        info[1] += g0 * g1
-        info[2] += g0 * g2
-        info[3] += g1 * g1
-        info[4] += g1 * g2
-        info[5] += g2 * g2
+        h0 += g0 * g0
+        h1 += g0 * g1
+        h2 += g0 * g2
+        h3 += g1 * g1
+        h4 += g1 * g2
+        h5 += g2 * g2
         r0 += g0 * f
         r1 += g1 * f
         r2 += g2 * f
-    return value, info, r0, r1, r2
+    return value, (h0, h1, h2, h3, h4, h5), r0, r1, r2
 
 
 @nb.njit(cache=True)
@@ -540,7 +658,7 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
 
 
 @nb.njit(cache=True, inline='always')
-def _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff):
+def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff):
     """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
 
     Its key is the top's exact increment when that is current, else the top's lower bound; a new
@@ -556,7 +674,8 @@ def _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff):
     pi[p, _PSTAMP] += 1
     if pkey > cutoff:
         return gsize, np.inf
-    return _g_push(gkey, gint, gsize, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], 0), pkey
+    return _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, pkey, _G_EXTEND, p, hi[root, 0],
+                   pi[p, _PSTAMP], 0), pkey
 
 
 # --------------------------------------------------------------------------------------------
@@ -593,8 +712,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
 
     # global heap
     gcap = max(2 * n_pixels, 1024)
-    gkey = np.empty(gcap)
-    gint = np.empty((gcap, 5), np.int32)  # kind, ids and versions all < 2^31 (ids < H*W)
+    # kind, ids and versions all < 2^31 (ids < H*W); the far-bucket pool has the heap's capacity
+    # (heap entries + far entries <= gcap)
+    gkey, gint, fkey, fint, fnext, bhead, qstate = _q_new(gcap)
     gsize = 0
 
     # skew heap node pool
@@ -661,11 +781,18 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         kind = 0
         act_a = 0
         act_b = 0
-        while gsize > 0 or seed_ptr < n_seeds:
-            if gsize + 8 >= gcap:
+        while gsize > 0 or qstate[_QCOUNT] > 0 or seed_ptr < n_seeds:
+            if gsize + qstate[_QCOUNT] + 8 >= gcap:
                 gcap *= 2
                 gkey = _grow_f(gkey, gcap)
                 gint = _grow_f(gint, gcap)
+                fkey = _grow_f(fkey, gcap)
+                fint = _grow_f(fint, gcap)
+                fnext = _grow_f(fnext, gcap)
+            if gsize == 0 and qstate[_QCOUNT] > 0:
+                gsize = _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi)
+                if gsize == 0 and seed_ptr >= n_seeds:
+                    break
             if hused + 8 >= hcap:
                 hcap *= 2
                 hf = _grow_f(hf, hcap)
@@ -729,7 +856,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     if best < 0 or e2 < seed_sse[anchor, best]:
                         best = c2
                 if best >= 0 and seed_sse[anchor, best] <= cutoff:
-                    gsize = _g_push(gkey, gint, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
+                    gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, seed_sse[anchor, best],
+                                    _G_SEED, anchor, best, 0, 0)
             elif kind == _G_EXTEND:
                 p = ea
                 if pi[p, _PALIVE] == 0 or eva != pi[p, _PSTAMP]:
@@ -778,18 +906,23 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
                 # push the plane's proxy with its current top, then release the merges deferred
                 # behind the old proxy that the new one does not precede
-                gsize, proxy_key = _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff)
-                if gsize + pi[p, _PADJN] + 8 >= gcap:
+                gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf,
+                                                pi, p, cutoff)
+                if gsize + qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= gcap:
                     gcap = 2 * (gcap + pi[p, _PADJN])
                     gkey = _grow_f(gkey, gcap)
                     gint = _grow_f(gint, gcap)
+                    fkey = _grow_f(fkey, gcap)
+                    fint = _grow_f(fint, gcap)
+                    fnext = _grow_f(fnext, gcap)
                 if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
                     least = np.inf
                     x = pi[p, _PADJ]
                     while x >= 0:
                         if adef[x] <= proxy_key and adef[x] < np.inf:
                             q = aval[x]
-                            gsize = _g_push(gkey, gint, gsize, adef[x], adkind[x], min(p, q), max(p, q), adva[x],
+                            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, adef[x], adkind[x],
+                                            min(p, q), max(p, q), adva[x],
                                             advb[x])
                             adef[x] = np.inf
                         elif adef[x] < least:
@@ -819,7 +952,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     if inc < 0.0:
                         inc = 0.0
                     if inc <= cutoff:
-                        gsize = _g_push(gkey, gint, gsize, inc, _G_MERGE_EXACT, a, b, eva, evb)
+                        gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b,
+                                        eva, evb)
                     continue
                 big = a
                 small = b
@@ -837,7 +971,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if inc < 0.0:
                     inc = 0.0
                 if inc <= cutoff:
-                    gsize = _g_push(gkey, gint, gsize, inc, _G_MERGE_EXACT, a, b, eva, evb)
+                    gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b,
+                                    eva, evb)
         if not found:
             break
         if not (key <= max_increment or plane_count > min_count):
@@ -924,7 +1059,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             na = pi[a, _PCOUNT]
             nbn = pi[b, _PCOUNT]
             total = na + nbn
-            info = np.zeros(6)
+            info = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             value = 0.0
             if total <= exact_plane_size:
                 # exact merged state from the best of the union's starting points
@@ -1076,11 +1211,15 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
         root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
         pi[p, _PROOT] = root
-        if gsize + 2 + pi[p, _PADJN] >= gcap:
+        if gsize + qstate[_QCOUNT] + 2 + pi[p, _PADJN] >= gcap:
             gcap = 2 * (gcap + pi[p, _PADJN])
             gkey = _grow_f(gkey, gcap)
             gint = _grow_f(gint, gcap)
-        gsize, proxy_key = _queue_proxy(gkey, gint, gsize, hf, hi, pf, pi, p, cutoff)
+            fkey = _grow_f(fkey, gcap)
+            fint = _grow_f(fint, gcap)
+            fnext = _grow_f(fnext, gcap)
+        gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p,
+                                        cutoff)
 
         # merges with every neighbouring plane (compacting p's adjacency list). A merge whose key
         # exceeds p's proxy key is deferred on p's node instead of queued: p's proxy comes first,
@@ -1123,7 +1262,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 adef[x] = np.inf
                 if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
                     if inc <= proxy_key or not defer_merges:
-                        gsize = _g_push(gkey, gint, gsize, inc, gkind, a, b, pi[a, _PVER], pi[b, _PVER])
+                        gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, gkind, a, b,
+                                        pi[a, _PVER], pi[b, _PVER])
                     else:
                         adef[x] = inc
                         least = min(least, inc)
