@@ -21,11 +21,14 @@ from ppe_ros.core.extraction import (
     KIND_EXTEND,
     KIND_MERGE,
     TETROMINO_OFFSETS,
+    _edge_masks,
+    _seed_errors,
     extract_plane_hierarchy,
     extract_planes,
 )
-from ppe_ros.core.fitting import fit_plane
+from ppe_ros.core.fitting import _fit_rays, fit_plane
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.scan import make_ray_scan
 from ppe_ros.core.synthetic import plane_scan
 
 # A hang inside a numba kernel cannot be interrupted by a signal: the thread method ends the run
@@ -651,3 +654,49 @@ def test_default_settings_segment_synpeb_crops_like_exact_settings(shared_data, 
     assert partition_difference(fast.labels, exact.labels) <= 100
     correct = [score_segmentation(planes.labels, truth).n_correct for planes in (fast, exact)]
     assert abs(correct[0] - correct[1]) <= 1, f'correct planes, default / exact settings: {correct}'
+
+
+def _seed_errors_one_by_one(scan, ok_right, ok_down):
+    """Slow reference: every in-grid seed fitted with the general Gauss-Newton, inf where invalid."""
+    h, w = scan.height, scan.width
+    out = np.full((h * w, 17), np.inf)
+    for anchor in range(h * w):
+        i, j = divmod(anchor, w)
+        for c, cells in enumerate(TETROMINO_OFFSETS):
+            rows, cols = i + cells[:, 0], j + cells[:, 1]
+            if rows.min() < 0 or rows.max() >= h or cols.min() < 0 or cols.max() >= w:
+                continue
+            idx = rows * w + cols
+            if not scan.valid[idx].all():
+                continue
+            edges_ok = True
+            for t in range(4):
+                for u in range(t + 1, 4):
+                    if abs(cells[t] - cells[u]).sum() == 1:
+                        a, b = min(idx[t], idx[u]), max(idx[t], idx[u])
+                        edges_ok &= bool(ok_right[a] if b == a + 1 else ok_down[a])
+            if edges_ok:
+                sse = _fit_rays(scan.endpoints, scan.directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
+                out[anchor, c] = sse if np.isfinite(sse) else np.inf
+    return out
+
+
+@pytest.mark.parametrize('lmax', [0.3, np.inf])
+def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
+    """The vectorised four-ray fits (and their fall-backs) against _fit_rays on each seed.
+
+    The scene has noise, no-returns, ray starts off the origin and exactly collinear rays (a
+    degenerate seed the straight-line fit cannot finish).
+    """
+    scan_in = scenes.room_scan(rows=30, cols=40, noise=0.02, seed=3)
+    points = scan_in.points.copy()
+    points[5:9, 7:12] = np.nan
+    points[20, 3:9] = points[20, 3] + np.linspace(0, 1, 6)[:, None] * (points[20, 8] - points[20, 3])
+    scan = make_ray_scan(points, scan_in.origins)
+    ok_right, ok_down = _edge_masks(scan, lmax)
+    fast = np.empty((scan.size, 17))
+    _seed_errors(scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
+                 TETROMINO_OFFSETS, fast)
+    slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
+    assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000
+    np.testing.assert_array_equal(fast, slow)

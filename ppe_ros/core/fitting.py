@@ -38,10 +38,9 @@ def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     Positive definiteness is tested on the Jacobi-scaled matrix D^-1/2 A D^-1/2 (unit diagonal):
     its leading 2x2 minor and its determinant must exceed 1e-15 (the squared pivots of its
     Cholesky factor), so the test does not depend on the units of A.
-    Returns (x0, x1, x2, ok); ok is False when A is not numerically positive definite.
+    Returns (x0, x1, x2, ok); ok is False when A is not numerically positive definite (x is then
+    meaningless). Branch-free, so that loops calling it can be vectorised.
     """
-    if not (a00 > 0.0 and a11 > 0.0 and a22 > 0.0):
-        return 0.0, 0.0, 0.0, False
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -50,11 +49,10 @@ def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     c22 = a00 * a11 - a01 * a01
     det = a00 * c00 + a01 * c01 + a02 * c02
     # scaled minor c22 / (a00 a11) > 1e-15 and scaled det / scaled minor = det / (a22 c22) > 1e-15
-    if not (c22 > 1e-15 * a00 * a11 and det > 1e-15 * a22 * c22):
-        return 0.0, 0.0, 0.0, False
-    inv = 1.0 / det
+    ok = (a00 > 0.0) & (a11 > 0.0) & (a22 > 0.0) & (c22 > 1e-15 * a00 * a11) & (det > 1e-15 * a22 * c22)
+    inv = 1.0 / det if ok else 0.0
     return ((c00 * b0 + c01 * b1 + c02 * b2) * inv, (c01 * b0 + c11 * b1 + c12 * b2) * inv,
-            (c02 * b0 + c12 * b1 + c22 * b2) * inv, True)
+            (c02 * b0 + c12 * b1 + c22 * b2) * inv, ok)
 
 
 @nb.njit(cache=True)
@@ -69,60 +67,60 @@ def _sse_at(endpoints, directions, idx, count, w0, w1, w2):
     return sse
 
 
+_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_ZERO10 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@nb.njit(cache=True, inline='always')
+def _init_add(acc, x, y, z):
+    """Add the point (x, y, z) to the normal equations (a00 a01 a02 a11 a12 a22 b0 b1 b2) of _linear_init."""
+    a00, a01, a02, a11, a12, a22, b0, b1, b2 = acc
+    wt = x * x + y * y + z * z
+    return (a00 + wt * x * x, a01 + wt * x * y, a02 + wt * x * z, a11 + wt * y * y, a12 + wt * y * z,
+            a22 + wt * z * z, b0 + wt * x, b1 + wt * y, b2 + wt * z)
+
+
 @nb.njit(cache=True)
 def _linear_init(endpoints, idx, count):
     """Initial plane w: minimises sum |p|^2 (w . p - 1)^2, a range-weighted algebraic fit."""
-    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    b0 = b1 = b2 = 0.0
+    acc = _ZERO9
     for t in range(count):
         k = idx[t]
-        x = endpoints[k, 0]
-        y = endpoints[k, 1]
-        z = endpoints[k, 2]
-        wt = x * x + y * y + z * z
-        a00 += wt * x * x
-        a01 += wt * x * y
-        a02 += wt * x * z
-        a11 += wt * y * y
-        a12 += wt * y * z
-        a22 += wt * z * z
-        b0 += wt * x
-        b1 += wt * y
-        b2 += wt * z
-    return _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        acc = _init_add(acc, endpoints[k, 0], endpoints[k, 1], endpoints[k, 2])
+    return _solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
+
+
+@nb.njit(cache=True, inline='always')
+def _ray_terms_at(px, py, pz, vx, vy, vz, w0, w1, w2):
+    """Radial residual f = (w . p - 1) / (w . v) of the ray (p, v) at w (m), gradient df/dw = (p - f v) / (w . v)."""
+    inv_den = 1.0 / (w0 * vx + w1 * vy + w2 * vz)
+    f = (w0 * px + w1 * py + w2 * pz - 1.0) * inv_den
+    return f, (px - f * vx) * inv_den, (py - f * vy) * inv_den, (pz - f * vz) * inv_den
 
 
 @nb.njit(cache=True, inline='always')
 def _ray_terms(endpoints, directions, k, w0, w1, w2):
-    """Radial residual f = (w . p - 1) / (w . v) of ray k at w (m) and its gradient df/dw = (p - f v) / (w . v)."""
-    vx = directions[k, 0]
-    vy = directions[k, 1]
-    vz = directions[k, 2]
-    inv_den = 1.0 / (w0 * vx + w1 * vy + w2 * vz)
-    f = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * inv_den
-    return f, (endpoints[k, 0] - f * vx) * inv_den, (endpoints[k, 1] - f * vy) * inv_den, \
-        (endpoints[k, 2] - f * vz) * inv_den
+    """:func:`_ray_terms_at` of ray k."""
+    return _ray_terms_at(endpoints[k, 0], endpoints[k, 1], endpoints[k, 2], directions[k, 0], directions[k, 1],
+                         directions[k, 2], w0, w1, w2)
+
+
+@nb.njit(cache=True, inline='always')
+def _gn_add(acc, res, g0, g1, g2):
+    """Add a ray's residual and gradient to (SSE, J^T J (6), J^T r (3))."""
+    sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = acc
+    return (sse + res * res, a00 + g0 * g0, a01 + g0 * g1, a02 + g0 * g2, a11 + g1 * g1, a12 + g1 * g2,
+            a22 + g2 * g2, b0 + g0 * res, b1 + g1 * res, b2 + g2 * res)
 
 
 @nb.njit(cache=True)
 def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     """One pass over rays idx[:count] at w: SSE, Gauss-Newton information J^T J (6) and J^T r (3)."""
-    sse = 0.0
-    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    b0 = b1 = b2 = 0.0
+    acc = _ZERO10
     for t in range(count):
         res, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
-        sse += res * res
-        a00 += g0 * g0
-        a01 += g0 * g1
-        a02 += g0 * g2
-        a11 += g1 * g1
-        a12 += g1 * g2
-        a22 += g2 * g2
-        b0 += g0 * res
-        b1 += g1 * res
-        b2 += g2 * res
-    return sse, a00, a01, a02, a11, a12, a22, b0, b1, b2
+        acc = _gn_add(acc, res, g0, g1, g2)
+    return acc
 
 
 @nb.njit(cache=True)
@@ -196,6 +194,67 @@ def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, rel
     """:func:`_fit` without the information: (sse, w0, w1, w2)."""
     sse, w0, w1, w2, _ = _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance)
     return sse, w0, w1, w2
+
+
+# Four-ray fits in straight-line code (the tetromino seeds). Loops over anchors that call _fit4
+# are vectorised by LLVM (no data-dependent branches); P and V are the endpoints and directions
+# as (3, n) arrays so that neighbouring anchors read neighbouring memory.
+
+
+@nb.njit(cache=True, inline='always')
+def _fit4_pass(P, V, rays, w0, w1, w2):
+    """:func:`_gn_pass` of the four rays (same operations in the same order)."""
+    acc = _ZERO10
+    for t in range(4):
+        k = rays[t]
+        res, g0, g1, g2 = _ray_terms_at(P[0, k], P[1, k], P[2, k], V[0, k], V[1, k], V[2, k], w0, w1, w2)
+        acc = _gn_add(acc, res, g0, g1, g2)
+    return acc
+
+
+@nb.njit(cache=True, inline='always')
+def _fit4_step(P, V, rays, state):
+    """One iteration of :func:`_gauss_newton` with a full step, as selects instead of returns.
+
+    state = (w, system, stopped, fallback) with w = (w0, w1, w2) and system = _gn_pass at w;
+    stopped when _gauss_newton would have returned, fallback when it would have halved the step.
+    """
+    w, system, stopped, fallback = state
+    sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = system
+    d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+    stop_now = (not ok) | (not (d0 * b0 + d1 * b1 + d2 * b2 > FIT_RELATIVE_TOLERANCE * sse))
+    trial_w = (w[0] - d0, w[1] - d1, w[2] - d2)
+    trial = _fit4_pass(P, V, rays, trial_w[0], trial_w[1], trial_w[2])
+    active = (not stopped) & (not stop_now)
+    fallback = fallback | (active & (not (trial[0] <= sse)))
+    accept = active & (trial[0] <= sse)
+    w = trial_w if accept else w
+    system = trial if accept else system
+    tiny = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) <= 1e-15 * np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    return w, system, stopped | stop_now | fallback | (accept & tiny), fallback
+
+
+@nb.njit(cache=True, inline='always')
+def _fit4(P, V, k0, k1, k2, k3):
+    """:func:`_fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
+
+    Runs the algebraic start and up to four Gauss-Newton iterations exactly as :func:`_fit` would.
+    Returns (sse, done): when done, sse is bit-identical to _fit_rays's; done is False when _fit
+    would go on (more iterations, a halved step) or the set is degenerate: call _fit_rays then.
+    """
+    rays = (k0, k1, k2, k3)
+    acc = _ZERO9  # _linear_init: range-weighted algebraic fit
+    for t in range(4):
+        acc = _init_add(acc, P[0, rays[t]], P[1, rays[t]], P[2, rays[t]])
+    w0, w1, w2, ok = _solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
+    system = _fit4_pass(P, V, rays, w0, w1, w2)
+    good = ok & np.isfinite(system[0])
+    state = ((w0, w1, w2), system, False, False)
+    state = _fit4_step(P, V, rays, state)  # written out four times: LLVM vectorises the
+    state = _fit4_step(P, V, rays, state)  # caller's loop over anchors only when no loop is left
+    state = _fit4_step(P, V, rays, state)
+    state = _fit4_step(P, V, rays, state)
+    return state[1][0], good & state[2] & (not state[3])
 
 
 @nb.njit(cache=True, parallel=True)
