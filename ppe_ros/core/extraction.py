@@ -105,6 +105,15 @@ _NQS = 4
 _Q_PER_OCTAVE = 4
 _Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
 
+# adjacency node fields
+_AN_PLANE = 0  # the neighbouring plane (an id that may have been merged since: resolve with _find)
+_AN_NEXT = 1  # next node of the owner's list (-1: end; free list link when free)
+_AN_KIND = 2  # kind of the deferred merge
+_AN_VA = 3  # versions of the deferred merge's planes (smaller id first)
+_AN_VB = 4
+_AN_KEY = 5  # key of the deferred merge, a float64 in the same row (inf: none)
+_AN_FIELDS = 6
+
 # plane float fields
 _PE = 0  # error (m^2)
 _PW = 1  # w (3)
@@ -751,15 +760,12 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     hused = 0
     hfree = -1
 
-    # adjacency pool (linked lists of neighbouring plane ids)
+    # adjacency pool (linked lists of neighbouring plane ids), one row per node so that a node is
+    # one memory access: neighbour, next node and a merge deferred on the owner's node (its kind,
+    # the two versions it was valued at, and its key (inf: none) in the float view akey)
     acap = max(4 * n_pixels, 1024)
-    aval = np.empty(acap, np.int64)
-    anext = np.empty(acap, np.int64)
-    # a merge deferred on the owner's node: its key (inf: none), kind and the two versions it was valued at
-    adef = np.empty(acap)
-    adkind = np.empty(acap, np.int64)
-    adva = np.empty(acap, np.int64)
-    advb = np.empty(acap, np.int64)
+    anode = np.empty((acap, _AN_FIELDS), np.int64)
+    akey = anode.view(np.float64)
     aused = 0
     afree = -1
 
@@ -946,15 +952,15 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     least = np.inf
                     x = pi[p, _PADJ]
                     while x >= 0:
-                        if adef[x] <= proxy_key and adef[x] < np.inf:
-                            q = aval[x]
-                            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, adef[x], adkind[x],
-                                            min(p, q), max(p, q), adva[x],
-                                            advb[x])
-                            adef[x] = np.inf
-                        elif adef[x] < least:
-                            least = adef[x]
-                        x = anext[x]
+                        if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
+                            q = anode[x, _AN_PLANE]
+                            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY],
+                                            anode[x, _AN_KIND], min(p, q), max(p, q), anode[x, _AN_VA],
+                                            anode[x, _AN_VB])
+                            akey[x, _AN_KEY] = np.inf
+                        elif akey[x, _AN_KEY] < least:
+                            least = akey[x, _AN_KEY]
+                        x = anode[x, _AN_NEXT]
                     pf[p, _PDEFER] = least
             else:
                 a = ea
@@ -1110,9 +1116,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 pi[s, _PADJ] = pi[o, _PADJ]
             elif pi[o, _PADJ] >= 0:
                 x = pi[s, _PADJ]
-                while anext[x] >= 0:
-                    x = anext[x]
-                anext[x] = pi[o, _PADJ]
+                while anode[x, _AN_NEXT] >= 0:
+                    x = anode[x, _AN_NEXT]
+                anode[x, _AN_NEXT] = pi[o, _PADJ]
             pi[s, _PADJN] += pi[o, _PADJN]
             pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
             lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
@@ -1159,12 +1165,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             hi = _grow_f(hi, hcap)
         if aused + 8 * new_pixels + 8 >= acap:
             acap *= 2
-            aval = _grow_f(aval, acap)
-            anext = _grow_f(anext, acap)
-            adef = _grow_f(adef, acap)
-            adkind = _grow_f(adkind, acap)
-            adva = _grow_f(adva, acap)
-            advb = _grow_f(advb, acap)
+            anode = _grow_f(anode, acap)
+            akey = anode.view(np.float64)
 
         # new neighbours of the added pixels: extension candidates and adjacent planes
         n_gathered = -1  # p's rays are gathered into buf once, for its first exact candidate fit
@@ -1225,13 +1227,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                             y = other if side == 0 else p
                             if afree >= 0:
                                 node = afree
-                                afree = anext[node]
+                                afree = anode[node, _AN_NEXT]
                             else:
                                 node = aused
                                 aused += 1
-                            aval[node] = y
-                            adef[node] = np.inf
-                            anext[node] = pi[x, _PADJ]
+                            anode[node, _AN_PLANE] = y
+                            akey[node, _AN_KEY] = np.inf
+                            anode[node, _AN_NEXT] = pi[x, _PADJ]
                             pi[x, _PADJ] = node
                             pi[x, _PADJN] += 1
 
@@ -1258,15 +1260,15 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         n_adj = 0
         least = np.inf
         while x >= 0:
-            nxt = anext[x]
-            q = _find(parent, aval[x])
+            nxt = anode[x, _AN_NEXT]
+            q = _find(parent, anode[x, _AN_PLANE])
             if q == p or pi[q, _PALIVE] == 0 or seen[q] == seen_stamp:
-                anext[x] = afree
+                anode[x, _AN_NEXT] = afree
                 afree = x
             else:
                 seen[q] = seen_stamp
-                aval[x] = q
-                anext[x] = new_head
+                anode[x, _AN_PLANE] = q
+                anode[x, _AN_NEXT] = new_head
                 new_head = x
                 n_adj += 1
                 stats[_ST_MERGE_EVALS] += 1
@@ -1286,17 +1288,17 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     gkind = _G_MERGE_MODEL
                 if inc < 0.0:
                     inc = 0.0
-                adef[x] = np.inf
+                akey[x, _AN_KEY] = np.inf
                 if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
                     if inc <= proxy_key or not defer_merges:
                         gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, gkind, a, b,
                                         pi[a, _PVER], pi[b, _PVER])
                     else:
-                        adef[x] = inc
+                        akey[x, _AN_KEY] = inc
                         least = min(least, inc)
-                        adkind[x] = gkind
-                        adva[x] = pi[a, _PVER]
-                        advb[x] = pi[b, _PVER]
+                        anode[x, _AN_KIND] = gkind
+                        anode[x, _AN_VA] = pi[a, _PVER]
+                        anode[x, _AN_VB] = pi[b, _PVER]
             x = nxt
         pi[p, _PADJ] = new_head
         pi[p, _PADJN] = n_adj
