@@ -1,4 +1,4 @@
-"""The greedy's two-level priority queue (heap + far key buckets) against a plain sorted list."""
+"""The greedy's two-level priority queue (heap + far key buckets) against a plain sorted list; the prefetch hint."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from ppe_ros.core.extraction import (
     _Q_BUCKETS,
     _QCOUNT,
     _g_pop,
+    _prefetch,
     _q_bucket,
     _q_load,
     _q_new,
@@ -153,3 +154,22 @@ def test_bucket_index_never_decreases_with_the_key():
     assert buckets.min() >= 0 and buckets.max() < _Q_BUCKETS
     # four buckets per octave: keys a factor 2 apart are four buckets apart
     assert _q_bucket(2e-5) - _q_bucket(1e-5) == 4
+
+
+@nb.njit
+def _sum_with_prefetch(values_1d, values_2d):
+    total = 0.0
+    for i in range(len(values_1d)):
+        if i + 4 < len(values_1d):
+            _prefetch(values_1d, i + 4, 0)
+            _prefetch(values_2d, i + 4, 1)
+        total += values_1d[i] + values_2d[i, 1]
+    return total
+
+
+def test_prefetch_hint_compiles_for_1d_and_2d_arrays_and_changes_nothing():
+    rng = np.random.default_rng(0)
+    values_1d, values_2d = rng.random(100), rng.random((100, 3))
+    assert _sum_with_prefetch(values_1d, values_2d) == pytest.approx(values_1d.sum() + values_2d[:, 1].sum())
+    with pytest.raises(nb.core.errors.TypingError):
+        nb.njit(lambda a: _prefetch(a, 0, 0))(np.zeros((2, 2, 2)))

@@ -31,6 +31,9 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 from ppe_ros.core.fitting import (
     _fit,
@@ -147,6 +150,32 @@ _ST_HEAP_PEAK = 8
 _N_STATS = 9
 STAT_NAMES = ('heap_pops', 'candidate_reevaluations', 'new_candidates', 'merge_evaluations', 'merge_refinements',
               'merge_refinement_rays', 'relinearisations', 'relinearisation_rays', 'heap_capacity')
+
+
+@intrinsic
+def _prefetch(typingctx, arr, row, col):
+    """Hint the CPU to fetch arr[row, col] (arr[row] of a 1-D array) into the cache (no effect on results)."""
+    if not isinstance(arr, types.Array) or arr.ndim > 2:
+        return None
+    sig = types.void(arr, row, col)
+
+    def codegen(context, builder, signature, args):
+        aryty, rowty, colty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        inds = [context.cast(builder, args[1], rowty, types.intp), context.cast(builder, args[2], colty, types.intp)]
+        inds = inds[:aryty.ndim]
+        ptr = cgutils.get_item_pointer2(context, builder, data=ary.data, shape=cgutils.unpack_tuple(builder, ary.shape),
+                                        strides=cgutils.unpack_tuple(builder, ary.strides), layout=aryty.layout,
+                                        inds=inds, wraparound=False)
+        i32 = ir.IntType(32)
+        i8p = ir.IntType(8).as_pointer()
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                            'llvm.prefetch.p0')
+        # read access, high temporal locality, data cache
+        builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 # --------------------------------------------------------------------------------------------
@@ -853,6 +882,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             else:
                 gsize = _g_pop(gkey, gint, gsize)
                 key, kind, ea, eb, eva, evb = _g_entry(gkey, gint, gsize)
+                if gsize > 0:  # the next entry's planes load while this one is handled
+                    _prefetch(pi, gint[0, 1], 0)
+                    _prefetch(pf, gint[0, 1], 0)
+                    _prefetch(pi, gint[0, 2], 0)
             stats[_ST_POPS] += 1
             if kind == _G_SEED:
                 anchor = ea
@@ -1261,6 +1294,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         least = np.inf
         while x >= 0:
             nxt = anode[x, _AN_NEXT]
+            if nxt >= 0:  # the next neighbour's rows load while this one is evaluated
+                q = anode[nxt, _AN_PLANE]
+                _prefetch(parent, q, 0)
+                _prefetch(seen, q, 0)
+                _prefetch(pi, q, 0)
+                _prefetch(pf, q, 0)
+                _prefetch(pf, q, _PH + 5)
             q = _find(parent, anode[x, _AN_PLANE])
             if q == p or pi[q, _PALIVE] == 0 or seen[q] == seen_stamp:
                 anode[x, _AN_NEXT] = afree
