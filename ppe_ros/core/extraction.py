@@ -215,14 +215,17 @@ def _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx):
 def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, out):
     """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid.
 
-    Per grid row and config, the straight-line four-ray fit runs over all anchors (a vectorised
-    loop), then the seeds it did not finish are fitted by the general Gauss-Newton: the values are
-    bit-identical to fitting every seed with _fit_rays.
+    Per grid row and config, the straight-line four-ray fit runs over all anchors of the row (a
+    vectorised loop) when at least a quarter of them are valid seeds, else on the valid ones one by
+    one (sparse rows such as a 32-beam lidar's with a distance limit); the seeds it did not finish
+    are fitted by the general Gauss-Newton. The values are bit-identical to fitting every seed with
+    _fit_rays.
     """
     P = np.ascontiguousarray(endpoints.T)
     V = np.ascontiguousarray(directions.T)
     for i in nb.prange(height):
         row = np.empty(width)
+        ok = np.empty(width, np.bool_)
         idx = np.empty(4, np.int64)
         base = i * width
         for c in range(17):
@@ -238,24 +241,36 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
             o1 = offsets[c, 1, 0] * width + offsets[c, 1, 1]
             o2 = offsets[c, 2, 0] * width + offsets[c, 2, 1]
             o3 = offsets[c, 3, 0] * width + offsets[c, 3, 1]
-            for j in range(j_lo, j_hi):
-                # unsigned ids: no negative-index wraparound test, which would stop vectorisation
-                a = np.uint64(base + j)
-                sse, done = _fit4(P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2), np.uint64(a + o3))
-                row[j] = sse if done else np.nan
+            n_ok = 0
             for j in range(j_lo, j_hi):
                 anchor = base + j
                 idx[0] = anchor + o0
                 idx[1] = anchor + o1
                 idx[2] = anchor + o2
                 idx[3] = anchor + o3
-                if not _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx):
+                ok[j] = _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx)
+                n_ok += ok[j]
+                row[j] = np.nan
+            if 4 * n_ok >= j_hi - j_lo:
+                for j in range(j_lo, j_hi):
+                    # unsigned ids: no negative-index wraparound test, which would stop vectorisation
+                    a = np.uint64(base + j)
+                    sse, done = _fit4(P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2),
+                                      np.uint64(a + o3))
+                    row[j] = sse if done else np.nan
+            for j in range(j_lo, j_hi):
+                if not ok[j]:
                     continue
                 sse = row[j]
                 if np.isnan(sse):
+                    anchor = base + j
+                    idx[0] = anchor + o0
+                    idx[1] = anchor + o1
+                    idx[2] = anchor + o2
+                    idx[3] = anchor + o3
                     sse, _, _, _ = _fit_rays(endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
                                              _FIT_TOLERANCE)
-                out[anchor, c] = sse if np.isfinite(sse) else np.inf
+                out[base + j, c] = sse if np.isfinite(sse) else np.inf
 
 
 @nb.njit(cache=True)
