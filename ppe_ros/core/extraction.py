@@ -738,6 +738,20 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
 
 
 @nb.njit(cache=True, inline='always')
+def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
+    """Remember the refined merge of planes a < b at versions (va, vb): its value, merged w and information."""
+    mcache_i[a, 0] = b
+    mcache_i[a, 1] = va
+    mcache_i[a, 2] = vb
+    mcache_f[a, 0] = value
+    mcache_f[a, 1] = w0
+    mcache_f[a, 2] = w1
+    mcache_f[a, 3] = w2
+    for t in range(6):
+        mcache_f[a, 4 + t] = info[t]
+
+
+@nb.njit(cache=True, inline='always')
 def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff):
     """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
 
@@ -812,6 +826,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     akey = anode.view(np.float64)
     aused = 0
     afree = -1
+
+    # the last merge refined per plane (keyed by its smaller id): partner, both versions; value, w, information
+    mcache_i = np.full((n_pixels, 3), -1, np.int64)
+    mcache_f = np.empty((n_pixels, 10))
 
     # action log
     log_kind = np.empty(n_pixels + 1, np.int8)
@@ -1028,7 +1046,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= exact_plane_size:
                     n1 = _gather(pi, nextpix, a, buf)
                     n2 = _gather(pi, nextpix, b, buf[n1:])
-                    sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
+                    sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
+                    _cache_merge(mcache_i, mcache_f, a, b, eva, evb, sse, u0, u1, u2, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     if inc < 0.0:
                         inc = 0.0
@@ -1047,7 +1066,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                                                    pf[small, _PW + 1], pf[small, _PW + 2], _FIT_ITERATIONS,
                                                    _FIT_TOLERANCE)
                 _, m0, m1, m2 = _model_merge(pf, a, b)
-                value, m0, m1, m2, _info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+                value, m0, m1, m2, info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+                _cache_merge(mcache_i, mcache_f, a, b, eva, evb, value, m0, m1, m2, info)
                 inc = value - pf[big, _PE] - e_small
                 if inc < 0.0:
                     inc = 0.0
@@ -1142,7 +1162,14 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             total = na + nbn
             info = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             value = 0.0
-            if total <= exact_plane_size:
+            if mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER]:
+                # the refinement that queued this merge computed the same fit (same planes, versions)
+                value = mcache_f[a, 0]
+                w0 = mcache_f[a, 1]
+                w1 = mcache_f[a, 2]
+                w2 = mcache_f[a, 3]
+                info = (mcache_f[a, 4], mcache_f[a, 5], mcache_f[a, 6], mcache_f[a, 7], mcache_f[a, 8], mcache_f[a, 9])
+            elif total <= exact_plane_size:
                 # exact merged state from the best of the union's starting points
                 n1 = _gather(pi, nextpix, a, buf)
                 n2 = _gather(pi, nextpix, b, buf[n1:])
