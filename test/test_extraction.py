@@ -700,3 +700,15 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
     assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000
     np.testing.assert_array_equal(fast, slow)
+
+
+def test_scans_at_the_ray_limit_raise_a_clear_error(monkeypatch):
+    """The greedy keeps 32-bit plane fields; a scan with MAX_RAYS rays or more is refused up front."""
+    import ppe_ros.core.extraction as extraction
+
+    points = plane_scan(rows=5, cols=5).points
+    monkeypatch.setattr(extraction, 'MAX_RAYS', 25)
+    with pytest.raises(ValueError, match='fewer than 25 rays'):
+        extraction.extract_plane_hierarchy(points)
+    monkeypatch.setattr(extraction, 'MAX_RAYS', 26)
+    assert len(extraction.extract_plane_hierarchy(points).actions) > 0

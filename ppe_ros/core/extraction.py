@@ -88,6 +88,8 @@ MODEL_CUTOFF_FACTOR = 4.0
 MODEL_MERGE_KEY_MARGIN = 0.05
 #: Relative slack subtracted from cached lower bounds (round-off and model error).
 BOUND_SLACK = 1e-7
+#: Scans must have fewer rays than this (the greedy's 32-bit plane fields and heap entries).
+MAX_RAYS = 2**26
 
 _FIT_ITERATIONS = 50
 _FIT_TOLERANCE = 1e-13
@@ -802,7 +804,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
 
     # plane state
     pf = np.zeros((n_pixels, _NPF))
-    pi = np.zeros((n_pixels, _NPI), np.int64)
+    # 32-bit fields (half the memory traffic of a plane's row): counts, versions and pixel ids are
+    # below H*W, stamps below the number of pops, node indices below the pools' sizes (a few times
+    # H*W), all below 2^31 for the scans extract_plane_hierarchy accepts (< MAX_RAYS)
+    pi = np.zeros((n_pixels, _NPI), np.int32)
 
     # global heap
     gcap = max(2 * n_pixels, 1024)
@@ -1537,7 +1542,7 @@ def extract_plane_hierarchy(
     """Run PPE and return its action log.
 
     Args:
-        points: organized ``(H, W, 3)`` endpoints in metres, NaN = no return.
+        points: organized ``(H, W, 3)`` endpoints in metres, NaN = no return; H * W < MAX_RAYS (2^26).
         origins: ray starts: None (coordinate origin), ``(3,)`` or ``(H, W, 3)``, same frame.
         max_neighbor_distance: the largest 3-D distance (m) between 4-neighbouring endpoints that
             may be joined (the paper's d, the reference's lmax); inf = no limit.
@@ -1561,8 +1566,8 @@ def extract_plane_hierarchy(
     lmax = float(max_neighbor_distance)
     if not (lmax > 0):
         raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {max_neighbor_distance!r}')
-    if scan.size >= 2**30:
-        raise ValueError(f'scans of up to 2^30 rays are supported; got {scan.height} x {scan.width}')
+    if scan.size >= MAX_RAYS:
+        raise ValueError(f'scans of fewer than {MAX_RAYS} rays (2^26) are supported; got {scan.height} x {scan.width}')
     if int(exact_plane_size) < 4:
         raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
     stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
