@@ -256,7 +256,7 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
             if 4 * n_ok >= j_hi - j_lo:
                 for j in range(j_lo, j_hi):
                     # unsigned ids: no negative-index wraparound test, which would stop vectorisation
-                    a = np.uint64(base + j)
+                    a = base + j
                     sse, done = _fit4(P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2),
                                       np.uint64(a + o3))
                     row[j] = sse if done else np.nan
