@@ -213,6 +213,15 @@ def _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx):
     return True
 
 
+@nb.njit(cache=True, inline='always')
+def _seed_rays(idx, anchor, o0, o1, o2, o3):
+    """Write the ray ids of the seed at anchor with the tetromino's id offsets o0..o3 into idx[:4]."""
+    idx[0] = anchor + o0
+    idx[1] = anchor + o1
+    idx[2] = anchor + o2
+    idx[3] = anchor + o3
+
+
 @nb.njit(cache=True, parallel=True)
 def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, out):
     """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid.
@@ -245,11 +254,7 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
             o3 = offsets[c, 3, 0] * width + offsets[c, 3, 1]
             n_ok = 0
             for j in range(j_lo, j_hi):
-                anchor = base + j
-                idx[0] = anchor + o0
-                idx[1] = anchor + o1
-                idx[2] = anchor + o2
-                idx[3] = anchor + o3
+                _seed_rays(idx, base + j, o0, o1, o2, o3)
                 ok[j] = _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx)
                 n_ok += ok[j]
                 row[j] = np.nan
@@ -265,11 +270,7 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
                     continue
                 sse = row[j]
                 if np.isnan(sse):
-                    anchor = base + j
-                    idx[0] = anchor + o0
-                    idx[1] = anchor + o1
-                    idx[2] = anchor + o2
-                    idx[3] = anchor + o3
+                    _seed_rays(idx, base + j, o0, o1, o2, o3)
                     sse, _, _, _ = _fit_rays(endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
                                              _FIT_TOLERANCE)
                 out[base + j, c] = sse if np.isfinite(sse) else np.inf
@@ -416,6 +417,13 @@ def _q_new(capacity):
     qstate[_QFREE] = -1
     return (np.empty(capacity), np.empty((capacity, 5), np.int32), np.empty(capacity),
             np.empty((capacity, 5), np.int32), np.empty(capacity, np.int64), np.full(_Q_BUCKETS, -1, np.int64), qstate)
+
+
+@nb.njit(cache=True)
+def _q_grow(gkey, gint, fkey, fint, fnext, capacity):
+    """The queue's heap and far-bucket pool with room for capacity entries each (contents kept)."""
+    return (_grow_f(gkey, capacity), _grow_f(gint, capacity), _grow_f(fkey, capacity), _grow_f(fint, capacity),
+            _grow_f(fnext, capacity))
 
 
 @nb.njit(cache=True)
@@ -884,11 +892,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         while gsize > 0 or qstate[_QCOUNT] > 0 or seed_ptr < n_seeds:
             if gsize + qstate[_QCOUNT] + 8 >= gcap:
                 gcap *= 2
-                gkey = _grow_f(gkey, gcap)
-                gint = _grow_f(gint, gcap)
-                fkey = _grow_f(fkey, gcap)
-                fint = _grow_f(fint, gcap)
-                fnext = _grow_f(fnext, gcap)
+                gkey, gint, fkey, fint, fnext = _q_grow(gkey, gint, fkey, fint, fnext, gcap)
             if gsize == 0 and qstate[_QCOUNT] > 0:
                 gsize = _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi)
                 if gsize == 0 and seed_ptr >= n_seeds:
@@ -1014,11 +1018,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                                                 pi, p, cutoff)
                 if gsize + qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= gcap:
                     gcap = 2 * (gcap + pi[p, _PADJN])
-                    gkey = _grow_f(gkey, gcap)
-                    gint = _grow_f(gint, gcap)
-                    fkey = _grow_f(fkey, gcap)
-                    fint = _grow_f(fint, gcap)
-                    fnext = _grow_f(fnext, gcap)
+                    gkey, gint, fkey, fint, fnext = _q_grow(gkey, gint, fkey, fint, fnext, gcap)
                 if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
                     least = np.inf
                     x = pi[p, _PADJ]
@@ -1322,11 +1322,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         pi[p, _PROOT] = root
         if gsize + qstate[_QCOUNT] + 2 + pi[p, _PADJN] >= gcap:
             gcap = 2 * (gcap + pi[p, _PADJN])
-            gkey = _grow_f(gkey, gcap)
-            gint = _grow_f(gint, gcap)
-            fkey = _grow_f(fkey, gcap)
-            fint = _grow_f(fint, gcap)
-            fnext = _grow_f(fnext, gcap)
+            gkey, gint, fkey, fint, fnext = _q_grow(gkey, gint, fkey, fint, fnext, gcap)
         gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p,
                                         cutoff)
 

@@ -55,18 +55,6 @@ def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
             (c02 * b0 + c12 * b1 + c22 * b2) * inv, ok)
 
 
-@nb.njit(cache=True)
-def _sse_at(endpoints, directions, idx, count, w0, w1, w2):
-    """Radial SSE (m^2) of rays idx[:count] for the plane w . x = 1 (internal frame)."""
-    sse = 0.0
-    for t in range(count):
-        k = idx[t]
-        den = w0 * directions[k, 0] + w1 * directions[k, 1] + w2 * directions[k, 2]
-        res = (w0 * endpoints[k, 0] + w1 * endpoints[k, 1] + w2 * endpoints[k, 2] - 1.0) * (1.0 / den)
-        sse += res * res
-    return sse
-
-
 _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _ZERO10 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
