@@ -287,6 +287,23 @@ def test_deferring_merges_does_not_change_the_action_log(exact):
     assert np.array_equal(deferred.actions, queued.actions)
 
 
+@pytest.mark.parametrize('exact', [False, True])
+def test_pools_that_run_out_are_enlarged_without_changing_the_action_log(exact):
+    """The greedy's work pools have fixed sizes inside the kernel; when one runs out, the run starts
+    again with a larger pool. Starting every pool at one row (so that each runs out, repeatedly)
+    gives the same log as the default sizes, for a full run and for a cut with a distance limit."""
+    scan = medium_scan()
+    settings = EXACT if exact else {}
+    for cut in ({}, {'max_neighbor_distance': 0.15, 'max_error_increment': 0.02}):
+        default = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut, **settings)
+        tiny = extract_plane_hierarchy(scan.points, origins=scan.origins, pool_capacity=1, **cut, **settings)
+        assert len(default.actions) > 100
+        assert np.array_equal(default.actions, tiny.actions)
+        assert 1 < tiny.stats['heap_capacity'] <= default.stats['heap_capacity']
+    with pytest.raises(ValueError, match='pool_capacity must be >= 1'):
+        extract_plane_hierarchy(scan.points, pool_capacity=0)
+
+
 def test_default_increments_are_close_to_exact_refits():
     scan = medium_scan()
     hierarchy = medium_hierarchy(exact=False)

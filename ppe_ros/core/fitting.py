@@ -68,7 +68,11 @@ def _init_add(acc, x, y, z):
             a22 + wt * z * z, b0 + wt * x, b1 + wt * y, b2 + wt * z)
 
 
-@nb.njit(cache=True)
+# Fits called in the greedy's loops allocate nothing and are compiled with _nrt=False (no atomic
+# reference counting of their array arguments on each call; see ppe_ros.core.extraction).
+
+
+@nb.njit(cache=True, _nrt=False)
 def _linear_init(endpoints, idx, count):
     """Initial plane w: minimises sum |p|^2 (w . p - 1)^2, a range-weighted algebraic fit."""
     acc = _ZERO9
@@ -101,7 +105,7 @@ def _gn_add(acc, res, g0, g1, g2):
             a22 + g2 * g2, b0 + g0 * res, b1 + g1 * res, b2 + g2 * res)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     """One pass over rays idx[:count] at w: SSE, Gauss-Newton information J^T J (6) and J^T r (3)."""
     acc = _ZERO10
@@ -111,7 +115,7 @@ def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     return acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """Minimise the radial SSE over w from the start (w0, w1, w2).
 
@@ -156,7 +160,7 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
     return sse, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """Exact fit of rays idx[:count]; starts from (w0, w1, w2) if finite, else the algebraic fit.
 
@@ -177,7 +181,7 @@ def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative
     return sse, w0, w1, w2, information
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """:func:`_fit` without the information: (sse, w0, w1, w2)."""
     sse, w0, w1, w2, _ = _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance)
