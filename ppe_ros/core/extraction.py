@@ -102,7 +102,7 @@ _G_MERGE_EXACT = 3
 
 # queue state fields (far buckets of the two-level queue)
 _QCUR = 0  # buckets up to this index live in the heap
-_QFREE = 1  # free list of far-bucket nodes
+_QFREE = 1  # free far-bucket nodes: a stack of this many node ids in fnext[:, 1]
 _QUSED = 2  # far-bucket nodes ever allocated
 _QCOUNT = 3  # entries in far buckets
 _NQS = 4
@@ -138,7 +138,8 @@ _PROOT = 6
 _PADJ = 7
 _PADJN = 8
 _PALIVE = 9
-_NPI = 10
+_PADJT = 10  # last node of the adjacency list (-1: empty)
+_NPI = 11
 # kernel statistics (counters returned with the action log)
 _ST_POPS = 0
 _ST_REEVALS = 1
@@ -409,12 +410,16 @@ def _q_bucket(key):
 
 @nb.njit(cache=True)
 def _q_new(capacity):
-    """An empty queue: heap (gkey, gint), far-bucket node pool (fkey, fint, fnext), bucket heads, state."""
+    """An empty queue: heap (gkey, gint), far-bucket node pool (fkey, fint, fnext), bucket heads, state.
+
+    fnext[node, 0] links a far bucket's nodes; fnext[:, 1] is the stack of free node ids (a push
+    reads its top, which is in cache, instead of following a free list through the pool).
+    """
     qstate = np.zeros(_NQS, np.int64)
     qstate[_QCUR] = -1
-    qstate[_QFREE] = -1
     return (np.empty(capacity), np.empty((capacity, 5), np.int32), np.empty(capacity),
-            np.empty((capacity, 5), np.int32), np.empty(capacity, np.int64), np.full(_Q_BUCKETS, -1, np.int64), qstate)
+            np.empty((capacity, 5), np.int32), np.empty((capacity, 2), np.int64), np.full(_Q_BUCKETS, -1, np.int64),
+            qstate)
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -423,14 +428,14 @@ def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b
     bucket = _q_bucket(key)
     if bucket <= qstate[_QCUR]:
         return _g_push(gkey, gint, gsize, key, kind, a, b, va, vb)
-    node = qstate[_QFREE]
-    if node >= 0:
-        qstate[_QFREE] = fnext[node]
+    if qstate[_QFREE] > 0:
+        qstate[_QFREE] -= 1
+        node = fnext[qstate[_QFREE], 1]
     else:
         node = qstate[_QUSED]
         qstate[_QUSED] += 1
     _g_set(fkey, fint, node, key, kind, a, b, va, vb)  # a pool node has a heap slot's layout
-    fnext[node] = bhead[bucket]
+    fnext[node, 0] = bhead[bucket]
     bhead[bucket] = node
     qstate[_QCOUNT] += 1
     return gsize
@@ -453,7 +458,7 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
         node = bhead[j]
         bhead[j] = -1
         while node >= 0:
-            nxt = fnext[node]
+            nxt = fnext[node, 0]
             kind = fint[node, 0]
             a = fint[node, 1]
             b = fint[node, 2]
@@ -469,8 +474,8 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
                     gint[size, c] = fint[node, c]
                 size += 1
             qstate[_QCOUNT] -= 1
-            fnext[node] = qstate[_QFREE]
-            qstate[_QFREE] = node
+            fnext[qstate[_QFREE], 1] = node
+            qstate[_QFREE] += 1
             node = nxt
     _g_heapify(gkey, gint, size)
     return size
@@ -863,6 +868,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             seed_best[anchor] = best
             seed_key[anchor] = seed_sse[anchor, best]
     seed_order = np.argsort(seed_key, kind='mergesort')  # stable: ties by anchor id
+    seed_sorted_key = seed_key[seed_order]  # read in order (seed_key[seed_order[i]] would be a random access)
     n_seeds = 0
     for anchor in range(n_pixels):
         if seed_best[anchor] >= 0:
@@ -901,13 +907,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if gsize == 0:
                     take_sorted = True
                 else:
-                    sk = seed_key[sa]
+                    sk = seed_sorted_key[seed_ptr]
                     if sk < gkey[0] or (sk == gkey[0] and (gint[0, 0] > _G_SEED or (
                             gint[0, 0] == _G_SEED and (gint[0, 1] > sa or (
                                 gint[0, 1] == sa and gint[0, 2] > seed_best[sa]))))):
                         take_sorted = True
             if take_sorted:
-                key = seed_key[sa]
+                key = seed_sorted_key[seed_ptr]
                 kind = _G_SEED
                 ea = sa
                 eb = seed_best[sa]
@@ -1095,6 +1101,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[p, _PALIVE] = 1
             pi[p, _PROOT] = -1
             pi[p, _PADJ] = -1
+            pi[p, _PADJT] = -1
             pi[p, _PADJN] = 0
             pi[p, _PHEAD] = cell[0]
             for t in range(4):
@@ -1187,11 +1194,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             # adjacency lists
             if pi[s, _PADJ] < 0:
                 pi[s, _PADJ] = pi[o, _PADJ]
+                pi[s, _PADJT] = pi[o, _PADJT]
             elif pi[o, _PADJ] >= 0:
-                x = pi[s, _PADJ]
-                while anode[x, _AN_NEXT] >= 0:
-                    x = anode[x, _AN_NEXT]
-                anode[x, _AN_NEXT] = pi[o, _PADJ]
+                anode[pi[s, _PADJT], _AN_NEXT] = pi[o, _PADJ]
+                pi[s, _PADJT] = pi[o, _PADJT]
             pi[s, _PADJN] += pi[o, _PADJN]
             pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
             lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
@@ -1305,6 +1311,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                             anode[node, _AN_PLANE] = y
                             akey[node, _AN_KEY] = np.inf
                             anode[node, _AN_NEXT] = pi[x, _PADJ]
+                            if pi[x, _PADJ] < 0:
+                                pi[x, _PADJT] = node
                             pi[x, _PADJ] = node
                             pi[x, _PADJN] += 1
 
@@ -1325,6 +1333,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         seen_stamp += 1
         x = pi[p, _PADJ]
         new_head = -1
+        new_tail = -1
         n_adj = 0
         least = np.inf
         while x >= 0:
@@ -1344,6 +1353,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 seen[q] = seen_stamp
                 anode[x, _AN_PLANE] = q
                 anode[x, _AN_NEXT] = new_head
+                if new_head < 0:
+                    new_tail = x
                 new_head = x
                 n_adj += 1
                 stats[_ST_MERGE_EVALS] += 1
@@ -1376,6 +1387,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         anode[x, _AN_VB] = pi[b, _PVER]
             x = nxt
         pi[p, _PADJ] = new_head
+        pi[p, _PADJT] = new_tail
         pi[p, _PADJN] = n_adj
         pf[p, _PDEFER] = least
 
