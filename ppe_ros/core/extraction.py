@@ -112,12 +112,14 @@ _Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
 
 # adjacency node fields
 _AN_PLANE = 0  # the neighbouring plane (an id that may have been merged since: resolve with _find)
-_AN_NEXT = 1  # next node of the owner's list (-1: end; free list link when free)
-_AN_KIND = 2  # kind of the deferred merge
-_AN_VA = 3  # versions of the deferred merge's planes (smaller id first)
-_AN_VB = 4
-_AN_KEY = 5  # key of the deferred merge, a float64 in the same row (inf: none)
-_AN_FIELDS = 6
+_AN_KIND = 1  # kind of the deferred merge
+_AN_VA = 2  # versions of the deferred merge's planes (smaller id first)
+_AN_VB = 3
+_AN_KEY = 4  # key of the deferred merge, a float64 in the same row (inf: none)
+_AN_FIELDS = 5
+#: A plane's adjacency nodes are one segment of the pool; segment sizes are powers of two from this.
+_ADJ_MIN_ROWS = 4
+_ADJ_CLASSES = 40
 
 # plane float fields
 _PE = 0  # error (m^2)
@@ -135,10 +137,10 @@ _PSTAMP = 3
 _PHEAD = 4
 _PTAIL = 5
 _PROOT = 6
-_PADJ = 7
-_PADJN = 8
+_PADJ = 7  # first row of the adjacency segment (-1: none)
+_PADJN = 8  # adjacency nodes in use
 _PALIVE = 9
-_PADJT = 10  # last node of the adjacency list (-1: empty)
+_PADJC = 10  # rows of the adjacency segment
 _NPI = 11
 # kernel statistics (counters returned with the action log)
 _ST_POPS = 0
@@ -779,6 +781,90 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
 
 
 # --------------------------------------------------------------------------------------------
+# adjacency segments: each plane's neighbour nodes are contiguous rows of one pool, so that the
+# loops over a plane's neighbours read memory in order (a linked list of nodes scattered over the
+# pool made them wait on a cache miss per neighbour). Segments have power-of-two sizes; freed ones
+# are kept on a free list per size.
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline='always')
+def _adj_class(rows):
+    """Size class and size of the smallest segment of at least rows rows."""
+    c = 0
+    size = _ADJ_MIN_ROWS
+    while size < rows:
+        size *= 2
+        c += 1
+    return c, size
+
+
+@nb.njit(cache=True, _nrt=False)
+def _adj_move(anode, afree, pi, x, rows, aused):
+    """Move plane x's adjacency nodes to a segment of at least rows rows; returns aused (-1: the pool is full)."""
+    c, size = _adj_class(rows)
+    start = afree[c]
+    if start >= 0:
+        afree[c] = anode[start, 0]
+    else:
+        start = aused
+        if start + size > anode.shape[0]:
+            return -1
+        aused = start + size
+    old = pi[x, _PADJ]
+    if old >= 0:
+        for t in range(pi[x, _PADJN]):
+            for f in range(_AN_FIELDS):
+                anode[start + t, f] = anode[old + t, f]
+        c_old, _ = _adj_class(pi[x, _PADJC])
+        anode[old, 0] = afree[c_old]
+        afree[c_old] = old
+    pi[x, _PADJ] = start
+    pi[x, _PADJC] = size
+    return aused
+
+
+@nb.njit(cache=True, _nrt=False)
+def _adj_append(anode, akey, afree, pi, x, y, aused):
+    """Add plane y to plane x's neighbours; returns aused (-1: the pool is full)."""
+    n = pi[x, _PADJN]
+    if n == pi[x, _PADJC]:
+        aused = _adj_move(anode, afree, pi, x, n + 1, aused)
+        if aused < 0:
+            return -1
+    row = pi[x, _PADJ] + n
+    anode[row, _AN_PLANE] = y
+    akey[row, _AN_KEY] = np.inf
+    pi[x, _PADJN] = n + 1
+    return aused
+
+
+@nb.njit(cache=True, _nrt=False)
+def _adj_concat(anode, afree, pi, s, o, aused):
+    """Append plane o's neighbour nodes to plane s's and free o's segment; returns aused (-1: the pool is full)."""
+    ns = pi[s, _PADJN]
+    no = pi[o, _PADJN]
+    if ns + no > pi[s, _PADJC]:
+        aused = _adj_move(anode, afree, pi, s, ns + no, aused)
+        if aused < 0:
+            return -1
+    start = pi[s, _PADJ]
+    old = pi[o, _PADJ]
+    if old >= 0:
+        for t in range(no):
+            for f in range(_AN_FIELDS):
+                anode[start + ns + t, f] = anode[old + t, f]
+        c_old, _ = _adj_class(pi[o, _PADJC])
+        anode[old, 0] = afree[c_old]
+        afree[c_old] = old
+    pi[s, _PADJN] = ns + no
+    pi[o, _PADJ] = -1
+    pi[o, _PADJN] = 0
+    pi[o, _PADJC] = 0
+    return aused
+
+
+# --------------------------------------------------------------------------------------------
 # the greedy kernel
 # --------------------------------------------------------------------------------------------
 
@@ -831,13 +917,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     hused = 0
     hfree = -1
 
-    # adjacency pool (linked lists of neighbouring plane ids), one row per node so that a node is
-    # one memory access: neighbour, next node and a merge deferred on the owner's node (its kind,
-    # the two versions it was valued at, and its key (inf: none) in the float view akey)
+    # adjacency pool (a segment of neighbouring plane ids per plane), one row per node so that a
+    # node is one memory access: neighbour and a merge deferred on the owner's node (its kind, the
+    # two versions it was valued at, and its key (inf: none) in the float view akey)
     anode = np.empty((acap, _AN_FIELDS), np.int64)
     akey = anode.view(np.float64)
     aused = 0
-    afree = -1
+    afree = np.full(_ADJ_CLASSES, -1, np.int64)
 
     # the last merge refined per plane (keyed by its smaller id): partner, both versions; value, w, information
     mcache_i = np.full((n_pixels, 3), -1, np.int64)
@@ -1020,8 +1106,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
                 if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
                     least = np.inf
-                    x = pi[p, _PADJ]
-                    while x >= 0:
+                    for x in range(pi[p, _PADJ], pi[p, _PADJ] + pi[p, _PADJN]):
                         if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
                             q = anode[x, _AN_PLANE]
                             gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY],
@@ -1030,7 +1115,6 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                             akey[x, _AN_KEY] = np.inf
                         elif akey[x, _AN_KEY] < least:
                             least = akey[x, _AN_KEY]
-                        x = anode[x, _AN_NEXT]
                     pf[p, _PDEFER] = least
             else:
                 a = ea
@@ -1101,7 +1185,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[p, _PALIVE] = 1
             pi[p, _PROOT] = -1
             pi[p, _PADJ] = -1
-            pi[p, _PADJT] = -1
+            pi[p, _PADJC] = 0
             pi[p, _PADJN] = 0
             pi[p, _PHEAD] = cell[0]
             for t in range(4):
@@ -1192,13 +1276,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[s, _PCOUNT] = total
             pi[s, _PROOT] = _h_meld(hf, hi, pi[s, _PROOT], pi[o, _PROOT])
             # adjacency lists
-            if pi[s, _PADJ] < 0:
-                pi[s, _PADJ] = pi[o, _PADJ]
-                pi[s, _PADJT] = pi[o, _PADJT]
-            elif pi[o, _PADJ] >= 0:
-                anode[pi[s, _PADJT], _AN_NEXT] = pi[o, _PADJ]
-                pi[s, _PADJT] = pi[o, _PADJT]
-            pi[s, _PADJN] += pi[o, _PADJN]
+            aused = _adj_concat(anode, afree, pi, s, o, aused)
+            if aused < 0:
+                overflow[2] = 2 * acap
+                return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
             pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
             lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
             if total <= exact_plane_size:
@@ -1240,8 +1321,6 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         # capacity for node/adjacency pushes of this step
         if hused + 4 * new_pixels + 8 >= hcap:
             overflow[1] = 2 * hcap
-        if aused + 8 * new_pixels + 8 >= acap:
-            overflow[2] = 2 * acap
         if overflow.any():
             return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
 
@@ -1299,22 +1378,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 else:
                     other = _find(parent, owner[q])
                     if other != p:
-                        for side in range(2):
-                            x = p if side == 0 else other
-                            y = other if side == 0 else p
-                            if afree >= 0:
-                                node = afree
-                                afree = anode[node, _AN_NEXT]
-                            else:
-                                node = aused
-                                aused += 1
-                            anode[node, _AN_PLANE] = y
-                            akey[node, _AN_KEY] = np.inf
-                            anode[node, _AN_NEXT] = pi[x, _PADJ]
-                            if pi[x, _PADJ] < 0:
-                                pi[x, _PADJT] = node
-                            pi[x, _PADJ] = node
-                            pi[x, _PADJN] += 1
+                        aused = _adj_append(anode, akey, afree, pi, p, other, aused)
+                        if aused >= 0:
+                            aused = _adj_append(anode, akey, afree, pi, other, p, aused)
+                        if aused < 0:
+                            overflow[2] = 2 * acap
+                            return (log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(),
+                                    stats, overflow)
 
         # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
         root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
@@ -1331,31 +1401,24 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         # and p either changes (and re-evaluates every merge here) or re-queues its proxy, which
         # releases the deferred merges its new key no longer precedes
         seen_stamp += 1
-        x = pi[p, _PADJ]
-        new_head = -1
-        new_tail = -1
+        first = pi[p, _PADJ]
+        end = first + pi[p, _PADJN]
         n_adj = 0
         least = np.inf
-        while x >= 0:
-            nxt = anode[x, _AN_NEXT]
-            if nxt >= 0:  # the next neighbour's rows load while this one is evaluated
-                q = anode[nxt, _AN_PLANE]
+        for r in range(first, end):
+            if r + 1 < end:  # the next neighbour's rows load while this one is evaluated
+                q = anode[r + 1, _AN_PLANE]
                 _prefetch(parent, q, 0)
                 _prefetch(seen, q, 0)
                 _prefetch(pi, q, 0)
                 _prefetch(pf, q, 0)
                 _prefetch(pf, q, _PH + 5)
-            q = _find(parent, anode[x, _AN_PLANE])
-            if q == p or pi[q, _PALIVE] == 0 or seen[q] == seen_stamp:
-                anode[x, _AN_NEXT] = afree
-                afree = x
-            else:
+            q = _find(parent, anode[r, _AN_PLANE])
+            if not (q == p or pi[q, _PALIVE] == 0 or seen[q] == seen_stamp):
+                # kept: compacted to the front of the segment (x <= r, so no unread row is overwritten)
+                x = first + n_adj
                 seen[q] = seen_stamp
                 anode[x, _AN_PLANE] = q
-                anode[x, _AN_NEXT] = new_head
-                if new_head < 0:
-                    new_tail = x
-                new_head = x
                 n_adj += 1
                 stats[_ST_MERGE_EVALS] += 1
                 a = min(p, q)
@@ -1385,9 +1448,6 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         anode[x, _AN_KIND] = gkind
                         anode[x, _AN_VA] = pi[a, _PVER]
                         anode[x, _AN_VB] = pi[b, _PVER]
-            x = nxt
-        pi[p, _PADJ] = new_head
-        pi[p, _PADJT] = new_tail
         pi[p, _PADJN] = n_adj
         pf[p, _PDEFER] = least
 
@@ -1587,9 +1647,9 @@ def extract_plane_hierarchy(
     _seed_errors(scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
                  TETROMINO_OFFSETS, seed_sse)
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
-    # use at most 0.9, 1.12 and 1.1 rows per ray; a pool that runs out is doubled and the greedy run
+    # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
     # again (np.empty only reserves memory: rows that are never used cost no RAM)
-    capacity = np.array([2, 4, 4]) * max(scan.size, 256) if pool_capacity is None else np.full(3, int(pool_capacity))
+    capacity = np.array([2, 4, 8]) * max(scan.size, 256) if pool_capacity is None else np.full(3, int(pool_capacity))
     while True:
         kinds, a_ids, b_ids, incs, stats, overflow = _ppe_kernel(
             scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
@@ -1600,6 +1660,8 @@ def extract_plane_hierarchy(
         if not overflow.any():
             break
         capacity = np.maximum(capacity, overflow)
+        if capacity.max() >= 2**31:  # pool rows are 32-bit plane fields
+            raise RuntimeError(f'the greedy needs work pools of {capacity.max()} rows (2^31 or more)')
     seconds = time.perf_counter() - start
     actions = np.empty(len(kinds), ACTION_DTYPE)
     actions['kind'] = kinds
