@@ -1030,9 +1030,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     act_a = anchor
                     act_b = c
                     break
-                # next best valid seed of this anchor after (key, c)
+                # next best valid seed of this anchor after (key, c); none when the anchor's own
+                # ray is taken (every tetromino contains its anchor)
                 best = -1
-                for c2 in range(17):
+                for c2 in range(17 if owner[anchor] < 0 else 0):
                     e2 = seed_sse[anchor, c2]
                     if not np.isfinite(e2):
                         continue
