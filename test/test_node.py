@@ -5,6 +5,7 @@ Every test gets its own rclpy context and namespace; every wait has a deadline.
 
 from __future__ import annotations
 
+import gc
 import itertools
 import os
 import time
@@ -181,6 +182,16 @@ def test_every_output_carries_the_input_header(ros_context, executor, namespace,
     for key in ('input_rate_hz', 'processing_time_mean_ms', 'processing_time_max_ms', 'frames_dropped',
                 'last_error'):
         assert key in values
+
+
+def test_warm_up_freezes_the_compilers_objects_out_of_garbage_collection(ros_context, executor, namespace):
+    """After the warm-up the long-lived objects (numba's compiler) are frozen, so that full garbage
+    collections do not pause the node for tens of milliseconds every few hundred frames."""
+    gc.unfreeze()
+    assert gc.get_freeze_count() == 0
+    harness = Harness(ros_context, executor, namespace)
+    assert harness.node.ready.is_set()
+    assert gc.get_freeze_count() > 100_000
 
 
 def test_default_best_effort_input_matches_a_sensor_data_publisher(ros_context, executor, namespace, scan_points):
