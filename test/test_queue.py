@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 import pytest
@@ -16,6 +18,7 @@ from ppe_ros.core.extraction import (
     _PSTAMP,
     _PVER,
     _Q_BUCKETS,
+    _Q_PER_OCTAVE,
     _QCOUNT,
     _g_pop,
     _prefetch,
@@ -154,6 +157,27 @@ def test_bucket_index_never_decreases_with_the_key():
     assert buckets.min() >= 0 and buckets.max() < _Q_BUCKETS
     # four buckets per octave: keys a factor 2 apart are four buckets apart
     assert _q_bucket(2e-5) - _q_bucket(1e-5) == 4
+
+
+def test_bucket_index_from_float_bits_equals_the_frexp_formula():
+    """_q_bucket reads a normal key's exponent and top fraction bits directly; it must give the
+    bucket of the frexp formula (mantissa in [0.5, 1)) for every key, subnormals and edges included."""
+    def by_frexp(key):
+        if not key > 0.0:
+            return 0
+        if not key < np.inf:
+            return _Q_BUCKETS - 1
+        mantissa, exponent = math.frexp(key)
+        return (exponent + 1100) * _Q_PER_OCTAVE + int((mantissa - 0.5) * (2 * _Q_PER_OCTAVE))
+
+    rng = np.random.default_rng(11)
+    keys = np.concatenate([
+        [0.0, -0.0, -1.0, np.nan, np.inf, 5e-324, 1e-310, np.nextafter(2.2250738585072014e-308, 0.0),
+         2.2250738585072014e-308, 0.5, np.nextafter(0.5, 1.0), 0.625, np.nextafter(0.625, 0.0), 0.75, 0.875,
+         np.nextafter(1.0, 0.0), 1.0, np.finfo(float).max],
+        10.0 ** rng.uniform(-323, 308, 50000),
+    ])
+    assert [_q_bucket(k) for k in keys] == [by_frexp(k) for k in keys]
 
 
 @nb.njit

@@ -107,7 +107,8 @@ _QUSED = 2  # far-bucket nodes ever allocated
 _QCOUNT = 3  # entries in far buckets
 _NQS = 4
 #: Far buckets per octave of the key (4: a bucket spans keys within a factor 2^(1/4)).
-_Q_PER_OCTAVE = 4
+_Q_FRACTION_BITS = 2
+_Q_PER_OCTAVE = 1 << _Q_FRACTION_BITS
 _Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
 
 # adjacency node fields
@@ -181,6 +182,18 @@ def _prefetch(typingctx, arr, row, col):
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def _float_bits(typingctx, x):
+    """The IEEE 754 bits of a float64 as an int64 (a bit cast)."""
+    if not isinstance(x, types.Float) or x.bitwidth != 64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.int64(x), codegen
 
 
 # --------------------------------------------------------------------------------------------
@@ -406,8 +419,15 @@ def _q_bucket(key):
         return 0
     if not key < np.inf:
         return _Q_BUCKETS - 1
-    mantissa, exponent = math.frexp(key)  # key = mantissa 2^exponent, mantissa in [0.5, 1)
-    return (exponent + 1100) * _Q_PER_OCTAVE + int((mantissa - 0.5) * (2 * _Q_PER_OCTAVE))
+    if key < 2.2250738585072014e-308:  # subnormal
+        mantissa, exponent = math.frexp(key)  # key = mantissa 2^exponent, mantissa in [0.5, 1)
+        return (exponent + 1100) * _Q_PER_OCTAVE + int((mantissa - 0.5) * (2 * _Q_PER_OCTAVE))
+    # the same from the bits of a normal float (no call into libm): exponent = biased exponent -
+    # 1022, and (mantissa - 0.5) * 2 * _Q_PER_OCTAVE = _Q_PER_OCTAVE * fraction, whose integer part
+    # is the fraction's top _Q_FRACTION_BITS bits
+    bits = _float_bits(key)
+    return (((bits >> 52) - 1022 + 1100) * _Q_PER_OCTAVE
+            + ((bits >> (52 - _Q_FRACTION_BITS)) & (_Q_PER_OCTAVE - 1)))
 
 
 @nb.njit(cache=True)
@@ -622,9 +642,9 @@ def _model_extension(endpoints, directions, pf, p, k):
     return f * f / denom, x0, x1, x2, f, g0, g1, g2
 
 
-@nb.njit(cache=True, _nrt=False)
-def _model_merge(pf, a, b):
-    """Merge increment of planes a, b under their quadratic models and the merged w."""
+@nb.njit(cache=True, inline='always')
+def _model_merge_terms(pf, a, b):
+    """Ha (w_a - w_b), Hb (w_a - w_b) and S = Ha + Hb (6) of planes a, b: the merge model's system."""
     # scalar reads (no array views: a view costs reference counting in the hot loop)
     ha0, ha1, ha2, ha3, ha4, ha5 = pf[a, _PH], pf[a, _PH + 1], pf[a, _PH + 2], pf[a, _PH + 3], pf[a, _PH + 4], \
         pf[a, _PH + 5]
@@ -640,20 +660,31 @@ def _model_merge(pf, a, b):
     bd0 = hb0 * d0 + hb1 * d1 + hb2 * d2
     bd1 = hb1 * d0 + hb3 * d1 + hb4 * d2
     bd2 = hb2 * d0 + hb4 * d1 + hb5 * d2
-    s0 = ha0 + hb0
-    s1 = ha1 + hb1
-    s2 = ha2 + hb2
-    s3 = ha3 + hb3
-    s4 = ha4 + hb4
-    s5 = ha5 + hb5
-    y0, y1, y2, ok = _solve_sym3(s0, s1, s2, s3, s4, s5, bd0, bd1, bd2)
+    return (ad0, ad1, ad2), (bd0, bd1, bd2), (ha0 + hb0, ha1 + hb1, ha2 + hb2, ha3 + hb3, ha4 + hb4, ha5 + hb5)
+
+
+@nb.njit(cache=True, inline='always')
+def _model_merge_increment(pf, a, b):
+    """Merge increment of planes a, b under their quadratic models (inf when the models are singular)."""
+    ad, bd, s = _model_merge_terms(pf, a, b)
+    y0, y1, y2, ok = _solve_sym3(s[0], s[1], s[2], s[3], s[4], s[5], bd[0], bd[1], bd[2])
     if not ok:
-        return np.inf, np.nan, np.nan, np.nan
-    inc = ad0 * y0 + ad1 * y1 + ad2 * y2
+        return np.inf
+    inc = ad[0] * y0 + ad[1] * y1 + ad[2] * y2
     if inc < 0.0:
         inc = 0.0
+    return inc
+
+
+@nb.njit(cache=True, _nrt=False)
+def _model_merge(pf, a, b):
+    """Merge increment of planes a, b under their quadratic models and the merged w."""
+    inc = _model_merge_increment(pf, a, b)
+    if not inc < np.inf:
+        return np.inf, np.nan, np.nan, np.nan
+    ad, _, s = _model_merge_terms(pf, a, b)
     # merged w = w_b + S^-1 Ha (w_a - w_b)
-    z0, z1, z2, ok = _solve_sym3(s0, s1, s2, s3, s4, s5, ad0, ad1, ad2)
+    z0, z1, z2, _ = _solve_sym3(s[0], s[1], s[2], s[3], s[4], s[5], ad[0], ad[1], ad[2])
     return inc, pf[b, _PW] + z0, pf[b, _PW + 1] + z1, pf[b, _PW + 2] + z2
 
 
@@ -1434,7 +1465,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 else:
                     # queued below its model value so that it is refined (exactly) before any
                     # action it could precede even where the model overestimates the increment
-                    inc = _model_merge(pf, a, b)[0] * model_key_factor
+                    inc = _model_merge_increment(pf, a, b) * model_key_factor
                     gkind = _G_MERGE_MODEL
                 if inc < 0.0:
                     inc = 0.0
