@@ -790,7 +790,7 @@ def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
         mcache_f[a, 4 + t] = info[t]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, _nrt=False)
 def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff):
     """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
 
@@ -1015,7 +1015,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     break
             if hused + 8 >= hcap:
                 overflow[1] = 2 * hcap
-            if overflow.any():
+            if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
                 return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
             # the next entry: the sorted initial seeds or the heap, whichever comes first
             take_sorted = False
@@ -1353,7 +1353,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         # capacity for node/adjacency pushes of this step
         if hused + 4 * new_pixels + 8 >= hcap:
             overflow[1] = 2 * hcap
-        if overflow.any():
+        if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
             return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
 
         # new neighbours of the added pixels: extension candidates and adjacent planes
@@ -1423,7 +1423,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         pi[p, _PROOT] = root
         if gsize + qstate[_QCOUNT] + 2 + pi[p, _PADJN] >= gcap:
             overflow[0] = 2 * (gcap + pi[p, _PADJN])
-        if overflow.any():
+        if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
             return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
         gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p,
                                         cutoff)
