@@ -140,9 +140,27 @@ def _boundary_label(label_0, label_1, cell_label_0, cell_label_1):
     return label_0 if uses == 1 else 0
 
 
+# The fill loops below read and write array elements, never rows: a row (an array view) costs
+# numba an atomic reference-count increment and decrement, several per cell.
+
+
+@nb.njit(cache=True, inline='always')
+def _vertex(vertices, r, c):
+    """Vertex (r, c) as a 3-tuple."""
+    return vertices[r, c, 0], vertices[r, c, 1], vertices[r, c, 2]
+
+
+@nb.njit(cache=True, inline='always')
+def _put_segment(segments, s, vertices, r0, c0, r1, c1):
+    """Write the segment from vertex (r0, c0) to vertex (r1, c1) into ``segments[s]``."""
+    for k in range(3):
+        segments[s, 0, k] = vertices[r0, c0, k]
+        segments[s, 1, k] = vertices[r1, c1, k]
+
+
 @nb.njit(cache=True, inline='always')
 def _put_triangle(triangles, areas, slot, normal, label, va, vb, vc):
-    """Write triangle (va, vb, vc) into ``triangles[slot]``, wound counter-clockwise around ``normal``."""
+    """Write triangle (va, vb, vc) (3-tuples) into ``triangles[slot]``, wound counter-clockwise around ``normal``."""
     e10, e11, e12 = vb[0] - va[0], vb[1] - va[1], vb[2] - va[2]
     e20, e21, e22 = vc[0] - va[0], vc[1] - va[1], vc[2] - va[2]
     facing = (normal[0] * (e11 * e22 - e12 * e21)
@@ -203,10 +221,10 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
             if kind == _NO_CELL:
                 continue
             label = cell_labels[r, c]
-            normal = normals[label - 1]
+            normal = (normals[label - 1, 0], normals[label - 1, 1], normals[label - 1, 2])
             slot = triangle_next[label]
-            v = vertices
-            a, b, c_, d = v[r, c], v[r, c + 1], v[r + 1, c], v[r + 1, c + 1]
+            a, b = _vertex(vertices, r, c), _vertex(vertices, r, c + 1)
+            c_, d = _vertex(vertices, r + 1, c), _vertex(vertices, r + 1, c + 1)
             if kind == _FULL:
                 _put_triangle(triangles, areas, slot, normal, label, a, b, d)
                 _put_triangle(triangles, areas, slot + 1, normal, label, a, d, c_)
@@ -223,11 +241,9 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
             triangle_next[label] = slot + 1
             s = segment_next[label]
             if kind == _MISSING_A or kind == _MISSING_D:  # diagonal b-c
-                segments[s, 0] = vertices[r, c + 1]
-                segments[s, 1] = vertices[r + 1, c]
+                _put_segment(segments, s, vertices, r, c + 1, r + 1, c)
             else:  # diagonal a-d
-                segments[s, 0] = vertices[r, c]
-                segments[s, 1] = vertices[r + 1, c + 1]
+                _put_segment(segments, s, vertices, r, c, r + 1, c + 1)
             segment_next[label] = s + 1
     for r in range(height):
         for c in range(width - 1):
@@ -235,8 +251,7 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
                                     _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c))
             if label > 0:
                 s = segment_next[label]
-                segments[s, 0] = vertices[r, c]
-                segments[s, 1] = vertices[r, c + 1]
+                _put_segment(segments, s, vertices, r, c, r, c + 1)
                 segment_next[label] = s + 1
     for r in range(height - 1):
         for c in range(width):
@@ -244,8 +259,7 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
                                     _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c))
             if label > 0:
                 s = segment_next[label]
-                segments[s, 0] = vertices[r, c]
-                segments[s, 1] = vertices[r + 1, c]
+                _put_segment(segments, s, vertices, r, c, r + 1, c)
                 segment_next[label] = s + 1
     return triangles, triangle_counts[1:], segments, segment_counts[1:], areas
 
