@@ -664,9 +664,8 @@ def _model_merge_terms(pf, a, b):
 
 
 @nb.njit(cache=True, inline='always')
-def _model_merge_increment(pf, a, b):
-    """Merge increment of planes a, b under their quadratic models (inf when the models are singular)."""
-    ad, bd, s = _model_merge_terms(pf, a, b)
+def _model_merge_increment_of(ad, bd, s):
+    """Merge increment (ad^T S^-1 bd, at least 0; inf when S is singular) of the terms of _model_merge_terms."""
     y0, y1, y2, ok = _solve_sym3(s[0], s[1], s[2], s[3], s[4], s[5], bd[0], bd[1], bd[2])
     if not ok:
         return np.inf
@@ -676,13 +675,20 @@ def _model_merge_increment(pf, a, b):
     return inc
 
 
+@nb.njit(cache=True, inline='always')
+def _model_merge_increment(pf, a, b):
+    """Merge increment of planes a, b under their quadratic models (inf when the models are singular)."""
+    ad, bd, s = _model_merge_terms(pf, a, b)
+    return _model_merge_increment_of(ad, bd, s)
+
+
 @nb.njit(cache=True, _nrt=False)
 def _model_merge(pf, a, b):
     """Merge increment of planes a, b under their quadratic models and the merged w."""
-    inc = _model_merge_increment(pf, a, b)
+    ad, bd, s = _model_merge_terms(pf, a, b)
+    inc = _model_merge_increment_of(ad, bd, s)
     if not inc < np.inf:
         return np.inf, np.nan, np.nan, np.nan
-    ad, _, s = _model_merge_terms(pf, a, b)
     # merged w = w_b + S^-1 Ha (w_a - w_b)
     z0, z1, z2, _ = _solve_sym3(s[0], s[1], s[2], s[3], s[4], s[5], ad[0], ad[1], ad[2])
     return inc, pf[b, _PW] + z0, pf[b, _PW + 1] + z1, pf[b, _PW + 2] + z2
@@ -830,6 +836,22 @@ def _adj_class(rows):
     return c, size
 
 
+@nb.njit(cache=True, inline='always')
+def _adj_copy(anode, dst, src, n):
+    """Copy n adjacency nodes from row src on to row dst on."""
+    for t in range(n):
+        for f in range(_AN_FIELDS):
+            anode[dst + t, f] = anode[src + t, f]
+
+
+@nb.njit(cache=True, inline='always')
+def _adj_release(anode, afree, start, rows):
+    """Put the segment of rows rows at start on its size's free list (linked through its first row)."""
+    c, _ = _adj_class(rows)
+    anode[start, 0] = afree[c]
+    afree[c] = start
+
+
 @nb.njit(cache=True, _nrt=False)
 def _adj_move(anode, afree, pi, x, rows, aused):
     """Move plane x's adjacency nodes to a segment of at least rows rows; returns aused (-1: the pool is full)."""
@@ -844,12 +866,8 @@ def _adj_move(anode, afree, pi, x, rows, aused):
         aused = start + size
     old = pi[x, _PADJ]
     if old >= 0:
-        for t in range(pi[x, _PADJN]):
-            for f in range(_AN_FIELDS):
-                anode[start + t, f] = anode[old + t, f]
-        c_old, _ = _adj_class(pi[x, _PADJC])
-        anode[old, 0] = afree[c_old]
-        afree[c_old] = old
+        _adj_copy(anode, start, old, pi[x, _PADJN])
+        _adj_release(anode, afree, old, pi[x, _PADJC])
     pi[x, _PADJ] = start
     pi[x, _PADJC] = size
     return aused
@@ -882,12 +900,8 @@ def _adj_concat(anode, afree, pi, s, o, aused):
     start = pi[s, _PADJ]
     old = pi[o, _PADJ]
     if old >= 0:
-        for t in range(no):
-            for f in range(_AN_FIELDS):
-                anode[start + ns + t, f] = anode[old + t, f]
-        c_old, _ = _adj_class(pi[o, _PADJC])
-        anode[old, 0] = afree[c_old]
-        afree[c_old] = old
+        _adj_copy(anode, start + ns, old, no)
+        _adj_release(anode, afree, old, pi[o, _PADJC])
     pi[s, _PADJN] = ns + no
     pi[o, _PADJ] = -1
     pi[o, _PADJN] = 0
@@ -898,6 +912,12 @@ def _adj_concat(anode, afree, pi, s, o, aused):
 # --------------------------------------------------------------------------------------------
 # the greedy kernel
 # --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _empty_log(stats, overflow):
+    """The kernel's result when a pool ran out: an empty action log, its stats and overflow."""
+    return (np.empty(0, np.int8), np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), stats, overflow)
 
 
 @nb.njit(cache=True)
@@ -1016,7 +1036,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             if hused + 8 >= hcap:
                 overflow[1] = 2 * hcap
             if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
-                return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
+                return _empty_log(stats, overflow)
             # the next entry: the sorted initial seeds or the heap, whichever comes first
             take_sorted = False
             if seed_ptr < n_seeds:
@@ -1135,7 +1155,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                                                 pi, p, cutoff)
                 if gsize + qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= gcap:
                     overflow[0] = 2 * (gcap + pi[p, _PADJN])
-                    return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
+                    return _empty_log(stats, overflow)
                 if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
                     least = np.inf
                     for x in range(pi[p, _PADJ], pi[p, _PADJ] + pi[p, _PADJN]):
@@ -1311,7 +1331,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             aused = _adj_concat(anode, afree, pi, s, o, aused)
             if aused < 0:
                 overflow[2] = 2 * acap
-                return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
+                return _empty_log(stats, overflow)
             pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
             lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
             if total <= exact_plane_size:
@@ -1350,11 +1370,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         version_counter += 1
         pi[p, _PVER] = version_counter
 
-        # capacity for node/adjacency pushes of this step
+        # capacity for the candidate nodes this step pushes (adjacency segments check their own)
         if hused + 4 * new_pixels + 8 >= hcap:
             overflow[1] = 2 * hcap
         if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
-            return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
+            return _empty_log(stats, overflow)
 
         # new neighbours of the added pixels: extension candidates and adjacent planes
         n_gathered = -1  # p's rays are gathered into buf once, for its first exact candidate fit
@@ -1415,8 +1435,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                             aused = _adj_append(anode, akey, afree, pi, other, p, aused)
                         if aused < 0:
                             overflow[2] = 2 * acap
-                            return (log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(),
-                                    stats, overflow)
+                            return _empty_log(stats, overflow)
 
         # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
         root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
@@ -1424,7 +1443,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         if gsize + qstate[_QCOUNT] + 2 + pi[p, _PADJN] >= gcap:
             overflow[0] = 2 * (gcap + pi[p, _PADJN])
         if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
-            return log_kind[:0].copy(), log_a[:0].copy(), log_b[:0].copy(), log_inc[:0].copy(), stats, overflow
+            return _empty_log(stats, overflow)
         gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p,
                                         cutoff)
 
