@@ -292,6 +292,49 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
                 out[base + j, c] = sse if np.isfinite(sse) else np.inf
 
 
+@nb.njit(cache=True)
+def _sort_seed_keys(seed_key):
+    """Anchors with a finite seed key, in the order of (key, anchor): a stable LSD radix sort.
+
+    Keys are >= 0, so their IEEE bits order like the keys; 16-bit digits, and a digit that all
+    keys share is skipped (the exponents of a scan's seeds span a few octaves). Returns (anchors,
+    their keys). The same order as a stable argsort of the keys, in O(n) instead of O(n log n).
+    """
+    n = seed_key.shape[0]
+    m = 0
+    for k in range(n):
+        if seed_key[k] < np.inf:
+            m += 1
+    order = np.empty(m, np.int64)
+    bits = np.empty(m, np.uint64)
+    m = 0
+    for k in range(n):
+        if seed_key[k] < np.inf:
+            order[m] = k
+            bits[m] = np.uint64(_float_bits(seed_key[k] + 0.0))  # + 0.0: -0.0 becomes +0.0
+            m += 1
+    order2 = np.empty(m, np.int64)
+    bits2 = np.empty(m, np.uint64)
+    count = np.empty(65537, np.int64)
+    for shift in range(0, 64, 16):
+        count[:] = 0
+        for t in range(m):
+            count[((bits[t] >> np.uint64(shift)) & np.uint64(0xFFFF)) + 1] += 1
+        if m == 0 or count.max() == m:
+            continue
+        for d in range(65536):
+            count[d + 1] += count[d]
+        for t in range(m):
+            d = (bits[t] >> np.uint64(shift)) & np.uint64(0xFFFF)
+            pos = count[d]
+            count[d] = pos + 1
+            order2[pos] = order[t]
+            bits2[pos] = bits[t]
+        order, order2 = order2, order
+        bits, bits2 = bits2, bits
+    return order, seed_key[order]
+
+
 # --------------------------------------------------------------------------------------------
 # global 4-ary heap: key, then (kind, a, b); int payload columns kind a b va vb
 # --------------------------------------------------------------------------------------------
@@ -1004,12 +1047,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         if best >= 0 and seed_sse[anchor, best] <= cutoff:
             seed_best[anchor] = best
             seed_key[anchor] = seed_sse[anchor, best]
-    seed_order = np.argsort(seed_key, kind='mergesort')  # stable: ties by anchor id
-    seed_sorted_key = seed_key[seed_order]  # read in order (seed_key[seed_order[i]] would be a random access)
-    n_seeds = 0
-    for anchor in range(n_pixels):
-        if seed_best[anchor] >= 0:
-            n_seeds += 1
+    # ties by anchor id; the keys in that order too (seed_key[seed_order[i]] would be a random access)
+    seed_order, seed_sorted_key = _sort_seed_keys(seed_key)
+    n_seeds = len(seed_order)
     seed_ptr = 0
 
     plane_count = n_valid
