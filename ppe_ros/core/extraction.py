@@ -1585,18 +1585,31 @@ def _replay(kinds, a_ids, b_ids, n_steps, height, width, offsets):
 
 def _edge_masks(scan: RayScan, max_neighbor_distance: float) -> tuple[np.ndarray, np.ndarray]:
     """Admissible grid edges: right (k, k+1) and down (k, k+W) with both rays valid and close enough."""
-    h, w = scan.height, scan.width
-    pts = scan.endpoints.reshape(h, w, 3)
-    valid = scan.valid.reshape(h, w)
-    ok_right = np.zeros((h, w), bool)
-    ok_down = np.zeros((h, w), bool)
-    if w > 1:
-        dist = np.linalg.norm(pts[:, 1:] - pts[:, :-1], axis=2)
-        ok_right[:, :-1] = valid[:, 1:] & valid[:, :-1] & (dist <= max_neighbor_distance)
-    if h > 1:
-        dist = np.linalg.norm(pts[1:] - pts[:-1], axis=2)
-        ok_down[:-1] = valid[1:] & valid[:-1] & (dist <= max_neighbor_distance)
-    return ok_right.reshape(-1), ok_down.reshape(-1)
+    ok_right = np.empty(scan.size, np.bool_)
+    ok_down = np.empty(scan.size, np.bool_)
+    _edge_mask_kernel(scan.endpoints, scan.valid, scan.height, scan.width, float(max_neighbor_distance),
+                      ok_right, ok_down)
+    return ok_right, ok_down
+
+
+@nb.njit(cache=True, parallel=True)
+def _edge_mask_kernel(endpoints, valid, height, width, max_distance, ok_right, ok_down):
+    """ok_right[k]: rays k and k+1 (same row) valid and at most max_distance (m) apart; ok_down[k]: k and k+W."""
+    for i in nb.prange(height):
+        for j in range(width):
+            k = i * width + j
+            ok_right[k] = j + 1 < width and valid[k] and valid[k + 1] and _distance(endpoints, k, k + 1) <= max_distance
+            ok_down[k] = i + 1 < height and valid[k] and valid[k + width] and _distance(
+                endpoints, k, k + width) <= max_distance
+
+
+@nb.njit(cache=True, inline='always')
+def _distance(endpoints, a, b):
+    """Distance (m) between endpoints a and b (summed in the order of np.linalg.norm)."""
+    d0 = endpoints[a, 0] - endpoints[b, 0]
+    d1 = endpoints[a, 1] - endpoints[b, 1]
+    d2 = endpoints[a, 2] - endpoints[b, 2]
+    return np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
 
 
 def _as_threshold_list(value, name: str, cast) -> list | None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 
@@ -74,36 +75,75 @@ def make_ray_scan(points: np.ndarray, origins: np.ndarray | None = None) -> RayS
     """
     pts = as_points_array(points)
     height, width, _ = pts.shape
+    flat_points = pts.reshape(-1, 3)
     if origins is None:
-        starts = np.zeros_like(pts)
+        flat_starts = np.zeros((1, 3))  # one start for every ray
     else:
         starts = np.asarray(origins, dtype=np.float64)
         if starts.shape == (3,):
             if not np.all(np.isfinite(starts)):
                 raise ValueError(f'origins must be finite; got {starts}')
-            starts = np.broadcast_to(starts, pts.shape)
-        elif starts.shape != pts.shape:
+            flat_starts = starts.reshape(1, 3)
+        elif starts.shape == pts.shape:
+            flat_starts = np.ascontiguousarray(starts).reshape(-1, 3)
+        else:
             raise ValueError(
                 f'origins must be None, a (3,) ray start or an (H, W, 3) array like points {pts.shape}; '
                 f'got shape {starts.shape}'
             )
-    flat_points = pts.reshape(-1, 3)
-    flat_starts = np.ascontiguousarray(starts, dtype=np.float64).reshape(-1, 3)
-    with np.errstate(invalid='ignore'):
-        delta = flat_points - flat_starts
-        ranges = np.sqrt(np.einsum('ij,ij->i', delta, delta))
-        valid = np.isfinite(ranges) & (ranges > 0.0)
-    center = flat_starts[valid].mean(axis=0) if valid.any() else np.zeros(3)
-    endpoints = np.where(valid[:, None], flat_points - center, 0.0)
-    directions = np.zeros_like(delta)
-    directions[valid] = delta[valid] / ranges[valid, None]
-    ranges = np.where(valid, ranges, np.nan)
+    ranges = np.empty(len(flat_points))
+    valid = np.empty(len(flat_points), np.bool_)
+    _ranges(flat_points, flat_starts, ranges, valid)
+    n_valid = int(np.count_nonzero(valid))
+    if n_valid == 0 or origins is None:
+        center = np.zeros(3)
+    elif len(flat_starts) == 1:
+        # the mean of the valid rays' (equal) starts, summed as numpy sums an (n, 3) array
+        center = np.repeat(flat_starts, n_valid, axis=0).mean(axis=0)
+    else:
+        center = flat_starts[valid].mean(axis=0)
+    endpoints = np.empty_like(flat_points)
+    directions = np.empty_like(flat_points)
+    _rays(flat_points, flat_starts, ranges, valid, center, endpoints, directions)
     return RayScan(
         height=height,
         width=width,
-        endpoints=np.ascontiguousarray(endpoints),
-        directions=np.ascontiguousarray(directions),
+        endpoints=endpoints,
+        directions=directions,
         ranges=ranges,
         valid=valid,
         center=center,
     )
+
+
+@nb.njit(cache=True, parallel=True)
+def _ranges(points, starts, ranges, valid):
+    """Ray lengths |p - s| (m; NaN when invalid) and validity (finite, > 0) of (n, 3) endpoints.
+
+    ``starts`` is ``(n, 3)`` or ``(1, 3)`` (one start for every ray).
+    """
+    step = 0 if starts.shape[0] == 1 else 1  # start row of ray k: k * step
+    for k in nb.prange(points.shape[0]):
+        s = k * step
+        d0 = points[k, 0] - starts[s, 0]
+        d1 = points[k, 1] - starts[s, 1]
+        d2 = points[k, 2] - starts[s, 2]
+        r = np.sqrt((d0 * d0 + d2 * d2) + d1 * d1)  # numpy's einsum order: equal to it bit for bit
+        ok = np.isfinite(r) and r > 0.0
+        valid[k] = ok
+        ranges[k] = r if ok else np.nan
+
+
+@nb.njit(cache=True, parallel=True)
+def _rays(points, starts, ranges, valid, center, endpoints, directions):
+    """Endpoints relative to ``center`` and unit directions (p - s) / r; rows of invalid rays 0."""
+    step = 0 if starts.shape[0] == 1 else 1  # start row of ray k: k * step
+    for k in nb.prange(points.shape[0]):
+        s = k * step
+        for c in range(3):
+            if valid[k]:
+                endpoints[k, c] = points[k, c] - center[c]
+                directions[k, c] = (points[k, c] - starts[s, c]) / ranges[k]
+            else:
+                endpoints[k, c] = 0.0
+                directions[k, c] = 0.0

@@ -1,0 +1,82 @@
+"""The ray model (core/scan.py) against a plain numpy formulation of the same definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ppe_ros.core.extraction import _edge_masks
+from ppe_ros.core.scan import make_ray_scan
+
+
+def _numpy_ray_model(points, origins):
+    """Rays from their definitions: r = |p - s|, valid = finite and r > 0, center = mean valid start,
+    endpoints relative to the center (0 when invalid), directions (p - s) / r (0 when invalid)."""
+    pts = np.asarray(points, float).reshape(-1, 3)
+    if origins is None:
+        starts = np.zeros_like(pts)
+    else:
+        starts = np.broadcast_to(np.asarray(origins, float), np.asarray(points).shape).reshape(-1, 3).copy()
+    delta = pts - starts
+    with np.errstate(invalid='ignore'):
+        ranges = np.sqrt(np.einsum('ij,ij->i', delta, delta))
+        valid = np.isfinite(ranges) & (ranges > 0.0)
+    center = starts[valid].mean(axis=0) if valid.any() else np.zeros(3)
+    endpoints = np.where(valid[:, None], pts - center, 0.0)
+    directions = np.zeros_like(delta)
+    directions[valid] = delta[valid] / ranges[valid, None]
+    return endpoints, directions, np.where(valid, ranges, np.nan), valid, center
+
+
+def _random_scan(rng, height, width):
+    points = rng.normal(0.0, 5.0, (height, width, 3))
+    points[rng.random((height, width)) < 0.1] = np.nan
+    points[rng.random((height, width)) < 0.02, 1] = np.inf
+    return points
+
+
+@pytest.mark.parametrize('origin_kind', ['none', 'point', 'per_ray'])
+def test_ray_model_equals_its_numpy_definition(origin_kind):
+    rng = np.random.default_rng(3)
+    points = _random_scan(rng, 37, 53)
+    origins = {'none': None, 'point': np.array([0.3, -0.1, 1.2]),
+               'per_ray': rng.normal(0.0, 0.05, points.shape)}[origin_kind]
+    if origins is not None:
+        # a zero-length ray (endpoint at its start) is invalid
+        start = origins if origins.ndim == 1 else origins[4, 5]
+        points[4, 5] = start
+    scan = make_ray_scan(points, origins)
+    endpoints, directions, ranges, valid, center = _numpy_ray_model(points, origins)
+    np.testing.assert_array_equal(scan.valid, valid)
+    np.testing.assert_array_equal(scan.center, center)
+    np.testing.assert_array_equal(scan.endpoints, endpoints)
+    np.testing.assert_array_equal(scan.directions, directions)
+    np.testing.assert_array_equal(scan.ranges, ranges)
+    if origins is not None:
+        assert not scan.valid[4 * 53 + 5]
+
+
+def test_ray_model_of_a_scan_without_returns_is_all_invalid():
+    scan = make_ray_scan(np.full((3, 4, 3), np.nan))
+    assert not scan.valid.any()
+    np.testing.assert_array_equal(scan.center, np.zeros(3))
+    np.testing.assert_array_equal(scan.endpoints, 0.0)
+    np.testing.assert_array_equal(scan.directions, 0.0)
+
+
+@pytest.mark.parametrize('max_distance', [0.5, 3.0, np.inf])
+def test_edge_masks_equal_their_numpy_definition(max_distance):
+    rng = np.random.default_rng(4)
+    points = np.cumsum(rng.normal(0.0, 0.4, (29, 41, 3)), axis=1)
+    points[rng.random((29, 41)) < 0.1] = np.nan
+    scan = make_ray_scan(points)
+    ok_right, ok_down = _edge_masks(scan, max_distance)
+    p = scan.endpoints.reshape(29, 41, 3)
+    v = scan.valid.reshape(29, 41)
+    right = np.zeros((29, 41), bool)
+    down = np.zeros((29, 41), bool)
+    right[:, :-1] = v[:, 1:] & v[:, :-1] & (np.linalg.norm(p[:, 1:] - p[:, :-1], axis=2) <= max_distance)
+    down[:-1] = v[1:] & v[:-1] & (np.linalg.norm(p[1:] - p[:-1], axis=2) <= max_distance)
+    np.testing.assert_array_equal(ok_right, right.ravel())
+    np.testing.assert_array_equal(ok_down, down.ravel())
+    assert 0 < ok_right.sum() < right.size
