@@ -228,6 +228,12 @@ def test_fit_labeled_planes_options():
     as_float = fit_labeled_planes(scan.points, labels.astype(float), origins=scan.origins)
     assert np.array_equal(as_float.planes.labels, fit_labeled_planes(scan.points, labels,
                                                                      origins=scan.origins).planes.labels)
+    # labels far beyond the pixel count group the same pixels
+    base = fit_labeled_planes(scan.points, labels, origins=scan.origins)
+    huge = fit_labeled_planes(scan.points, labels * 10**12, origins=scan.origins)
+    assert np.array_equal(huge.planes.labels, base.planes.labels)
+    assert np.array_equal(huge.label_ids, base.label_ids * 10**12)
+    assert np.array_equal(huge.planes.sse, base.planes.sse)
     # no labels at all: an empty set
     empty = fit_labeled_planes(scan.points, np.zeros(labels.shape, int), origins=scan.origins)
     assert empty.planes.num_planes == 0 and len(empty.label_ids) == 0 and np.all(np.isnan(empty.residuals))

@@ -1685,7 +1685,7 @@ class PlaneHierarchy:
         else:
             steps = self.steps_for_count(max_planes)
         planes, _ = _fit_pixel_groups(
-            self.scan, self.plane_ids(steps), min_plane_points=min_plane_points,
+            self.scan, self.plane_ids(steps), min_plane_points=min_plane_points, residuals=False,
             max_error_increment=max_error_increment, max_planes=max_planes, actions=steps,
         )
         return planes
@@ -1822,7 +1822,7 @@ def extract_planes(
     if not cuts:
         steps = len(hierarchy.actions)
         planes, _ = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps),
-                                      min_plane_points=min_plane_points, actions=steps)
+                                      min_plane_points=min_plane_points, residuals=False, actions=steps)
         cuts = [planes]
     scalar = not isinstance(max_error_increment, Sequence | np.ndarray) and not isinstance(
         max_planes, Sequence | np.ndarray)

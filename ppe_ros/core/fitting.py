@@ -371,66 +371,59 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
     )
 
 
-def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, **meta
-                      ) -> tuple[PlaneSet, np.ndarray]:
+def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, residuals: bool = True,
+                      **meta) -> tuple[PlaneSet, np.ndarray | None]:
     """Fit every group of pixels sharing a plane id >= 0 (ids < 0: no plane).
 
     Groups smaller than ``min_plane_points`` become no plane. Planes are numbered 1..J by
     decreasing size (ties: first pixel in row-major order). Returns the PlaneSet and an
-    ``(H, W)`` image of radial residuals (NaN where no plane).
+    ``(H, W)`` image of radial residuals (NaN where no plane; None when ``residuals`` is False).
     """
-    ids = np.where(scan.valid, plane_ids, -1)
-    keep = np.flatnonzero(ids >= 0)
     height, width = scan.height, scan.width
-    residual_image = np.full(scan.size, np.nan)
-    if len(keep) == 0:
-        return PlaneSet.empty((height, width), **meta), residual_image.reshape(height, width)
-    uniq, first, inverse, counts = np.unique(ids[keep], return_index=True, return_inverse=True,
-                                             return_counts=True)
-    big = counts >= min_plane_points
-    # order planes: size desc, then first pixel asc
-    first_pixel = keep[first]
-    order = np.lexsort((first_pixel, -counts))
-    order = order[big[order]]
+    ids = np.where(scan.valid, plane_ids, -1).astype(np.int64)
+    if ids.size and ids.max() >= scan.size:  # ids beyond the pixel count (labels): renumber them
+        labelled = ids >= 0
+        ids[labelled] = np.unique(ids[labelled], return_inverse=True)[1]
+    counts, first_pixel = _id_counts(ids)
+    kept = np.flatnonzero(counts >= max(int(min_plane_points), 1))
+    order = kept[np.lexsort((first_pixel[kept], -counts[kept]))]  # size desc, then first pixel asc
     n_planes = len(order)
     if n_planes == 0:
-        return PlaneSet.empty((height, width), **meta), residual_image.reshape(height, width)
-    rank = np.full(len(uniq), -1, np.int64)
+        empty_residuals = np.full((height, width), np.nan) if residuals else None
+        return PlaneSet.empty((height, width), **meta), empty_residuals
+    rank = np.full(scan.size, -1, np.int64)
     rank[order] = np.arange(n_planes)
-    pixel_rank = rank[inverse]
-    sel = pixel_rank >= 0
-    pixels = keep[sel]
-    pixel_rank = pixel_rank[sel]
-    sort = np.argsort(pixel_rank, kind='stable')
-    members = np.ascontiguousarray(pixels[sort])
+    point_counts = counts[order]
     starts = np.zeros(n_planes + 1, np.int64)
-    starts[1:] = np.cumsum(counts[order])
+    starts[1:] = np.cumsum(point_counts)
+    members = np.empty(starts[-1], np.int64)
+    labels = np.empty(scan.size, np.int32)
+    sums = np.empty((n_planes, 3))
+    _group_members(ids, rank, starts, scan.endpoints, members, labels, sums)
     out_w = np.empty((n_planes, 3))
     out_sse = np.empty(n_planes)
     out_info = np.empty((n_planes, 6))
     _fit_groups(scan.endpoints, scan.directions, members, starts, FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE,
                 out_w, out_sse, out_info)
-    labels = np.zeros(scan.size, np.int32)
-    member_plane = np.repeat(np.arange(n_planes), counts[order])
-    labels[members] = (member_plane + 1).astype(np.int32)
-    point_counts = counts[order].astype(np.int64)
-    centroids = np.stack([np.bincount(member_plane, weights=scan.endpoints[members, c], minlength=n_planes)
-                          for c in range(3)], axis=1) / point_counts[:, None] + scan.center
+    centroids = sums / point_counts[:, None] + scan.center
     normals = np.full((n_planes, 3), np.nan)
     offsets = np.full(n_planes, np.nan)
     covariances = np.full((n_planes, 3, 3), np.nan)
     plane_fitted = np.isfinite(out_w).all(axis=1)
     fitted = np.flatnonzero(plane_fitted)
+    residual_image = np.full(scan.size, np.nan) if residuals else None
     if len(fitted):
         w = out_w[fitted]
         normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
         covariances[fitted] = _closest_point_covariances(w, scan.center, out_info[fitted], out_sse[fitted],
                                                          point_counts[fitted])
-        on_fitted = plane_fitted[member_plane]
-        idx = members[on_fitted]
-        w_of_pixel = out_w[member_plane[on_fitted]]
-        residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
-            'ij,ij->i', scan.directions[idx], w_of_pixel)
+        if residuals:
+            member_plane = np.repeat(np.arange(n_planes), point_counts)
+            on_fitted = plane_fitted[member_plane]
+            idx = members[on_fitted]
+            w_of_pixel = out_w[member_plane[on_fitted]]
+            residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
+                'ij,ij->i', scan.directions[idx], w_of_pixel)
     planes = PlaneSet(
         labels=labels.reshape(height, width),
         normals=normals,
@@ -442,7 +435,38 @@ def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points:
         covariances=covariances,
         **meta,
     )
-    return planes, residual_image.reshape(height, width)
+    return planes, None if residual_image is None else residual_image.reshape(height, width)
+
+
+@nb.njit(cache=True)
+def _id_counts(ids):
+    """Pixel count and first pixel (row-major) of every id in 0..len(ids)-1 (ids < 0 ignored)."""
+    n = len(ids)
+    counts = np.zeros(n, np.int64)
+    first = np.full(n, n, np.int64)
+    for k in range(n):
+        g = ids[k]
+        if g >= 0:
+            if counts[g] == 0:
+                first[g] = k
+            counts[g] += 1
+    return counts, first
+
+
+@nb.njit(cache=True)
+def _group_members(ids, rank, starts, endpoints, members, labels, sums):
+    """Members of plane r in members[starts[r]:starts[r+1]] (row-major order), labels (r + 1; 0 for
+    no plane) and the sum of each plane's endpoints, for the plane ranks ``rank[id]`` (-1: none)."""
+    fill = starts[:-1].copy()
+    sums[:] = 0.0
+    for k in range(len(ids)):
+        r = rank[ids[k]] if ids[k] >= 0 else -1
+        labels[k] = r + 1
+        if r >= 0:
+            members[fill[r]] = k
+            fill[r] += 1
+            for c in range(3):
+                sums[r, c] += endpoints[k, c]
 
 
 @dataclass(frozen=True)
