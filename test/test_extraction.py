@@ -23,8 +23,10 @@ from ppe_ros.core.extraction import (
     TETROMINO_OFFSETS,
     _edge_masks,
     _seed_errors,
+    _work_memory,
     extract_plane_hierarchy,
     extract_planes,
+    release_work_memory,
 )
 from ppe_ros.core.fitting import _fit_rays, fit_plane
 from ppe_ros.core.planes import PlaneSet
@@ -302,6 +304,34 @@ def test_pools_that_run_out_are_enlarged_without_changing_the_action_log(exact):
         assert 1 < tiny.stats['heap_capacity'] <= default.stats['heap_capacity']
     with pytest.raises(ValueError, match='pool_capacity must be >= 1'):
         extract_plane_hierarchy(scan.points, pool_capacity=0)
+
+
+def test_reused_work_memory_does_not_change_the_result():
+    """The kernel's arrays are views of work buffers a thread keeps between calls. Buffers filled
+    with garbage (NaN, -inf, huge and random integers), left by another scan, or fresh all give the
+    same action log: nothing is read before the run writes it."""
+    scan = medium_scan()
+    other = plane_scan(rows=30, cols=40, radial_sigma=0.02, seed=5)
+    cut = {'max_neighbor_distance': 0.15, 'max_error_increment': 0.02}
+    release_work_memory()
+    fresh = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut)
+    buffers = _work_memory.buffers
+    assert set(buffers) == {'float64', 'int64', 'int32', 'seeds'}
+    rng = np.random.default_rng(1)
+    for garbage in (np.nan, -np.inf, 1e300):
+        for buffer in buffers.values():
+            if buffer.dtype == np.float64:
+                buffer[:] = garbage
+            else:
+                buffer[:] = rng.integers(-2**31, 2**31 - 1, len(buffer))
+        again = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut)
+        assert np.array_equal(again.actions, fresh.actions)
+        assert _work_memory.buffers['int64'] is buffers['int64']  # the same buffers, reused
+    extract_plane_hierarchy(other.points, origins=other.origins)
+    after_other = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut)
+    assert np.array_equal(after_other.actions, fresh.actions)
+    release_work_memory()
+    assert _work_memory.buffers == {}
 
 
 def test_default_increments_are_close_to_exact_refits():
