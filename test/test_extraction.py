@@ -752,7 +752,7 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     scan = make_ray_scan(points, scan_in.origins)
     ok_right, ok_down = _edge_masks(scan, lmax)
     fast = np.empty((scan.size, 17))
-    _seed_errors(scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
+    _seed_errors(scan.endpoints, scan.directions, ok_right, ok_down, scan.height, scan.width,
                  TETROMINO_OFFSETS, fast)
     slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
     assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000

@@ -207,34 +207,6 @@ def _float_bits(typingctx, x):
 
 
 @nb.njit(cache=True, inline='always')
-def _edge_ok(a, b, width, ok_right, ok_down):
-    if b == a + 1:
-        return ok_right[a]
-    if a == b + 1:
-        return ok_right[b]
-    if b == a + width:
-        return ok_down[a]
-    if a == b + width:
-        return ok_down[b]
-    return False
-
-
-@nb.njit(cache=True, inline='always')
-def _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx):
-    """True when the rays idx[:4] of tetromino c all have returns and its 4-adjacent pairs are admissible edges."""
-    for t in range(4):
-        if not valid[idx[t]]:
-            return False
-    for t in range(4):
-        for u in range(t + 1, 4):
-            dr = abs(offsets[c, t, 0] - offsets[c, u, 0])
-            dc = abs(offsets[c, t, 1] - offsets[c, u, 1])
-            if dr + dc == 1 and not _edge_ok(idx[t], idx[u], width, ok_right, ok_down):
-                return False
-    return True
-
-
-@nb.njit(cache=True, inline='always')
 def _seed_rays(idx, anchor, o0, o1, o2, o3):
     """Write the ray ids of the seed at anchor with the tetromino's id offsets o0..o3 into idx[:4]."""
     idx[0] = anchor + o0
@@ -243,8 +215,31 @@ def _seed_rays(idx, anchor, o0, o1, o2, o3):
     idx[3] = anchor + o3
 
 
+@nb.njit(cache=True)
+def _tetromino_edges(offsets, width):
+    """Internal edges of each tetromino as (id offset of the edge's first cell, 0 right / 1 down), (17, 4, 2).
+
+    The O has four internal edges, the others three (their fourth entry repeats the first).
+    """
+    edges = np.empty((len(offsets), 4, 2), np.int64)
+    for c in range(len(offsets)):
+        n = 0
+        for t in range(4):
+            for u in range(4):
+                dr = offsets[c, u, 0] - offsets[c, t, 0]
+                dc = offsets[c, u, 1] - offsets[c, t, 1]
+                if (dr == 0 and dc == 1) or (dr == 1 and dc == 0):  # u right of / below t
+                    edges[c, n, 0] = offsets[c, t, 0] * width + offsets[c, t, 1]
+                    edges[c, n, 1] = 0 if dc == 1 else 1
+                    n += 1
+        for m in range(n, 4):
+            edges[c, m, 0] = edges[c, 0, 0]
+            edges[c, m, 1] = edges[c, 0, 1]
+    return edges
+
+
 @nb.njit(cache=True, parallel=True)
-def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, out):
+def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offsets, out):
     """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid.
 
     Per grid row and config, the straight-line four-ray fit runs over all anchors of the row (a
@@ -255,13 +250,16 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
     """
     P = np.ascontiguousarray(endpoints.T)
     V = np.ascontiguousarray(directions.T)
+    edges = _tetromino_edges(offsets, width)
     for i in nb.prange(height):
         row = np.empty(width)
         ok = np.empty(width, np.bool_)
         idx = np.empty(4, np.int64)
         base = i * width
+        # the row's errors by config, copied into out's rows at the end (writing a column of out
+        # touches a cache line per anchor)
+        errors = np.full((17, width), np.inf)
         for c in range(17):
-            out[base:base + width, c] = np.inf
             di_min = min(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             di_max = max(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             if i + di_min < 0 or i + di_max >= height:
@@ -273,11 +271,22 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
             o1 = offsets[c, 1, 0] * width + offsets[c, 1, 1]
             o2 = offsets[c, 2, 0] * width + offsets[c, 2, 1]
             o3 = offsets[c, 3, 0] * width + offsets[c, 3, 1]
+            # valid seeds: all internal 4-adjacent pairs are admissible edges (which implies returns:
+            # every cell of a tetromino is on one), as one straight-line loop over the row's anchors
+            e0 = ok_right if edges[c, 0, 1] == 0 else ok_down
+            e1 = ok_right if edges[c, 1, 1] == 0 else ok_down
+            e2 = ok_right if edges[c, 2, 1] == 0 else ok_down
+            e3 = ok_right if edges[c, 3, 1] == 0 else ok_down
+            f0 = edges[c, 0, 0]
+            f1 = edges[c, 1, 0]
+            f2 = edges[c, 2, 0]
+            f3 = edges[c, 3, 0]
             n_ok = 0
             for j in range(j_lo, j_hi):
-                _seed_rays(idx, base + j, o0, o1, o2, o3)
-                ok[j] = _seed_valid(valid, ok_right, ok_down, width, offsets, c, idx)
-                n_ok += ok[j]
+                a = base + j
+                good = e0[a + f0] & e1[a + f1] & e2[a + f2] & e3[a + f3]
+                ok[j] = good
+                n_ok += good
                 row[j] = np.nan
             if 4 * n_ok >= j_hi - j_lo:
                 for j in range(j_lo, j_hi):
@@ -294,7 +303,10 @@ def _seed_errors(endpoints, directions, valid, ok_right, ok_down, height, width,
                     _seed_rays(idx, base + j, o0, o1, o2, o3)
                     sse, _, _, _ = _fit_rays(endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
                                              _FIT_TOLERANCE)
-                out[base + j, c] = sse if np.isfinite(sse) else np.inf
+                errors[c, j] = sse if np.isfinite(sse) else np.inf
+        for j in range(width):
+            for c in range(17):
+                out[base + j, c] = errors[c, j]
 
 
 @nb.njit(cache=True)
@@ -1874,7 +1886,7 @@ def extract_plane_hierarchy(
     start = time.perf_counter()
     ok_right, ok_down = _edge_masks(scan, lmax)
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
-    _seed_errors(scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
+    _seed_errors(scan.endpoints, scan.directions, ok_right, ok_down, scan.height, scan.width,
                  TETROMINO_OFFSETS, seed_sse)
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
     # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
