@@ -1062,9 +1062,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     seen_stamp = 0
 
     # plane state
-    pf = work_f[of:of + n_pixels * _NPF].reshape((n_pixels, _NPF))
+    pf = work_f[of:of + n_pixels * _NPF].reshape((n_pixels, _NPF))  # a plane's row is written when it is created
     of = _aligned(of + n_pixels * _NPF)
-    pf[:] = 0.0
     # 32-bit fields (half the memory traffic of a plane's row): counts, versions and pixel ids are
     # below H*W, stamps below the number of pops, node indices below the pools' sizes (a few times
     # H*W), all below 2^31 for the scans extract_plane_hierarchy accepts (< MAX_RAYS)
