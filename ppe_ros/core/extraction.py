@@ -215,6 +215,10 @@ def _seed_rays(idx, anchor, o0, o1, o2, o3):
     idx[3] = anchor + o3
 
 
+#: Anchors per block of the vectorised seed loop; blocks without a valid seed are skipped.
+_SEED_BLOCK = 16
+
+
 @nb.njit(cache=True)
 def _tetromino_edges(offsets, width):
     """Internal edges of each tetromino as (id offset of the edge's first cell, 0 right / 1 down), (17, 4, 2).
@@ -242,8 +246,9 @@ def _tetromino_edges(offsets, width):
 def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offsets, out):
     """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid.
 
-    Per grid row and config, the straight-line four-ray fit runs over all anchors of the row (a
-    vectorised loop) when at least a quarter of them are valid seeds, else on the valid ones one by
+    Per grid row and config, the straight-line four-ray fit runs over all anchors of the row's blocks
+    of _SEED_BLOCK anchors that hold a valid seed (a vectorised loop) when at least a quarter of the
+    row's anchors are valid seeds, else on the valid ones one by
     one (sparse rows such as a 32-beam lidar's with a distance limit); the seeds it did not finish
     are fitted by the general Gauss-Newton. The values are bit-identical to fitting every seed with
     _fit_rays.
@@ -289,12 +294,21 @@ def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offset
                 n_ok += good
                 row[j] = np.nan
             if 4 * n_ok >= j_hi - j_lo:
-                for j in range(j_lo, j_hi):
-                    # unsigned ids: no negative-index wraparound test, which would stop vectorisation
-                    a = base + j
-                    sse, done = _fit4(P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2),
-                                      np.uint64(a + o3))
-                    row[j] = sse if done else np.nan
+                # in blocks of _SEED_BLOCK anchors, skipping blocks without a valid seed (a lidar's
+                # invalid seeds come in runs: no returns, far ranges beyond the distance limit)
+                for block in range(j_lo, j_hi, _SEED_BLOCK):
+                    block_end = min(block + _SEED_BLOCK, j_hi)
+                    any_ok = False
+                    for j in range(block, block_end):
+                        any_ok |= ok[j]
+                    if not any_ok:
+                        continue
+                    for j in range(block, block_end):
+                        # unsigned ids: no negative-index wraparound test, which would stop vectorisation
+                        a = base + j
+                        sse, done = _fit4(P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2),
+                                          np.uint64(a + o3))
+                        row[j] = sse if done else np.nan
             for j in range(j_lo, j_hi):
                 if not ok[j]:
                     continue
