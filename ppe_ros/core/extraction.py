@@ -1384,6 +1384,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         log_inc[n_actions] = key
         changed = -1
         new_pixels = 0
+        in_buf = -1  # the changed plane's rays when the execution left them in buf (-1: not)
         if kind == _G_SEED:
             log_kind[n_actions] = KIND_CREATE
             p = act_a
@@ -1431,6 +1432,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 n = _gather(pi, nextpix, p, buf)
                 _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
                                  pf[p, _PW + 2])
+                in_buf = n
                 pi[p, _PCOUNTLIN] = n
             else:
                 inc, x0, x1, x2, f, g0, g1, g2 = _model_extension(endpoints, directions, pf, p, k)
@@ -1534,7 +1536,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             return _empty_log(stats, overflow)
 
         # new neighbours of the added pixels: extension candidates and adjacent planes
-        n_gathered = -1  # p's rays are gathered into buf once, for its first exact candidate fit
+        n_gathered = in_buf  # p's rays are gathered into buf once, for its first exact candidate fit
         for t in range(new_pixels):
             k = buf2[t]
             i = k // width
