@@ -1014,7 +1014,7 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
     n_f = a(n_pixels * _NPF) + 2 * a(gcap) + a(hcap * 2) + a(n_pixels * 10) + a(n_pixels + 1) + a(n_pixels)
-    n_i = (6 * a(n_pixels) + a(gcap * 2) + a(_Q_BUCKETS) + a(hcap * 4) + a(acap * _AN_FIELDS) + a(n_pixels * 3)
+    n_i = (7 * a(n_pixels) + a(gcap * 2) + a(_Q_BUCKETS) + a(hcap * 4) + a(acap * _AN_FIELDS) + a(n_pixels * 3)
            + 2 * a(n_pixels + 1) + a(n_pixels))
     n_i32 = a(n_pixels * _NPI) + 2 * a(gcap * 5) + a(n_pixels + 1)
     return n_f, n_i, n_i32
@@ -1068,6 +1068,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     oi = _aligned(oi + n_pixels)
     seen = work_i[oi:oi + n_pixels]
     oi = _aligned(oi + n_pixels)
+    # the plane (an id that may have been merged since) that last queued an extension candidate
+    # for each ray: while it resolves to a live plane p, p's candidate heap holds a node for the ray
+    candidate_of = work_i[oi:oi + n_pixels]
+    oi = _aligned(oi + n_pixels)
+    candidate_of[:] = -1
     owner[:] = -1
     nextpix[:] = -1
     for k in range(n_pixels):
@@ -1302,6 +1307,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         hi[root, 2] = hfree
                         hfree = root
                         pi[p, _PROOT] = newroot
+                        if candidate_of[k] >= 0 and _find(parent, candidate_of[k]) == p:
+                            candidate_of[k] = -1  # p may hold no other node for k
                     else:
                         pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
                 # push the plane's proxy with its current top, then release the merges deferred
@@ -1557,6 +1564,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             for u in range(n_nb):
                 q = nb_pix[u]
                 if owner[q] < 0:
+                    if candidate_of[q] >= 0 and _find(parent, candidate_of[q]) == p:
+                        # p already holds a node for q, valued for an earlier version: its key is a
+                        # lower bound, and it is valued again when it reaches the top of p's heap
+                        continue
                     # extension candidate (p, q), exact value for the current version
                     stats[_ST_NEW_CANDIDATES] += 1
                     if count + 1 <= exact_plane_size:
@@ -1586,6 +1597,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     hi[node, 2] = -1
                     hi[node, 3] = -1
                     pi[p, _PROOT] = _h_meld(hf, hi, pi[p, _PROOT], node)
+                    candidate_of[q] = p
                 else:
                     other = _find(parent, owner[q])
                     if other != p:
