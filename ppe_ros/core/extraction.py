@@ -964,8 +964,15 @@ def _adj_move(anode, afree, pi, x, rows, aused):
 
 @nb.njit(cache=True, _nrt=False)
 def _adj_append(anode, akey, afree, pi, x, y, aused):
-    """Add plane y to plane x's neighbours; returns aused (-1: the pool is full)."""
+    """Add plane y to plane x's neighbours; returns aused (-1: the pool is full).
+
+    Nothing is added when y is already x's last neighbour node (a plane growing along another
+    appends itself to the other's list once per new pixel; x's merge loop keeps the first node of
+    each neighbour anyway).
+    """
     n = pi[x, _PADJN]
+    if n > 0 and anode[pi[x, _PADJ] + n - 1, _AN_PLANE] == y:
+        return aused
     if n == pi[x, _PADJC]:
         aused = _adj_move(anode, afree, pi, x, n + 1, aused)
         if aused < 0:
