@@ -215,8 +215,10 @@ def _seed_rays(idx, anchor, o0, o1, o2, o3):
     idx[3] = anchor + o3
 
 
-#: Anchors per block of the vectorised seed loop; blocks without a valid seed are skipped.
+#: Anchors per block of the vectorised seed loop, and the valid seeds a block needs for it (the
+#: vectorised fit of 16 anchors costs about as much as two general fits).
 _SEED_BLOCK = 16
+_SEED_BLOCK_MIN = 3
 
 
 @nb.njit(cache=True)
@@ -246,12 +248,11 @@ def _tetromino_edges(offsets, width):
 def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offsets, out):
     """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid.
 
-    Per grid row and config, the straight-line four-ray fit runs over all anchors of the row's blocks
-    of _SEED_BLOCK anchors that hold a valid seed (a vectorised loop) when at least a quarter of the
-    row's anchors are valid seeds, else on the valid ones one by
-    one (sparse rows such as a 32-beam lidar's with a distance limit); the seeds it did not finish
-    are fitted by the general Gauss-Newton. The values are bit-identical to fitting every seed with
-    _fit_rays.
+    Per grid row and config, the straight-line four-ray fit runs over all anchors of each block of
+    _SEED_BLOCK anchors that holds at least _SEED_BLOCK_MIN valid seeds (a vectorised loop); the
+    valid seeds of the other blocks (sparse rows such as a 32-beam lidar's with a distance limit) and
+    the seeds the loop did not finish are fitted by the general Gauss-Newton. The values are
+    bit-identical to fitting every seed with _fit_rays.
     """
     P = np.ascontiguousarray(endpoints.T)
     V = np.ascontiguousarray(directions.T)
@@ -286,23 +287,19 @@ def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offset
             f1 = edges[c, 1, 0]
             f2 = edges[c, 2, 0]
             f3 = edges[c, 3, 0]
-            n_ok = 0
             for j in range(j_lo, j_hi):
                 a = base + j
-                good = e0[a + f0] & e1[a + f1] & e2[a + f2] & e3[a + f3]
-                ok[j] = good
-                n_ok += good
+                ok[j] = e0[a + f0] & e1[a + f1] & e2[a + f2] & e3[a + f3]
                 row[j] = np.nan
-            if 4 * n_ok >= j_hi - j_lo:
-                # in blocks of _SEED_BLOCK anchors, skipping blocks without a valid seed (a lidar's
-                # invalid seeds come in runs: no returns, far ranges beyond the distance limit)
-                for block in range(j_lo, j_hi, _SEED_BLOCK):
-                    block_end = min(block + _SEED_BLOCK, j_hi)
-                    any_ok = False
-                    for j in range(block, block_end):
-                        any_ok |= ok[j]
-                    if not any_ok:
-                        continue
+            # in blocks of _SEED_BLOCK anchors; a block with fewer than _SEED_BLOCK_MIN valid seeds
+            # is left to the general fit below (a lidar's invalid seeds come in runs: no returns,
+            # far ranges beyond the distance limit)
+            for block in range(j_lo, j_hi, _SEED_BLOCK):
+                block_end = min(block + _SEED_BLOCK, j_hi)
+                n_ok = 0
+                for j in range(block, block_end):
+                    n_ok += ok[j]
+                if n_ok >= _SEED_BLOCK_MIN:
                     for j in range(block, block_end):
                         # unsigned ids: no negative-index wraparound test, which would stop vectorisation
                         a = base + j
