@@ -676,6 +676,28 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
 
 
 @nb.njit(cache=True, _nrt=False)
+def _candidate_fit(endpoints, directions, pf, p, idx, count, k, version, ecache_i, ecache_f):
+    """Exact fit of small plane p's rays idx[:count - 1] plus candidate ray idx[count - 1] = k from p's w.
+
+    Returns the SSE. The least-SSE candidate fit of p's current version is kept in (ecache_i,
+    ecache_f)[p] (ray, version; SSE, w, information), so that executing that extension needs no fit:
+    it is the same fit (same rays in the same order, same start) that _set_exact_state would make.
+    """
+    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, pf[p, _PW], pf[p, _PW + 1],
+                                        pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+    if ecache_i[p, 1] != version or sse < ecache_f[p, 0]:
+        ecache_i[p, 0] = k
+        ecache_i[p, 1] = version
+        ecache_f[p, 0] = sse
+        ecache_f[p, 1] = w0
+        ecache_f[p, 2] = w1
+        ecache_f[p, 3] = w2
+        for t in range(6):
+            ecache_f[p, 4 + t] = information[t]
+    return sse
+
+
+@nb.njit(cache=True, _nrt=False)
 def _relinearise(endpoints, directions, pf, idx, count, p):
     """Re-linearise large plane p on its rays idx[:count]: one Gauss-Newton step from its current w.
 
@@ -1017,9 +1039,9 @@ def _aligned(offset):
 def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
-    n_f = a(n_pixels * _NPF) + 2 * a(gcap) + a(hcap * 2) + a(n_pixels * 10) + a(n_pixels + 1) + a(n_pixels)
+    n_f = a(n_pixels * _NPF) + 2 * a(gcap) + a(hcap * 2) + 2 * a(n_pixels * 10) + a(n_pixels + 1) + a(n_pixels)
     n_i = (7 * a(n_pixels) + a(gcap * 2) + a(_Q_BUCKETS) + a(hcap * 4) + a(acap * _AN_FIELDS) + a(n_pixels * 3)
-           + 2 * a(n_pixels + 1) + a(n_pixels))
+           + a(n_pixels * 2) + 2 * a(n_pixels + 1) + a(n_pixels))
     n_i32 = a(n_pixels * _NPI) + 2 * a(gcap * 5) + a(n_pixels + 1)
     return n_f, n_i, n_i32
 
@@ -1137,6 +1159,12 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     oi = _aligned(oi + n_pixels * 3)
     mcache_i[:] = -1
     mcache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
+    of = _aligned(of + n_pixels * 10)
+    # the least candidate fit of each small plane's current version: ray, version; SSE, w, information
+    ecache_i = work_i[oi:oi + n_pixels * 2].reshape((n_pixels, 2))
+    oi = _aligned(oi + n_pixels * 2)
+    ecache_i[:] = -1
+    ecache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
 
     # action log
@@ -1294,8 +1322,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     if count + 1 <= exact_plane_size:
                         n = _gather(pi, nextpix, p, buf)
                         buf[n] = k
-                        sse, _, _, _ = _fit_rays(endpoints, directions, buf, n + 1, pf[p, _PW], pf[p, _PW + 1],
-                                                 pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+                        sse = _candidate_fit(endpoints, directions, pf, p, buf, n + 1, k, pi[p, _PVER], ecache_i,
+                                             ecache_f)
                         inc = sse - pf[p, _PE]
                     else:
                         inc = _model_extension(endpoints, directions, pf, p, k)[0]
@@ -1439,7 +1467,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[p, _PCOUNT] = count + 1
             r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
             pf[p, _PRMAX] = max(pf[p, _PRMAX], r)
-            if count + 1 <= exact_plane_size:
+            if count + 1 <= exact_plane_size and ecache_i[p, 0] == k and ecache_i[p, 1] == pi[p, _PVER]:
+                # the candidate's own fit (the least of this version's): no fit again
+                _store_state(pf, p, ecache_f[p, 0], ecache_f[p, 1], ecache_f[p, 2], ecache_f[p, 3],
+                             (ecache_f[p, 4], ecache_f[p, 5], ecache_f[p, 6], ecache_f[p, 7], ecache_f[p, 8],
+                              ecache_f[p, 9]))
+                pi[p, _PCOUNTLIN] = count + 1
+            elif count + 1 <= exact_plane_size:
                 n = _gather(pi, nextpix, p, buf)
                 _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
                                  pf[p, _PW + 2])
@@ -1578,8 +1612,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         if n_gathered < 0:
                             n_gathered = _gather(pi, nextpix, p, buf)
                         buf[n_gathered] = q
-                        sse, _, _, _ = _fit_rays(endpoints, directions, buf, n_gathered + 1, pf[p, _PW],
-                                                 pf[p, _PW + 1], pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+                        sse = _candidate_fit(endpoints, directions, pf, p, buf, n_gathered + 1, q, pi[p, _PVER],
+                                             ecache_i, ecache_f)
                         inc = sse - pf[p, _PE]
                     else:
                         inc = _model_extension(endpoints, directions, pf, p, q)[0]
