@@ -642,11 +642,18 @@ def _find(parent, x):
 
 
 @nb.njit(cache=True, _nrt=False)
-def _gather(pi, nextpix, p, buf, start=0):
-    """Write plane p's pixel ids into buf from index start on; returns their count."""
+def _gather(pi, nextpix, p, buf, endpoints, directions, start=0):
+    """Write plane p's pixel ids into buf from index start on; returns their count.
+
+    Prefetch hints request each ray's endpoint and direction, which the fit that follows reads:
+    the pixel list is a chain of dependent loads, the rays' rows are independent of each other, so
+    requesting them during the walk overlaps their cache misses with it (pc_01's greedy -10 %).
+    """
     n = 0
     k = pi[p, _PHEAD]
     while k >= 0:
+        _prefetch(endpoints, k, 0)
+        _prefetch(directions, k, 0)
         buf[start + n] = k
         n += 1
         k = nextpix[k]
@@ -1320,7 +1327,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
                     count = pi[p, _PCOUNT]
                     if count + 1 <= exact_plane_size:
-                        n = _gather(pi, nextpix, p, buf)
+                        n = _gather(pi, nextpix, p, buf, endpoints, directions)
                         buf[n] = k
                         sse = _candidate_fit(endpoints, directions, pf, p, buf, n + 1, k, pi[p, _PVER], ecache_i,
                                              ecache_f)
@@ -1378,8 +1385,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 # the larger plane's model plus the smaller plane's exact residuals)
                 stats[_ST_MERGE_REFINES] += 1
                 if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= exact_plane_size:
-                    n1 = _gather(pi, nextpix, a, buf)
-                    n2 = _gather(pi, nextpix, b, buf, n1)
+                    n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
+                    n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
                     sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     _cache_merge(mcache_i, mcache_f, a, b, eva, evb, sse, u0, u1, u2, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
                     inc = sse - pf[a, _PE] - pf[b, _PE]
@@ -1394,7 +1401,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if pi[b, _PCOUNT] > pi[a, _PCOUNT]:
                     big = b
                     small = a
-                n = _gather(pi, nextpix, small, buf)
+                n = _gather(pi, nextpix, small, buf, endpoints, directions)
                 stats[_ST_REFINE_RAYS] += n
                 if n <= exact_plane_size:
                     e_small = pf[small, _PE]  # a small plane's E is its exact fit's
@@ -1474,7 +1481,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                               ecache_f[p, 9]))
                 pi[p, _PCOUNTLIN] = count + 1
             elif count + 1 <= exact_plane_size:
-                n = _gather(pi, nextpix, p, buf)
+                n = _gather(pi, nextpix, p, buf, endpoints, directions)
                 _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
                                  pf[p, _PW + 2])
                 in_buf = n
@@ -1516,13 +1523,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 info = (mcache_f[a, 4], mcache_f[a, 5], mcache_f[a, 6], mcache_f[a, 7], mcache_f[a, 8], mcache_f[a, 9])
             elif total <= exact_plane_size:
                 # exact merged state from the best of the union's starting points
-                n1 = _gather(pi, nextpix, a, buf)
-                n2 = _gather(pi, nextpix, b, buf, n1)
+                n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
+                n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
                 _, w0, w1, w2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
             else:
                 big = a if na >= nbn else b
                 small = b if big == a else a
-                n = _gather(pi, nextpix, small, buf)
+                n = _gather(pi, nextpix, small, buf, endpoints, directions)
                 _, m0, m1, m2 = _model_merge(pf, a, b)
                 value, w0, w1, w2, info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
             # concatenate pixel lists into s
@@ -1539,7 +1546,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
             lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
             if total <= exact_plane_size:
-                n = _gather(pi, nextpix, s, buf)
+                n = _gather(pi, nextpix, s, buf, endpoints, directions)
                 _set_exact_state(endpoints, directions, pf, buf, n, s, w0, w1, w2)
                 pi[s, _PCOUNTLIN] = n
             else:
@@ -1564,7 +1571,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             dw = np.sqrt((pf[p, _PW] - pf[p, _PWL]) ** 2 + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
                          + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2)
             if count >= 2 * pi[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > drift_limit:
-                n = _gather(pi, nextpix, p, buf)
+                n = _gather(pi, nextpix, p, buf, endpoints, directions)
                 stats[_ST_RELINS] += 1
                 stats[_ST_RELIN_RAYS] += n
                 _relinearise(endpoints, directions, pf, buf, n, p)
@@ -1610,7 +1617,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     stats[_ST_NEW_CANDIDATES] += 1
                     if count + 1 <= exact_plane_size:
                         if n_gathered < 0:
-                            n_gathered = _gather(pi, nextpix, p, buf)
+                            n_gathered = _gather(pi, nextpix, p, buf, endpoints, directions)
                         buf[n_gathered] = q
                         sse = _candidate_fit(endpoints, directions, pf, p, buf, n_gathered + 1, q, pi[p, _PVER],
                                              ecache_i, ecache_f)
@@ -1685,8 +1692,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 b = max(p, q)
                 total = pi[a, _PCOUNT] + pi[b, _PCOUNT]
                 if total <= exact_merge_size:
-                    n1 = _gather(pi, nextpix, a, buf)
-                    n2 = _gather(pi, nextpix, b, buf, n1)
+                    n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
+                    n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
                     sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
