@@ -1606,6 +1606,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             if i > 0 and ok_down[k - width]:
                 nb_pix[n_nb] = k - width
                 n_nb += 1
+            for u in range(n_nb):  # the neighbours' rows load together (a candidate's fit reads its ray)
+                _prefetch(endpoints, nb_pix[u], 0)
+                _prefetch(directions, nb_pix[u], 0)
+                _prefetch(owner, nb_pix[u], 0)
+                _prefetch(candidate_of, nb_pix[u], 0)
             for u in range(n_nb):
                 q = nb_pix[u]
                 if owner[q] < 0:
