@@ -683,6 +683,24 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
 
 
 @nb.njit(cache=True, _nrt=False)
+def _put_fit(fits, r, value, w0, w1, w2, information):
+    """Write a fit into row r of an (n, 10) fit table: value (SSE, m^2), w (3) and information (6)."""
+    fits[r, 0] = value
+    fits[r, 1] = w0
+    fits[r, 2] = w1
+    fits[r, 3] = w2
+    for t in range(6):
+        fits[r, 4 + t] = information[t]
+
+
+@nb.njit(cache=True, _nrt=False)
+def _get_fit(fits, r):
+    """Row r of an (n, 10) fit table: (value, w0, w1, w2, information)."""
+    return fits[r, 0], fits[r, 1], fits[r, 2], fits[r, 3], (fits[r, 4], fits[r, 5], fits[r, 6], fits[r, 7],
+                                                            fits[r, 8], fits[r, 9])
+
+
+@nb.njit(cache=True, _nrt=False)
 def _candidate_fit(endpoints, directions, pf, p, idx, count, k, version, ecache_i, ecache_f):
     """Exact fit of small plane p's rays idx[:count - 1] plus candidate ray idx[count - 1] = k from p's w.
 
@@ -695,12 +713,7 @@ def _candidate_fit(endpoints, directions, pf, p, idx, count, k, version, ecache_
     if ecache_i[p, 1] != version or sse < ecache_f[p, 0]:
         ecache_i[p, 0] = k
         ecache_i[p, 1] = version
-        ecache_f[p, 0] = sse
-        ecache_f[p, 1] = w0
-        ecache_f[p, 2] = w1
-        ecache_f[p, 3] = w2
-        for t in range(6):
-            ecache_f[p, 4 + t] = information[t]
+        _put_fit(ecache_f, p, sse, w0, w1, w2, information)
     return sse
 
 
@@ -897,18 +910,13 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
     return best, b0, b1, b2
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, _nrt=False)
 def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     """Remember the refined merge of planes a < b at versions (va, vb): its value, merged w and information."""
     mcache_i[a, 0] = b
     mcache_i[a, 1] = va
     mcache_i[a, 2] = vb
-    mcache_f[a, 0] = value
-    mcache_f[a, 1] = w0
-    mcache_f[a, 2] = w1
-    mcache_f[a, 3] = w2
-    for t in range(6):
-        mcache_f[a, 4 + t] = info[t]
+    _put_fit(mcache_f, a, value, w0, w1, w2, info)
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -1476,9 +1484,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pf[p, _PRMAX] = max(pf[p, _PRMAX], r)
             if count + 1 <= exact_plane_size and ecache_i[p, 0] == k and ecache_i[p, 1] == pi[p, _PVER]:
                 # the candidate's own fit (the least of this version's): no fit again
-                _store_state(pf, p, ecache_f[p, 0], ecache_f[p, 1], ecache_f[p, 2], ecache_f[p, 3],
-                             (ecache_f[p, 4], ecache_f[p, 5], ecache_f[p, 6], ecache_f[p, 7], ecache_f[p, 8],
-                              ecache_f[p, 9]))
+                sse, w0, w1, w2, info = _get_fit(ecache_f, p)
+                _store_state(pf, p, sse, w0, w1, w2, info)
                 pi[p, _PCOUNTLIN] = count + 1
             elif count + 1 <= exact_plane_size:
                 n = _gather(pi, nextpix, p, buf, endpoints, directions)
@@ -1516,11 +1523,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             value = 0.0
             if mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER]:
                 # the refinement that queued this merge computed the same fit (same planes, versions)
-                value = mcache_f[a, 0]
-                w0 = mcache_f[a, 1]
-                w1 = mcache_f[a, 2]
-                w2 = mcache_f[a, 3]
-                info = (mcache_f[a, 4], mcache_f[a, 5], mcache_f[a, 6], mcache_f[a, 7], mcache_f[a, 8], mcache_f[a, 9])
+                value, w0, w1, w2, info = _get_fit(mcache_f, a)
             elif total <= exact_plane_size:
                 # exact merged state from the best of the union's starting points
                 n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
