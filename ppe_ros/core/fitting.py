@@ -230,7 +230,10 @@ def _fit4_step(P, V, rays, state):
 def _fit4(P, V, k0, k1, k2, k3):
     """:func:`_fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
 
-    Runs the algebraic start and up to four Gauss-Newton iterations exactly as :func:`_fit` would.
+    Runs the algebraic start and up to three Gauss-Newton iterations exactly as :func:`_fit` would
+    (on pc_01's seeds 42 % of the fits stop at the second iteration, 55 % at the third, 2.3 % need
+    more or a halved step; a fourth iteration cost more in the vectorised loop than the general
+    fits it saved: seeds 4-10 % slower on pc_01 and an Ouster sweep).
     Returns (sse, done): when done, sse is bit-identical to _fit_rays's; done is False when _fit
     would go on (more iterations, a halved step) or the set is degenerate: call _fit_rays then.
     """
@@ -242,9 +245,8 @@ def _fit4(P, V, k0, k1, k2, k3):
     system = _fit4_pass(P, V, rays, w0, w1, w2)
     good = ok & np.isfinite(system[0])
     state = ((w0, w1, w2), system, False, False)
-    state = _fit4_step(P, V, rays, state)  # written out four times: LLVM vectorises the
+    state = _fit4_step(P, V, rays, state)  # written out three times: LLVM vectorises the
     state = _fit4_step(P, V, rays, state)  # caller's loop over anchors only when no loop is left
-    state = _fit4_step(P, V, rays, state)
     state = _fit4_step(P, V, rays, state)
     return state[1][0], good & state[2] & (not state[3])
 
