@@ -18,6 +18,7 @@ from ppe_ros.core.extraction import (
     _PSTAMP,
     _PVER,
     _Q_BUCKETS,
+    _Q_CHUNK,
     _Q_PER_OCTAVE,
     _QCOUNT,
     _g_pop,
@@ -144,6 +145,31 @@ def test_queue_drops_only_stale_entries_and_keeps_the_order_of_the_rest(seed):
     expected = _reference(ops, keys, ints, pi)
     assert len(expected) > 500
     _assert_same_order(got, expected)
+
+
+@pytest.mark.parametrize('n', [1, _Q_CHUNK - 1, _Q_CHUNK, _Q_CHUNK + 1, 10 * _Q_CHUNK + 3])
+def test_a_far_bucket_of_several_chunks_pops_in_order_and_its_chunks_are_reused(n):
+    """n entries in one far bucket (keys within a quarter octave), a key in a later bucket, then a
+    second round that pushes into buckets emptied before (their chunks come off the free stack)."""
+    rng = np.random.default_rng(n)
+    ops, keys, ints = [], [], []
+    for base in (1.0, 4.0, 1e-3):
+        for t in range(n):
+            ops.append(0)
+            keys.append(base * (1.0 + 0.15 * rng.random()))
+            ints.append((_G_SEED, t, rng.integers(0, 17), 0, 0))
+        ops.append(0)
+        keys.append(base * 3.0)
+        ints.append((_G_SEED, n, 0, 0, 0))
+        ops.extend([1] * (n + 1))
+        keys.extend([0.0] * (n + 1))
+        ints.extend([(0, 0, 0, 0, 0)] * (n + 1))
+    ops, keys, ints = np.array(ops), np.array(keys), np.array(ints, np.int64)
+    pi = np.zeros((64, _NPI), np.int64)
+    out_keys, out_ints = _drive(ops, keys, ints, pi)
+    expected = _reference(ops, keys, ints, pi)
+    assert len(out_keys) == len(expected) == 3 * (n + 1)
+    _assert_same_order([(k, *map(int, i)) for k, i in zip(out_keys, out_ints, strict=True)], expected)
 
 
 def test_bucket_index_never_decreases_with_the_key():

@@ -107,14 +107,24 @@ _G_MERGE_EXACT = 3
 
 # queue state fields (far buckets of the two-level queue)
 _QCUR = 0  # buckets up to this index live in the heap
-_QFREE = 1  # free far-bucket nodes: a stack of this many node ids in fnext[:, 1]
-_QUSED = 2  # far-bucket nodes ever allocated
+_QFREE = 1  # free far-bucket chunks: a stack of this many chunk ids in fnext[:, 1]
+_QUSED = 2  # far-bucket chunks ever allocated
 _QCOUNT = 3  # entries in far buckets
 _NQS = 4
+# a far bucket is a linked list of chunks of _Q_CHUNK consecutive entries (only its head chunk
+# is partly filled): loading a bucket reads its entries in order and waits on one link per
+# chunk instead of one per entry
+_Q_CHUNK = 8
 #: Far buckets per octave of the key (4: a bucket spans keys within a factor 2^(1/4)).
 _Q_FRACTION_BITS = 2
 _Q_PER_OCTAVE = 1 << _Q_FRACTION_BITS
 _Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
+
+
+@nb.njit(cache=True)
+def _q_chunks(capacity):
+    """Far-bucket chunks that hold capacity entries: full chunks plus one partly filled per bucket."""
+    return (capacity + _Q_CHUNK - 1) // _Q_CHUNK + _Q_BUCKETS
 
 # adjacency node fields
 _AN_PLANE = 0  # the neighbouring plane (an id that may have been merged since: resolve with _find)
@@ -503,16 +513,17 @@ def _q_bucket(key):
 
 @nb.njit(cache=True)
 def _q_new(capacity):
-    """An empty queue: heap (gkey, gint), far-bucket node pool (fkey, fint, fnext), bucket heads, state.
+    """An empty queue: heap (gkey, gint), far-bucket chunk pool (fkey, fint, fnext), bucket heads, state.
 
-    fnext[node, 0] links a far bucket's nodes; fnext[:, 1] is the stack of free node ids (a push
-    reads its top, which is in cache, instead of following a free list through the pool).
+    Chunk c holds the entries c * _Q_CHUNK + [0, fnext[c, 2]) of fkey and fint; fnext[c, 0] links a
+    bucket's chunks (its head chunk first); fnext[:, 1] is the stack of free chunk ids.
     """
     qstate = np.zeros(_NQS, np.int64)
     qstate[_QCUR] = -1
-    return (np.empty(capacity), np.empty((capacity, 5), np.int32), np.empty(capacity),
-            np.empty((capacity, 5), np.int32), np.empty((capacity, 2), np.int32), np.full(_Q_BUCKETS, -1, np.int64),
-            qstate)
+    chunks = _q_chunks(capacity)
+    return (np.empty(capacity), np.empty((capacity, 5), np.int32), np.empty(chunks * _Q_CHUNK),
+            np.empty((chunks * _Q_CHUNK, 5), np.int32), np.empty((chunks, 3), np.int32),
+            np.full(_Q_BUCKETS, -1, np.int64), qstate)
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -521,15 +532,21 @@ def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b
     bucket = _q_bucket(key)
     if bucket <= qstate[_QCUR]:
         return _g_push(gkey, gint, gsize, key, kind, a, b, va, vb)
-    if qstate[_QFREE] > 0:
-        qstate[_QFREE] -= 1
-        node = fnext[qstate[_QFREE], 1]
-    else:
-        node = qstate[_QUSED]
-        qstate[_QUSED] += 1
-    _g_set(fkey, fint, node, key, kind, a, b, va, vb)  # a pool node has a heap slot's layout
-    fnext[node, 0] = bhead[bucket]
-    bhead[bucket] = node
+    chunk = bhead[bucket]
+    if chunk < 0 or fnext[chunk, 2] == _Q_CHUNK:
+        if qstate[_QFREE] > 0:
+            qstate[_QFREE] -= 1
+            new = fnext[qstate[_QFREE], 1]
+        else:
+            new = qstate[_QUSED]
+            qstate[_QUSED] += 1
+        fnext[new, 0] = chunk
+        fnext[new, 2] = 0
+        bhead[bucket] = new
+        chunk = new
+    slot = chunk * _Q_CHUNK + fnext[chunk, 2]
+    fnext[chunk, 2] += 1
+    _g_set(fkey, fint, slot, key, kind, a, b, va, vb)  # a pool slot has a heap slot's layout
     qstate[_QCOUNT] += 1
     return gsize
 
@@ -548,28 +565,29 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
         while bhead[j] < 0:
             j += 1
         qstate[_QCUR] = j
-        node = bhead[j]
+        chunk = bhead[j]
         bhead[j] = -1
-        while node >= 0:
-            nxt = fnext[node, 0]
-            kind = fint[node, 0]
-            a = fint[node, 1]
-            b = fint[node, 2]
-            keep = True
-            if kind == _G_EXTEND:
-                keep = pi[a, _PALIVE] != 0 and fint[node, 3] == pi[a, _PSTAMP]
-            elif kind != _G_SEED:
-                keep = (pi[a, _PALIVE] != 0 and pi[b, _PALIVE] != 0 and fint[node, 3] == pi[a, _PVER]
-                        and fint[node, 4] == pi[b, _PVER])
-            if keep:
-                gkey[size] = fkey[node]
-                for c in range(5):
-                    gint[size, c] = fint[node, c]
-                size += 1
-            qstate[_QCOUNT] -= 1
-            fnext[qstate[_QFREE], 1] = node
+        while chunk >= 0:
+            nxt = fnext[chunk, 0]
+            for node in range(chunk * _Q_CHUNK, chunk * _Q_CHUNK + fnext[chunk, 2]):
+                kind = fint[node, 0]
+                a = fint[node, 1]
+                b = fint[node, 2]
+                keep = True
+                if kind == _G_EXTEND:
+                    keep = pi[a, _PALIVE] != 0 and fint[node, 3] == pi[a, _PSTAMP]
+                elif kind != _G_SEED:
+                    keep = (pi[a, _PALIVE] != 0 and pi[b, _PALIVE] != 0 and fint[node, 3] == pi[a, _PVER]
+                            and fint[node, 4] == pi[b, _PVER])
+                if keep:
+                    gkey[size] = fkey[node]
+                    for c in range(5):
+                        gint[size, c] = fint[node, c]
+                    size += 1
+            qstate[_QCOUNT] -= fnext[chunk, 2]
+            fnext[qstate[_QFREE], 1] = chunk
             qstate[_QFREE] += 1
-            node = nxt
+            chunk = nxt
     _g_heapify(gkey, gint, size)
     return size
 
@@ -1054,10 +1072,12 @@ def _aligned(offset):
 def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
-    n_f = a(n_pixels * _NPF) + 2 * a(gcap) + a(hcap * 2) + 2 * a(n_pixels * 10) + a(n_pixels + 1) + a(n_pixels)
+    far = _q_chunks(gcap) * _Q_CHUNK
+    n_f = (a(n_pixels * _NPF) + a(gcap) + a(far) + a(hcap * 2) + 2 * a(n_pixels * 10) + a(n_pixels + 1)
+           + a(n_pixels))
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
-    n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + 2 * a(gcap * 5) + a(gcap * 2) + a(n_pixels * 3)
-             + a(n_pixels * 2) + a(n_pixels + 1) + a(n_pixels))
+    n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + a(gcap * 5) + a(far * 5) + a(far // _Q_CHUNK * 3)
+             + a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1) + a(n_pixels))
     return n_f, n_i, n_i32
 
 
@@ -1137,18 +1157,19 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
 
     # global heap
     overflow = np.zeros(3, np.int64)
-    # kind, ids and versions all < 2^31 (ids < H*W); the far-bucket pool has the heap's capacity
-    # (heap entries + far entries <= gcap)
+    # kind, ids and versions all < 2^31 (ids < H*W); the far-bucket pool holds the heap's
+    # capacity (heap entries + far entries <= gcap) in chunks
+    n_chunks = _q_chunks(gcap)
     gkey = work_f[of:of + gcap]
     of = _aligned(of + gcap)
-    fkey = work_f[of:of + gcap]
-    of = _aligned(of + gcap)
+    fkey = work_f[of:of + n_chunks * _Q_CHUNK]
+    of = _aligned(of + n_chunks * _Q_CHUNK)
     gint = work_i32[o32:o32 + gcap * 5].reshape((gcap, 5))
     o32 = _aligned(o32 + gcap * 5)
-    fint = work_i32[o32:o32 + gcap * 5].reshape((gcap, 5))
-    o32 = _aligned(o32 + gcap * 5)
-    fnext = work_i32[o32:o32 + gcap * 2].reshape((gcap, 2))
-    o32 = _aligned(o32 + gcap * 2)
+    fint = work_i32[o32:o32 + n_chunks * _Q_CHUNK * 5].reshape((n_chunks * _Q_CHUNK, 5))
+    o32 = _aligned(o32 + n_chunks * _Q_CHUNK * 5)
+    fnext = work_i32[o32:o32 + n_chunks * 3].reshape((n_chunks, 3))
+    o32 = _aligned(o32 + n_chunks * 3)
     bhead = work_i[oi:oi + _Q_BUCKETS]
     oi = _aligned(oi + _Q_BUCKETS)
     bhead[:] = -1
