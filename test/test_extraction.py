@@ -752,11 +752,18 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     scan = make_ray_scan(points, scan_in.origins)
     ok_right, ok_down = _edge_masks(scan, lmax)
     fast = np.empty((scan.size, 17))
+    best_config = np.empty(scan.size, np.int32)
+    best_key = np.empty(scan.size)
     _seed_errors(scan.endpoints, scan.directions, ok_right, ok_down, scan.height, scan.width,
-                 TETROMINO_OFFSETS, fast)
+                 TETROMINO_OFFSETS, fast, best_config, best_key)
     slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
     assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000
     np.testing.assert_array_equal(fast, slow)
+    # each anchor's initial seed: its first config of least SSE, none where no seed is valid
+    none = np.isinf(slow).all(axis=1)
+    assert none.sum() > 10
+    np.testing.assert_array_equal(best_config, np.where(none, -1, np.argmin(slow, axis=1)))
+    np.testing.assert_array_equal(best_key, slow.min(axis=1))
 
 
 def test_scans_at_the_ray_limit_raise_a_clear_error(monkeypatch):

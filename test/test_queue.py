@@ -227,6 +227,12 @@ def test_seed_sort_equals_a_stable_argsort():
         expected = finite[np.argsort(keys[finite], kind='stable')]
         np.testing.assert_array_equal(order, expected)
         np.testing.assert_array_equal(sorted_keys, keys[expected])
+        # keys above a cutoff are left out as well (seeds a run can never reach)
+        if len(finite):
+            cutoff = np.median(keys[finite])
+            order, sorted_keys = _sort_seed_keys(keys, cutoff)
+            np.testing.assert_array_equal(order, expected[keys[expected] <= cutoff])
+            np.testing.assert_array_equal(sorted_keys, keys[order])
 
 
 @nb.njit

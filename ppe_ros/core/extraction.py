@@ -255,8 +255,11 @@ def _tetromino_edges(offsets, width):
 
 
 @nb.njit(cache=True, parallel=True)
-def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offsets, out):
-    """SSE (m^2) of every tetromino seed (anchor pixel, config); inf where the seed is invalid.
+def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offsets, out, best_config, best_key):
+    """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
+
+    best_config[anchor] is the anchor's first config of least SSE (-1: no valid seed), best_key
+    that SSE (inf: none): the greedy's initial seeds.
 
     Per grid row and config, the straight-line four-ray fit runs over all anchors of each block of
     _SEED_BLOCK anchors that holds at least _SEED_BLOCK_MIN valid seeds (a vectorised loop); the
@@ -326,13 +329,21 @@ def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offset
                                              _FIT_TOLERANCE)
                 errors[c, j] = sse if np.isfinite(sse) else np.inf
         for j in range(width):
+            best = -1
+            least = np.inf
             for c in range(17):
-                out[base + j, c] = errors[c, j]
+                e = errors[c, j]
+                out[base + j, c] = e
+                if e < least:
+                    best = c
+                    least = e
+            best_config[base + j] = best
+            best_key[base + j] = least
 
 
 @nb.njit(cache=True)
-def _sort_seed_keys(seed_key):
-    """Anchors with a finite seed key, in the order of (key, anchor): a stable LSD radix sort.
+def _sort_seed_keys(seed_key, cutoff=np.inf):
+    """Anchors with a finite seed key <= cutoff, in the order of (key, anchor): a stable LSD radix sort.
 
     Keys are >= 0, so their IEEE bits order like the keys; 16-bit digits, and a digit that all
     keys share is skipped (the exponents of a scan's seeds span a few octaves). Returns (anchors,
@@ -341,13 +352,13 @@ def _sort_seed_keys(seed_key):
     n = seed_key.shape[0]
     m = 0
     for k in range(n):
-        if seed_key[k] < np.inf:
+        if seed_key[k] < np.inf and seed_key[k] <= cutoff:
             m += 1
     order = np.empty(m, np.int64)
     bits = np.empty(m, np.uint64)
     m = 0
     for k in range(n):
-        if seed_key[k] < np.inf:
+        if seed_key[k] < np.inf and seed_key[k] <= cutoff:
             order[m] = k
             bits[m] = np.uint64(_float_bits(seed_key[k] + 0.0))  # + 0.0: -0.0 becomes +0.0
             m += 1
@@ -1073,11 +1084,10 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
     far = _q_chunks(gcap) * _Q_CHUNK
-    n_f = (a(n_pixels * _NPF) + a(gcap) + a(far) + a(hcap * 2) + 2 * a(n_pixels * 10) + a(n_pixels + 1)
-           + a(n_pixels))
+    n_f = a(n_pixels * _NPF) + a(gcap) + a(far) + a(hcap * 2) + 2 * a(n_pixels * 10) + a(n_pixels + 1)
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
     n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + a(gcap * 5) + a(far * 5) + a(far // _Q_CHUNK * 3)
-             + a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1) + a(n_pixels))
+             + a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1))
     return n_f, n_i, n_i32
 
 
@@ -1088,7 +1098,7 @@ def _empty_log(stats, overflow):
 
 
 @nb.njit(cache=True)
-def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse,
+def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse, seed_best, seed_key,
                 exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
                 defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
@@ -1223,24 +1233,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     cutoff = np.inf if min_count < n_pixels else max_increment
     model_cutoff = MODEL_CUTOFF_FACTOR * cutoff
 
-    # initial seeds: the best valid config of every anchor, in a sorted array (next-best seeds
-    # of anchors whose best seed became invalid go through the heap)
-    seed_best = work_i32[o32:o32 + n_pixels]
-    o32 = _aligned(o32 + n_pixels)
-    seed_key = work_f[of:of + n_pixels]
-    of = _aligned(of + n_pixels)
-    seed_best[:] = -1
-    seed_key[:] = np.inf
-    for anchor in range(n_pixels):
-        best = -1
-        for c in range(17):
-            if np.isfinite(seed_sse[anchor, c]) and (best < 0 or seed_sse[anchor, c] < seed_sse[anchor, best]):
-                best = c
-        if best >= 0 and seed_sse[anchor, best] <= cutoff:
-            seed_best[anchor] = best
-            seed_key[anchor] = seed_sse[anchor, best]
-    # ties by anchor id; the keys in that order too (seed_key[seed_order[i]] would be a random access)
-    seed_order, seed_sorted_key = _sort_seed_keys(seed_key)
+    # initial seeds: the best valid config of every anchor (seed_best, seed_key from _seed_errors)
+    # up to the cutoff, in a sorted array (next-best seeds of anchors whose best seed became
+    # invalid go through the heap); ties by anchor id; the keys in that order too
+    # (seed_key[seed_order[i]] would be a random access)
+    seed_order, seed_sorted_key = _sort_seed_keys(seed_key, cutoff)
     n_seeds = len(seed_order)
     seed_ptr = 0
 
@@ -1991,8 +1988,10 @@ def extract_plane_hierarchy(
     start = time.perf_counter()
     ok_right, ok_down = _edge_masks(scan, lmax)
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
+    seed_best = _reusable('seed_best', scan.size, np.int32)
+    seed_key = _reusable('seed_key', scan.size, np.float64)
     _seed_errors(scan.endpoints, scan.directions, ok_right, ok_down, scan.height, scan.width,
-                 TETROMINO_OFFSETS, seed_sse)
+                 TETROMINO_OFFSETS, seed_sse, seed_best, seed_key)
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
     # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
     # again (np.empty only reserves memory: rows that are never used cost no RAM)
@@ -2001,7 +2000,8 @@ def extract_plane_hierarchy(
         work = _work_buffers(*_work_sizes(scan.size, int(capacity[0]), int(capacity[1]), int(capacity[2])))
         kinds, a_ids, b_ids, incs, stats, overflow = _ppe_kernel(
             scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
-            TETROMINO_OFFSETS, seed_sse, int(exact_plane_size), int(exact_merge_size), float(relinearisation_drift),
+            TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, int(exact_plane_size), int(exact_merge_size),
+            float(relinearisation_drift),
             stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, bool(defer_merges),
             int(capacity[0]), int(capacity[1]), int(capacity[2]), *work,
         )
