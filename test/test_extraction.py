@@ -326,7 +326,7 @@ def test_reused_work_memory_does_not_change_the_result():
     release_work_memory()
     fresh = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut)
     buffers = _work_memory.buffers
-    assert set(buffers) == {'float64', 'int64', 'int32', 'seeds'}
+    assert set(buffers) == {'float64', 'int64', 'int32', 'seeds', 'seed_best', 'seed_key'}
     rng = np.random.default_rng(1)
     for garbage in (np.nan, -np.inf, 1e300):
         for buffer in buffers.values():

@@ -1149,10 +1149,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     o32 = _aligned(o32 + n_pixels)
     candidate_of[:] = -1
     owner[:] = -1
-    nextpix[:] = -1
-    for k in range(n_pixels):
-        parent[k] = k
-    seen[:] = -1
+    # parent, seen and the plane rows below are read only for plane ids (anchors of created
+    # planes) and written when a plane is created; pixel lists are written as they grow
     seen_stamp = 0
 
     # plane state
@@ -1163,7 +1161,6 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # H*W), all below 2^31 for the scans extract_plane_hierarchy accepts (< MAX_RAYS)
     pi = work_i32[o32:o32 + n_pixels * _NPI].reshape((n_pixels, _NPI))
     o32 = _aligned(o32 + n_pixels * _NPI)
-    pi[:] = 0
 
     # global heap
     overflow = np.zeros(3, np.int64)
@@ -1207,13 +1204,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # the last merge refined per plane (keyed by its smaller id): partner, both versions; value, w, information
     mcache_i = work_i32[o32:o32 + n_pixels * 3].reshape((n_pixels, 3))
     o32 = _aligned(o32 + n_pixels * 3)
-    mcache_i[:] = -1
     mcache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
     # the least candidate fit of each small plane's current version: ray, version; SSE, w, information
     ecache_i = work_i32[o32:o32 + n_pixels * 2].reshape((n_pixels, 2))
     o32 = _aligned(o32 + n_pixels * 2)
-    ecache_i[:] = -1
     ecache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
 
@@ -1468,6 +1463,14 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             j = p % width
             for t in range(4):
                 cell[t] = (i + offsets[act_b, t, 0]) * width + (j + offsets[act_b, t, 1])
+            # a plane id is created once (its anchor is taken for good): its rows start here
+            parent[p] = p
+            seen[p] = -1
+            pi[p, _PSTAMP] = 0
+            for t in range(3):
+                mcache_i[p, t] = -1
+            ecache_i[p, 0] = -1
+            ecache_i[p, 1] = -1
             pi[p, _PALIVE] = 1
             pi[p, _PROOT] = -1
             pi[p, _PADJ] = -1
