@@ -30,6 +30,7 @@ from ppe_ros.core.extraction import (
     UNION_MODEL_AGREEMENT,
     _edge_masks,
     _model_merge,
+    _ray_columns,
     _seed_errors,
     _set_exact_state,
     _union_fit,
@@ -326,7 +327,7 @@ def test_reused_work_memory_does_not_change_the_result():
     release_work_memory()
     fresh = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut)
     buffers = _work_memory.buffers
-    assert set(buffers) == {'float64', 'int64', 'int32', 'seeds', 'seed_best', 'seed_key'}
+    assert set(buffers) == {'float64', 'int64', 'int32', 'seeds', 'seed_best', 'seed_key', 'ray_columns'}
     rng = np.random.default_rng(1)
     for garbage in (np.nan, -np.inf, 1e300):
         for buffer in buffers.values():
@@ -754,7 +755,8 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     fast = np.empty((scan.size, 17))
     best_config = np.empty(scan.size, np.int32)
     best_key = np.empty(scan.size)
-    _seed_errors(scan.endpoints, scan.directions, ok_right, ok_down, scan.height, scan.width,
+    P, V = np.ascontiguousarray(scan.endpoints.T), np.ascontiguousarray(scan.directions.T)
+    _seed_errors(scan.endpoints, scan.directions, P, V, ok_right, ok_down, scan.height, scan.width,
                  TETROMINO_OFFSETS, fast, best_config, best_key)
     slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
     assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000
@@ -764,6 +766,15 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     assert none.sum() > 10
     np.testing.assert_array_equal(best_config, np.where(none, -1, np.argmin(slow, axis=1)))
     np.testing.assert_array_equal(best_key, slow.min(axis=1))
+
+
+def test_ray_columns_are_the_transposed_rays():
+    rng = np.random.default_rng(4)
+    for n in (1, 4095, 4096, 4097, 10000):
+        endpoints, directions = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+        columns = np.full((6, n), np.nan)
+        _ray_columns(endpoints, directions, columns[:3], columns[3:])
+        np.testing.assert_array_equal(columns, np.concatenate([endpoints.T, directions.T]))
 
 
 def test_scans_at_the_ray_limit_raise_a_clear_error(monkeypatch):

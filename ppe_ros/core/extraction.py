@@ -255,8 +255,11 @@ def _tetromino_edges(offsets, width):
 
 
 @nb.njit(cache=True, parallel=True)
-def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offsets, out, best_config, best_key):
+def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key):
     """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
+
+    P, V: the endpoints and directions as (3, n) arrays (_ray_columns), which the vectorised
+    fits read with unit stride across anchors.
 
     best_config[anchor] is the anchor's first config of least SSE (-1: no valid seed), best_key
     that SSE (inf: none): the greedy's initial seeds.
@@ -267,8 +270,6 @@ def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offset
     the seeds the loop did not finish are fitted by the general Gauss-Newton. The values are
     bit-identical to fitting every seed with _fit_rays.
     """
-    P = np.ascontiguousarray(endpoints.T)
-    V = np.ascontiguousarray(directions.T)
     edges = _tetromino_edges(offsets, width)
     for i in nb.prange(height):
         row = np.empty(width)
@@ -339,6 +340,17 @@ def _seed_errors(endpoints, directions, ok_right, ok_down, height, width, offset
                     least = e
             best_config[base + j] = best
             best_key[base + j] = least
+
+
+@nb.njit(cache=True, parallel=True)
+def _ray_columns(endpoints, directions, P, V):
+    """Copy (n, 3) endpoints and directions into (3, n) arrays P and V."""
+    n = endpoints.shape[0]
+    for block in nb.prange((n + 4095) // 4096):
+        for k in range(block * 4096, min(n, block * 4096 + 4096)):
+            for c in range(3):
+                P[c, k] = endpoints[k, c]
+                V[c, k] = directions[k, c]
 
 
 @nb.njit(cache=True)
@@ -1993,8 +2005,10 @@ def extract_plane_hierarchy(
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
     seed_best = _reusable('seed_best', scan.size, np.int32)
     seed_key = _reusable('seed_key', scan.size, np.float64)
-    _seed_errors(scan.endpoints, scan.directions, ok_right, ok_down, scan.height, scan.width,
-                 TETROMINO_OFFSETS, seed_sse, seed_best, seed_key)
+    columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
+    _ray_columns(scan.endpoints, scan.directions, columns[:3], columns[3:])
+    _seed_errors(scan.endpoints, scan.directions, columns[:3], columns[3:], ok_right, ok_down, scan.height,
+                 scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key)
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
     # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
     # again (np.empty only reserves memory: rows that are never used cost no RAM)
