@@ -1934,7 +1934,7 @@ def _reusable(name: str, size: int, dtype) -> np.ndarray:
 def release_work_memory() -> None:
     """Free the work memory the extractor keeps between calls in the calling thread.
 
-    The extractor reuses its work buffers (about 1.3 KB per ray of the largest scan so far, of which
+    The extractor reuses its work buffers (about 1.2 KB per ray of the largest scan so far, of which
     the touched part stays resident) so that repeated calls, like a node's frames, do not pay for
     fresh memory; call this after a large one-off extraction to give the memory back.
     """
