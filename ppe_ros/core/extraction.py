@@ -965,7 +965,9 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
     """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
 
     Its key is the top's exact increment when that is current, else the top's lower bound; a new
-    stamp makes earlier proxies of p stale. Returns (gsize, proxy key; inf when none is queued).
+    stamp makes earlier proxies of p stale. The entry is (key, _G_EXTEND, p, top's ray, stamp, top's
+    node): the node only serves as a prefetch hint when the entry is next in the heap. Returns
+    (gsize, proxy key; inf when none is queued).
     """
     root = pi[p, _PROOT]
     if root < 0:
@@ -978,7 +980,7 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
     if pkey > cutoff:
         return gsize, np.inf
     return _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, pkey, _G_EXTEND, p, hi[root, 0],
-                   pi[p, _PSTAMP], 0), pkey
+                   pi[p, _PSTAMP], root), pkey
 
 
 # --------------------------------------------------------------------------------------------
@@ -1299,7 +1301,12 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if gsize > 0:  # the next entry's planes load while this one is handled
                     _prefetch(pi, gint[0, 1], 0)
                     _prefetch(pf, gint[0, 1], 0)
-                    _prefetch(pi, gint[0, 2], 0)
+                    if gint[0, 0] == _G_EXTEND:  # its candidate node (at the push) and ray
+                        _prefetch(hi, gint[0, 4], 0)
+                        _prefetch(hf, gint[0, 4], 0)
+                        _prefetch(owner, gint[0, 2], 0)
+                    else:
+                        _prefetch(pi, gint[0, 2], 0)
             stats[_ST_POPS] += 1
             if kind == _G_SEED:
                 anchor = ea
