@@ -1098,7 +1098,7 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
     far = _q_chunks(gcap) * _Q_CHUNK
-    n_f = a(n_pixels * _NPF) + a(gcap) + a(far) + a(hcap * 2) + 2 * a(n_pixels * 10) + a(n_pixels + 1)
+    n_f = a(n_pixels * (_NPF + 10)) + a(gcap) + a(far) + a(hcap * 2) + a(n_pixels * 10) + a(n_pixels + 1)
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
     n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + a(gcap * 5) + a(far * 5) + a(far // _Q_CHUNK * 3)
              + a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1))
@@ -1168,8 +1168,12 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     seen_stamp = 0
 
     # plane state
-    pf = work_f[of:of + n_pixels * _NPF].reshape((n_pixels, _NPF))  # a plane's row is written when it is created
-    of = _aligned(of + n_pixels * _NPF)
+    prow = work_f[of:of + n_pixels * (_NPF + 10)].reshape((n_pixels, _NPF + 10))
+    of = _aligned(of + n_pixels * (_NPF + 10))
+    # a plane's float state and its candidate-fit slot (ecache_f below) share a row: a plane's
+    # action reads and writes both; a plane's row is written when it is created
+    pf = prow[:, :_NPF]
+    ecache_f = prow[:, _NPF:]
     # 32-bit fields (half the memory traffic of a plane's row): counts, versions and pixel ids are
     # below H*W, stamps below the number of pops, node indices below the pools' sizes (a few times
     # H*W), all below 2^31 for the scans extract_plane_hierarchy accepts (< MAX_RAYS)
@@ -1220,11 +1224,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     o32 = _aligned(o32 + n_pixels * 3)
     mcache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
-    # the least candidate fit of each small plane's current version: ray, version; SSE, w, information
+    # the least candidate fit of each small plane's current version: ray, version (here); SSE, w,
+    # information (ecache_f, in the plane's float row)
     ecache_i = work_i32[o32:o32 + n_pixels * 2].reshape((n_pixels, 2))
     o32 = _aligned(o32 + n_pixels * 2)
-    ecache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
-    of = _aligned(of + n_pixels * 10)
 
     # action log
     log_kind = work_i32[o32:o32 + n_pixels + 1]
