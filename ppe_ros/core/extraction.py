@@ -1117,6 +1117,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
+    seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
     The work pools have fixed capacities (queue gcap, candidate nodes hcap, adjacency nodes acap) so
     that no array is reassigned inside the loops: numba then keeps reference counting (atomic
