@@ -742,20 +742,25 @@ def _get_fit(fits, r):
 
 
 @nb.njit(cache=True, _nrt=False)
-def _candidate_fit(endpoints, directions, pf, p, idx, count, k, version, ecache_i, ecache_f):
-    """Exact fit of small plane p's rays idx[:count - 1] plus candidate ray idx[count - 1] = k from p's w.
+def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version, ecache_i, ecache_f):
+    """Increment (m^2) of extending plane p (at its current version) by ray k.
 
-    Returns the SSE. The least-SSE candidate fit of p's current version is kept in (ecache_i,
-    ecache_f)[p] (ray, version; SSE, w, information), so that executing that extension needs no fit:
-    it is the same fit (same rays in the same order, same start) that _set_exact_state would make.
+    A small plane (small: it has at most exact_plane_size rays with k) is fitted exactly from its w
+    on its rays idx[:n] (the caller gathers them) plus k, written to idx[n]; the least-SSE candidate
+    fit of p's current version is kept in (ecache_i, ecache_f)[p] (ray, version; SSE, w,
+    information), so that executing that extension needs no fit: it is the same fit (same rays in
+    the same order, same start) that _set_exact_state would make. A large plane uses its model.
     """
-    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, pf[p, _PW], pf[p, _PW + 1],
+    if not small:
+        return _model_extension(endpoints, directions, pf, p, k)[0]
+    idx[n] = k
+    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, n + 1, pf[p, _PW], pf[p, _PW + 1],
                                         pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
     if ecache_i[p, 1] != version or sse < ecache_f[p, 0]:
         ecache_i[p, 0] = k
         ecache_i[p, 1] = version
         _put_fit(ecache_f, p, sse, w0, w1, w2, information)
-    return sse
+    return sse - pf[p, _PE]
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -1373,15 +1378,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     # stale bound: evaluate exactly for the current version and re-insert
                     stats[_ST_REEVALS] += 1
                     newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
-                    count = pi[p, _PCOUNT]
-                    if count + 1 <= exact_plane_size:
-                        n = _gather(pi, nextpix, p, buf, endpoints, directions)
-                        buf[n] = k
-                        sse = _candidate_fit(endpoints, directions, pf, p, buf, n + 1, k, pi[p, _PVER], ecache_i,
-                                             ecache_f)
-                        inc = sse - pf[p, _PE]
-                    else:
-                        inc = _model_extension(endpoints, directions, pf, p, k)[0]
+                    small = pi[p, _PCOUNT] + 1 <= exact_plane_size
+                    n = _gather(pi, nextpix, p, buf, endpoints, directions) if small else 0
+                    inc = _candidate_increment(endpoints, directions, pf, p, small, buf, n, k, pi[p, _PVER], ecache_i,
+                                               ecache_f)
                     if inc < 0.0:
                         inc = 0.0
                     value = pf[p, _PE] + inc
@@ -1671,15 +1671,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         continue
                     # extension candidate (p, q), exact value for the current version
                     stats[_ST_NEW_CANDIDATES] += 1
-                    if count + 1 <= exact_plane_size:
-                        if n_gathered < 0:
-                            n_gathered = _gather(pi, nextpix, p, buf, endpoints, directions)
-                        buf[n_gathered] = q
-                        sse = _candidate_fit(endpoints, directions, pf, p, buf, n_gathered + 1, q, pi[p, _PVER],
-                                             ecache_i, ecache_f)
-                        inc = sse - pf[p, _PE]
-                    else:
-                        inc = _model_extension(endpoints, directions, pf, p, q)[0]
+                    small = count + 1 <= exact_plane_size
+                    if small and n_gathered < 0:
+                        n_gathered = _gather(pi, nextpix, p, buf, endpoints, directions)
+                    inc = _candidate_increment(endpoints, directions, pf, p, small, buf, n_gathered, q, pi[p, _PVER],
+                                               ecache_i, ecache_f)
                     if not np.isfinite(inc):
                         continue
                     if inc < 0.0:
