@@ -91,6 +91,10 @@ RELINEARISATION_DRIFT = 1e-2
 MODEL_CUTOFF_FACTOR = 4.0
 #: Model merge increments are queued this fraction below their value (refined exactly when popped).
 MODEL_MERGE_KEY_MARGIN = 0.05
+#: A merge refined at the top of the queue keeps the smaller plane's exact residuals as a quadratic
+#: model around the refined union's w; while that plane is unchanged and the larger one has grown by at
+#: most this fraction of its size at the refinement, the merge is re-valued from that model (0: never).
+REFINED_MERGE_GROWTH = 0.125
 #: Relative slack subtracted from cached lower bounds (round-off and model error).
 BOUND_SLACK = 1e-7
 #: Scans must have fewer rays than this (the greedy stores ids, versions and stamps in 32 bits).
@@ -168,9 +172,11 @@ _ST_REFINE_RAYS = 5
 _ST_RELINS = 6
 _ST_RELIN_RAYS = 7
 _ST_HEAP_PEAK = 8
-_N_STATS = 9
+_ST_REFINED_REUSES = 9
+_N_STATS = 10
 STAT_NAMES = ('heap_pops', 'candidate_reevaluations', 'new_candidates', 'merge_evaluations', 'merge_refinements',
-              'merge_refinement_rays', 'relinearisations', 'relinearisation_rays', 'heap_capacity')
+              'merge_refinement_rays', 'relinearisations', 'relinearisation_rays', 'heap_capacity',
+              'refined_merge_reuses')
 
 
 @intrinsic
@@ -889,8 +895,8 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving).
 
     One pass over the rays per iteration (the pass at a trial point gives its value and, when
-    accepted, the next system). Returns (value, w0, w1, w2, info6) where info6 is the information
-    matrix at the returned w.
+    accepted, the next system). Returns (value, w0, w1, w2, info6, r3) where info6 is the information
+    matrix and r3 the half gradient H_big (w - w_big) + J^T f at the returned w.
     """
     value, info, r0, r1, r2 = _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2)
     for _ in range(_FIT_ITERATIONS):
@@ -917,7 +923,70 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
         value, info, r0, r1, r2 = trial
         if decrease <= _FIT_TOLERANCE * value:
             break
-    return value, w0, w1, w2, info
+    return value, w0, w1, w2, info, (r0, r1, r2)
+
+
+@nb.njit(cache=True, _nrt=False)
+def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, w0, w1, w2, info, r):
+    """Keep the small plane's exact residuals of a refined hybrid merge as a quadratic model at its w.
+
+    value, info, r: _hybrid_merge's result at w; e_small: the small plane's exact E (m^2). Stored on
+    the small plane: partner, its own version, the partner's ray count; then the small plane's SSE at
+    w minus e_small, its half gradient J^T f (3) and Gauss-Newton information J^T J (6) at w, and w (3).
+    """
+    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
+        pf[big, _PH + 5]
+    e0 = w0 - pf[big, _PW]
+    e1 = w1 - pf[big, _PW + 1]
+    e2 = w2 - pf[big, _PW + 2]
+    he0 = h0 * e0 + h1 * e1 + h2 * e2
+    he1 = h1 * e0 + h3 * e1 + h4 * e2
+    he2 = h2 * e0 + h4 * e1 + h5 * e2
+    rcache_i[small, 0] = big
+    rcache_i[small, 1] = pi[small, _PVER]
+    rcache_i[small, 2] = pi[big, _PCOUNT]
+    rcache_f[small, 0] = value - (pf[big, _PE] + e0 * he0 + e1 * he1 + e2 * he2) - e_small
+    rcache_f[small, 1] = r[0] - he0
+    rcache_f[small, 2] = r[1] - he1
+    rcache_f[small, 3] = r[2] - he2
+    rcache_f[small, 4] = info[0] - h0
+    rcache_f[small, 5] = info[1] - h1
+    rcache_f[small, 6] = info[2] - h2
+    rcache_f[small, 7] = info[3] - h3
+    rcache_f[small, 8] = info[4] - h4
+    rcache_f[small, 9] = info[5] - h5
+    rcache_f[small, 10] = w0
+    rcache_f[small, 11] = w1
+    rcache_f[small, 12] = w2
+
+
+@nb.njit(cache=True, inline='always')
+def _refined_merge_increment(pf, big, rcache_f, small):
+    """Merge increment (m^2) of big's current model plus small's residual model kept by _keep_refined_merge.
+
+    min over w of E_big + (w - w_big)^T H_big (w - w_big) + s + 2 r^T u + u^T H_s u (u = w - w*),
+    minus E_big and small's exact E: excess + d^T H_big d - c^T S^-1 c with d = w_big - w*,
+    c = H_big d - r, S = H_big + H_s. Equals the refined increment while big is unchanged.
+    """
+    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
+        pf[big, _PH + 5]
+    d0 = pf[big, _PW] - rcache_f[small, 10]
+    d1 = pf[big, _PW + 1] - rcache_f[small, 11]
+    d2 = pf[big, _PW + 2] - rcache_f[small, 12]
+    hd0 = h0 * d0 + h1 * d1 + h2 * d2
+    hd1 = h1 * d0 + h3 * d1 + h4 * d2
+    hd2 = h2 * d0 + h4 * d1 + h5 * d2
+    c0 = hd0 - rcache_f[small, 1]
+    c1 = hd1 - rcache_f[small, 2]
+    c2 = hd2 - rcache_f[small, 3]
+    y0, y1, y2, ok = _solve_sym3(h0 + rcache_f[small, 4], h1 + rcache_f[small, 5], h2 + rcache_f[small, 6],
+                                 h3 + rcache_f[small, 7], h4 + rcache_f[small, 8], h5 + rcache_f[small, 9], c0, c1, c2)
+    if not ok:
+        return np.inf
+    inc = rcache_f[small, 0] + d0 * hd0 + d1 * hd1 + d2 * hd2 - (c0 * y0 + c1 * y1 + c2 * y2)
+    if inc < 0.0:
+        inc = 0.0
+    return inc
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -1103,10 +1172,11 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
     far = _q_chunks(gcap) * _Q_CHUNK
-    n_f = a(n_pixels * (_NPF + 10)) + a(gcap) + a(far) + a(hcap * 2) + a(n_pixels * 10) + a(n_pixels + 1)
+    n_f = (a(n_pixels * (_NPF + 10)) + a(gcap) + a(far) + a(hcap * 2) + a(n_pixels * 10) + a(n_pixels * 13)
+           + a(n_pixels + 1))
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
     n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + a(gcap * 5) + a(far * 5) + a(far // _Q_CHUNK * 3)
-             + a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1))
+             + 2 * a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1))
     return n_f, n_i, n_i32
 
 
@@ -1119,7 +1189,7 @@ def _empty_log(stats, overflow):
 @nb.njit(cache=True)
 def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse, seed_best, seed_key,
                 exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
-                defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
+                refined_growth, defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
@@ -1230,6 +1300,12 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     o32 = _aligned(o32 + n_pixels * 3)
     mcache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
+    # the last hybrid merge refined per plane, on its smaller plane (_keep_refined_merge): partner,
+    # own version, partner's count; the plane's residual model at the union's w
+    rcache_i = work_i32[o32:o32 + n_pixels * 3].reshape((n_pixels, 3))
+    o32 = _aligned(o32 + n_pixels * 3)
+    rcache_f = work_f[of:of + n_pixels * 13].reshape((n_pixels, 13))
+    of = _aligned(of + n_pixels * 13)
     # the least candidate fit of each small plane's current version: ray, version (here); SSE, w,
     # information (ecache_f, in the plane's float row)
     ecache_i = work_i32[o32:o32 + n_pixels * 2].reshape((n_pixels, 2))
@@ -1457,8 +1533,10 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     e_small, _, _, _ = _fit_rays(endpoints, directions, buf, n, pf[small, _PW], pf[small, _PW + 1],
                                                  pf[small, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
                 _, m0, m1, m2 = _model_merge(pf, a, b)
-                value, m0, m1, m2, info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+                value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
                 _cache_merge(mcache_i, mcache_f, a, b, eva, evb, value, m0, m1, m2, info)
+                if refined_growth > 0.0:
+                    _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, m0, m1, m2, info, grad)
                 inc = value - pf[big, _PE] - e_small
                 if inc < 0.0:
                     inc = 0.0
@@ -1492,6 +1570,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[p, _PSTAMP] = 0
             for t in range(3):
                 mcache_i[p, t] = -1
+            rcache_i[p, 0] = -1
             ecache_i[p, 0] = -1
             ecache_i[p, 1] = -1
             pi[p, _PALIVE] = 1
@@ -1582,7 +1661,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 small = b if big == a else a
                 n = _gather(pi, nextpix, small, buf, endpoints, directions)
                 _, m0, m1, m2 = _model_merge(pf, a, b)
-                value, w0, w1, w2, info = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+                value, w0, w1, w2, info, _ = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
             # concatenate pixel lists into s
             nextpix[pi[s, _PTAIL]] = pi[o, _PHEAD]
             pi[s, _PTAIL] = pi[o, _PTAIL]
@@ -1749,6 +1828,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
+                elif pi[q, _PCOUNT] < pi[p, _PCOUNT] and rcache_i[q, 0] == p and rcache_i[q, 1] == pi[q, _PVER] and \
+                        pi[p, _PCOUNT] <= rcache_i[q, 2] * (1.0 + refined_growth):
+                    # refined before, q unchanged since and p grown a little: q's residual model
+                    # at the refined union's w stands for its exact residuals
+                    inc = _refined_merge_increment(pf, p, rcache_f, q)
+                    gkind = _G_MERGE_EXACT
+                    stats[_ST_REFINED_REUSES] += 1
                 else:
                     # queued below its model value so that it is refined (exactly) before any
                     # action it could precede even where the model overestimates the increment
@@ -1963,6 +2049,7 @@ def extract_plane_hierarchy(
     exact_plane_size: int = DEFAULT_EXACT_PLANE_SIZE,
     exact_merge_size: int = 0,
     relinearisation_drift: float = RELINEARISATION_DRIFT,
+    refined_merge_growth: float = REFINED_MERGE_GROWTH,
     defer_merges: bool = True,
     pool_capacity: int | None = None,
 ) -> PlaneHierarchy:
@@ -2026,7 +2113,8 @@ def extract_plane_hierarchy(
             scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
             TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, int(exact_plane_size), int(exact_merge_size),
             float(relinearisation_drift),
-            stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, bool(defer_merges),
+            stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, float(refined_merge_growth),
+            bool(defer_merges),
             int(capacity[0]), int(capacity[1]), int(capacity[2]), *work,
         )
         if not overflow.any():
