@@ -782,6 +782,13 @@ def test_ray_columns_are_the_transposed_rays():
         np.testing.assert_array_equal(columns, np.concatenate([endpoints.T, directions.T]))
 
 
+@pytest.mark.parametrize('name', ['refined_merge_growth', 'merge_loop_growth'])
+@pytest.mark.parametrize('value', [-0.1, np.nan, np.inf])
+def test_bad_growth_fractions_raise_a_clear_error(name, value):
+    with pytest.raises(ValueError, match=name):
+        extract_plane_hierarchy(scenes.plane_patch(noise=0.0).points, **{name: value})
+
+
 def test_scans_at_the_ray_limit_raise_a_clear_error(monkeypatch):
     """The greedy keeps 32-bit plane fields; a scan with MAX_RAYS rays or more is refused up front."""
     import ppe_ros.core.extraction as extraction
@@ -922,3 +929,22 @@ def test_kept_refined_merges_replace_refinements_without_changing_the_segmentati
     labels = kept.cut(max_error_increment=0.0484).labels
     assert labels.max() > 10
     np.testing.assert_array_equal(labels, refined.cut(max_error_increment=0.0484).labels)
+
+
+def test_partial_merge_loops_of_large_planes_keep_the_segmentation():
+    """After an action on a plane of more than exact_plane_size rays grown by at most
+    merge_loop_growth since its last full merge loop, only its new neighbours' merges are valued
+    (its queued and deferred ones keep their keys, the deferred ones its new proxy key reaches are
+    released, and executed merges are refined at the planes' current state). On a generated
+    200 x 200 room at the paper's settings that saves merge evaluations and gives the segmentation
+    of valuing every merge after every action (merge_loop_growth=0)."""
+    grid = ScanGrid.uniform(200, 200, azimuth_fov_deg=69.86, elevation_fov_deg=60.0)
+    scan = generate_scan(seed=0, grid=grid, radial_sigma=0.02)
+    settings = {'max_neighbor_distance': 0.18, 'max_error_increment': 0.0484}
+    partial = extract_plane_hierarchy(scan.points, origins=scan.origins, **settings)
+    full = extract_plane_hierarchy(scan.points, origins=scan.origins, merge_loop_growth=0.0, **settings)
+    assert partial.stats['merge_evaluations'] < 0.98 * full.stats['merge_evaluations']
+    assert not np.array_equal(partial.actions, full.actions)  # the partial loops did change the order
+    labels = partial.cut(max_error_increment=0.0484).labels
+    assert labels.max() > 20
+    np.testing.assert_array_equal(labels, full.cut(max_error_increment=0.0484).labels)

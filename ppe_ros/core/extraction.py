@@ -95,6 +95,10 @@ MODEL_MERGE_KEY_MARGIN = 0.05
 #: model around the refined union's w; while that plane is unchanged and the larger one has grown by at
 #: most this fraction of its size at the refinement, the merge is re-valued from that model (0: never).
 REFINED_MERGE_GROWTH = 0.125
+#: After an action on a plane larger than exact_plane_size that has grown by at most this fraction
+#: since its last full merge loop, only its new neighbours' merges are valued; its queued and
+#: deferred merges keep their keys (0: every action re-values every merge).
+MERGE_LOOP_GROWTH = 1.0 / 512.0
 #: Relative slack subtracted from cached lower bounds (round-off and model error).
 BOUND_SLACK = 1e-7
 #: Scans must have fewer rays than this (the greedy stores ids, versions and stamps in 32 bits).
@@ -145,13 +149,17 @@ _ADJ_CLASSES = 40
 _PE = 0  # error (m^2)
 _PW = 1  # w (3)
 _PH = 4  # GN information (6)
-_PWL = 10  # w at the last exact linearisation (3)
-_PRMAX = 13  # max |p| of the plane's endpoints
-_PDEFER = 14  # least key of the merges deferred on the plane's adjacency nodes (inf: none)
-_NPF = 15
+_PRPARTNER = 10  # partner of the plane's kept refined merge (rcache; -1: none): next to w and the
+#                  information, which the merge loop reads with it (the same two cache lines)
+_PRMAX = 11  # max |p| of the plane's endpoints
+_PDEFER = 12  # least key of the merges deferred on the plane's adjacency nodes (inf: none)
+_PWL = 13  # w at the last exact linearisation (3)
+_PCOUNTLOOP = 16  # ray count at the plane's last full merge loop
+_PCOUNTLIN = 17  # ray count at the plane's last exact linearisation
+_NPF = 18
 # plane int fields
 _PCOUNT = 0
-_PCOUNTLIN = 1
+_PMVER = 1  # merge version: the version at the plane's last full merge loop (merge entries carry it)
 _PVER = 2
 _PSTAMP = 3
 _PHEAD = 4
@@ -606,8 +614,8 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
                 if kind == _G_EXTEND:
                     keep = pi[a, _PALIVE] != 0 and fint[node, 3] == pi[a, _PSTAMP]
                 elif kind != _G_SEED:
-                    keep = (pi[a, _PALIVE] != 0 and pi[b, _PALIVE] != 0 and fint[node, 3] == pi[a, _PVER]
-                            and fint[node, 4] == pi[b, _PVER])
+                    keep = (pi[a, _PALIVE] != 0 and pi[b, _PALIVE] != 0 and fint[node, 3] == pi[a, _PMVER]
+                            and fint[node, 4] == pi[b, _PMVER])
                 if keep:
                     gkey[size] = fkey[node]
                     for c in range(5):
@@ -942,6 +950,7 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     he0 = h0 * e0 + h1 * e1 + h2 * e2
     he1 = h1 * e0 + h3 * e1 + h4 * e2
     he2 = h2 * e0 + h4 * e1 + h5 * e2
+    pf[small, _PRPARTNER] = big
     rcache_i[small, 0] = big
     rcache_i[small, 1] = pi[small, _PVER]
     rcache_i[small, 2] = pi[big, _PCOUNT]
@@ -1189,7 +1198,7 @@ def _empty_log(stats, overflow):
 @nb.njit(cache=True)
 def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse, seed_best, seed_key,
                 exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
-                refined_growth, defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
+                refined_growth, merge_loop_growth, defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
@@ -1498,9 +1507,15 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 b = eb
                 if pi[a, _PALIVE] == 0 or pi[b, _PALIVE] == 0:
                     continue
-                if pi[a, _PVER] != eva or pi[b, _PVER] != evb:
+                if pi[a, _PMVER] != eva or pi[b, _PMVER] != evb:
                     continue
-                if kind == _G_MERGE_EXACT:
+                # an exact entry is current when neither plane changed since it was valued: the
+                # planes are at their merge versions, or a refinement of them at their versions
+                # is the last kept one; else a large plane grew since (no full merge loop) and the
+                # merge is refined again at the planes' current state
+                if kind == _G_MERGE_EXACT and (
+                        (pi[a, _PVER] == pi[a, _PMVER] and pi[b, _PVER] == pi[b, _PMVER])
+                        or (mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER])):
                     found = True
                     act_a = a
                     act_b = b
@@ -1512,7 +1527,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
                     n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
                     sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
-                    _cache_merge(mcache_i, mcache_f, a, b, eva, evb, sse, u0, u1, u2, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+                    _cache_merge(mcache_i, mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], sse, u0, u1, u2,
+                                 (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     if inc < 0.0:
                         inc = 0.0
@@ -1534,7 +1550,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                                                  pf[small, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
                 _, m0, m1, m2 = _model_merge(pf, a, b)
                 value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
-                _cache_merge(mcache_i, mcache_f, a, b, eva, evb, value, m0, m1, m2, info)
+                _cache_merge(mcache_i, mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], value, m0, m1, m2, info)
                 if refined_growth > 0.0:
                     _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, m0, m1, m2, info, grad)
                 inc = value - pf[big, _PE] - e_small
@@ -1556,6 +1572,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         log_inc[n_actions] = key
         changed = -1
         new_pixels = 0
+        adj_before = 0  # the changed plane's adjacency nodes before this action's appends
         in_buf = -1  # the changed plane's rays when the execution left them in buf (-1: not)
         if kind == _G_SEED:
             log_kind[n_actions] = KIND_CREATE
@@ -1570,7 +1587,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[p, _PSTAMP] = 0
             for t in range(3):
                 mcache_i[p, t] = -1
-            rcache_i[p, 0] = -1
+            pf[p, _PRPARTNER] = -1.0
             ecache_i[p, 0] = -1
             ecache_i[p, 1] = -1
             pi[p, _PALIVE] = 1
@@ -1584,7 +1601,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 nextpix[cell[t]] = cell[t + 1] if t < 3 else -1
             pi[p, _PTAIL] = cell[3]
             pi[p, _PCOUNT] = 4
-            pi[p, _PCOUNTLIN] = 4
+            pf[p, _PCOUNTLIN] = 4
             _set_exact_state(endpoints, directions, pf, cell, 4, p, np.nan, np.nan, np.nan)
             rmax = 0.0
             for t in range(4):
@@ -1602,6 +1619,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             p = act_a
             k = act_b
             count = pi[p, _PCOUNT]
+            adj_before = pi[p, _PADJN]
             owner[k] = p
             nextpix[k] = -1
             nextpix[pi[p, _PTAIL]] = k
@@ -1613,13 +1631,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 # the candidate's own fit (the least of this version's): no fit again
                 sse, w0, w1, w2, info = _get_fit(ecache_f, p)
                 _store_state(pf, p, sse, w0, w1, w2, info)
-                pi[p, _PCOUNTLIN] = count + 1
+                pf[p, _PCOUNTLIN] = count + 1
             elif count + 1 <= exact_plane_size:
                 n = _gather(pi, nextpix, p, buf, endpoints, directions)
                 _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
                                  pf[p, _PW + 2])
                 in_buf = n
-                pi[p, _PCOUNTLIN] = n
+                pf[p, _PCOUNTLIN] = n
             else:
                 inc, x0, x1, x2, f, g0, g1, g2 = _model_extension(endpoints, directions, pf, p, k)
                 denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
@@ -1669,16 +1687,17 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             pi[s, _PCOUNT] = total
             pi[s, _PROOT] = _h_meld(hf, hi, pi[s, _PROOT], pi[o, _PROOT])
             # adjacency lists
+            adj_before = pi[s, _PADJN]
             aused = _adj_concat(anode, afree, pi, s, o, aused)
             if aused < 0:
                 overflow[2] = 2 * acap
                 return _empty_log(stats, overflow)
             pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
-            lin = max(pi[a, _PCOUNTLIN], pi[b, _PCOUNTLIN])
+            lin = max(pf[a, _PCOUNTLIN], pf[b, _PCOUNTLIN])
             if total <= exact_plane_size:
                 n = _gather(pi, nextpix, s, buf, endpoints, directions)
                 _set_exact_state(endpoints, directions, pf, buf, n, s, w0, w1, w2)
-                pi[s, _PCOUNTLIN] = n
+                pf[s, _PCOUNTLIN] = n
             else:
                 pf[s, _PE] = value
                 pf[s, _PW] = w0
@@ -1686,7 +1705,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 pf[s, _PW + 2] = w2
                 for t in range(6):
                     pf[s, _PH + t] = info[t]
-                pi[s, _PCOUNTLIN] = lin
+                pf[s, _PCOUNTLIN] = lin
             pi[o, _PALIVE] = 0
             pi[o, _PROOT] = -1
             plane_count -= 1
@@ -1697,15 +1716,20 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         # ---------------- bookkeeping of the changed plane ---------------------------------
         p = changed
         count = pi[p, _PCOUNT]
+        # a large plane grown a little since its last full merge loop values only its new
+        # neighbours' merges; its queued and deferred merges stay (they carry its merge version)
+        partial = (kind != _G_SEED and count > exact_plane_size
+                   and count <= pf[p, _PCOUNTLOOP] * (1.0 + merge_loop_growth))
         if count > exact_plane_size:
             dw = np.sqrt((pf[p, _PW] - pf[p, _PWL]) ** 2 + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
                          + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2)
-            if count >= 2 * pi[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > drift_limit:
+            if count >= 2 * pf[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > drift_limit:
                 n = _gather(pi, nextpix, p, buf, endpoints, directions)
                 stats[_ST_RELINS] += 1
                 stats[_ST_RELIN_RAYS] += n
                 _relinearise(endpoints, directions, pf, buf, n, p)
-                pi[p, _PCOUNTLIN] = n
+                pf[p, _PCOUNTLIN] = n
+                partial = False
         # versions are unique across planes: the candidates a merged plane inherits from the
         # absorbed plane can never pass for current ones
         version_counter += 1
@@ -1803,7 +1827,15 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         end = first + pi[p, _PADJN]
         n_adj = 0
         least = np.inf
-        for r in range(first, end):
+        release = False
+        if partial:
+            n_adj = adj_before
+            least = pf[p, _PDEFER]
+            release = least <= proxy_key and least < np.inf
+        else:
+            pi[p, _PMVER] = pi[p, _PVER]
+            pf[p, _PCOUNTLOOP] = count
+        for r in range(first + n_adj, end):
             if r + 1 < end:  # the next neighbour's rows load while this one is evaluated
                 q = anode[r + 1, _AN_PLANE]
                 _prefetch(parent, q, 0)
@@ -1828,7 +1860,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
-                elif pi[q, _PCOUNT] < pi[p, _PCOUNT] and rcache_i[q, 0] == p and rcache_i[q, 1] == pi[q, _PVER] and \
+                elif pf[q, _PRPARTNER] == p and rcache_i[q, 1] == pi[q, _PVER] and \
                         pi[p, _PCOUNT] <= rcache_i[q, 2] * (1.0 + refined_growth):
                     # refined before, q unchanged since and p grown a little: q's residual model
                     # at the refined union's w stands for its exact residuals
@@ -1846,15 +1878,27 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
                     if inc <= proxy_key or not defer_merges:
                         gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, gkind, a, b,
-                                        pi[a, _PVER], pi[b, _PVER])
+                                        pi[a, _PMVER], pi[b, _PMVER])
                     else:
                         akey[x, _AN_KEY] = inc
                         least = min(least, inc)
                         anode[x, _AN_KIND] = gkind
-                        anode[x, _AN_VA] = pi[a, _PVER]
-                        anode[x, _AN_VB] = pi[b, _PVER]
+                        anode[x, _AN_VA] = pi[a, _PMVER]
+                        anode[x, _AN_VB] = pi[b, _PMVER]
         pi[p, _PADJN] = n_adj
         pf[p, _PDEFER] = least
+        if release:
+            # the kept deferred merges that p's new proxy key no longer precedes
+            least = np.inf
+            for x in range(first, first + n_adj):
+                if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
+                    q = anode[x, _AN_PLANE]
+                    gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY],
+                                    anode[x, _AN_KIND], min(p, q), max(p, q), anode[x, _AN_VA], anode[x, _AN_VB])
+                    akey[x, _AN_KEY] = np.inf
+                elif akey[x, _AN_KEY] < least:
+                    least = akey[x, _AN_KEY]
+            pf[p, _PDEFER] = least
 
     stats[_ST_HEAP_PEAK] = gcap
     return (log_kind[:n_actions].astype(np.int8), log_a[:n_actions].copy(), log_b[:n_actions].copy(),
@@ -2050,6 +2094,7 @@ def extract_plane_hierarchy(
     exact_merge_size: int = 0,
     relinearisation_drift: float = RELINEARISATION_DRIFT,
     refined_merge_growth: float = REFINED_MERGE_GROWTH,
+    merge_loop_growth: float = MERGE_LOOP_GROWTH,
     defer_merges: bool = True,
     pool_capacity: int | None = None,
 ) -> PlaneHierarchy:
@@ -2070,6 +2115,13 @@ def extract_plane_hierarchy(
             refined when they reach the front.
         relinearisation_drift: relative change of a large plane's predicted ranges since its last
             linearisation that triggers a re-linearisation (one Gauss-Newton step on all its rays).
+        refined_merge_growth: a merge of two planes larger than exact_plane_size in total, refined
+            once, is re-valued from the kept refinement (the smaller plane's residuals as a quadratic
+            model at the union's w) while the smaller plane is unchanged and the larger has grown by
+            at most this fraction; 0 refines it again every time it reaches the front.
+        merge_loop_growth: after an action on a plane larger than exact_plane_size that has grown by
+            at most this fraction since its last full merge loop, only its new neighbours' merges are
+            valued; 0 values every merge of the plane after every action.
         defer_merges: keep merges whose key exceeds the changed plane's proxy key off the queue until
             they are due (False queues every merge at once: the same action log, more heap work;
             for tests).
@@ -2089,6 +2141,9 @@ def extract_plane_hierarchy(
         raise ValueError(f'pool_capacity must be >= 1 (None: from the scan size); got {pool_capacity!r}')
     if int(exact_plane_size) < 4:
         raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
+    for name, value in (('refined_merge_growth', refined_merge_growth), ('merge_loop_growth', merge_loop_growth)):
+        if not 0.0 <= float(value) < np.inf:
+            raise ValueError(f'{name} must be a finite fraction >= 0 (0: off); got {value!r}')
     stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
         -np.inf if max_error_increment is None else float(max_error_increment))
     stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
@@ -2114,7 +2169,7 @@ def extract_plane_hierarchy(
             TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, int(exact_plane_size), int(exact_merge_size),
             float(relinearisation_drift),
             stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, float(refined_merge_growth),
-            bool(defer_merges),
+            float(merge_loop_growth), bool(defer_merges),
             int(capacity[0]), int(capacity[1]), int(capacity[2]), *work,
         )
         if not overflow.any():
