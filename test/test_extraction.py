@@ -862,7 +862,7 @@ def _refined_merge_after_growth(endpoints, directions, big_rays, small_rays, add
     kept model's value before the growth, a fresh refinement after it and the kept model's value."""
     pf = np.zeros((2, _NPF))
     pi = np.zeros((2, _NPI), np.int32)
-    rcache_i = np.zeros((2, 3), np.int32)
+    rcache_i = np.zeros((2, 2), np.int32)
     rcache_f = np.zeros((2, 13))
     before = len(big_rays) - added
     _set_exact_state(endpoints, directions, pf, big_rays, before, 0, np.nan, np.nan, np.nan)

@@ -939,8 +939,9 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     """Keep the small plane's exact residuals of a refined hybrid merge as a quadratic model at its w.
 
     value, info, r: _hybrid_merge's result at w; e_small: the small plane's exact E (m^2). Stored on
-    the small plane: partner, its own version, the partner's ray count; then the small plane's SSE at
-    w minus e_small, its half gradient J^T f (3) and Gauss-Newton information J^T J (6) at w, and w (3).
+    the small plane: the partner (pf's _PRPARTNER); its own version and the partner's ray count
+    (rcache_i); its SSE at w minus e_small, its half gradient J^T f (3) and Gauss-Newton information
+    J^T J (6) at w, and w (3) (rcache_f).
     """
     h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
         pf[big, _PH + 5]
@@ -951,9 +952,8 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     he1 = h1 * e0 + h3 * e1 + h4 * e2
     he2 = h2 * e0 + h4 * e1 + h5 * e2
     pf[small, _PRPARTNER] = big
-    rcache_i[small, 0] = big
-    rcache_i[small, 1] = pi[small, _PVER]
-    rcache_i[small, 2] = pi[big, _PCOUNT]
+    rcache_i[small, 0] = pi[small, _PVER]
+    rcache_i[small, 1] = pi[big, _PCOUNT]
     rcache_f[small, 0] = value - (pf[big, _PE] + e0 * he0 + e1 * he1 + e2 * he2) - e_small
     rcache_f[small, 1] = r[0] - he0
     rcache_f[small, 2] = r[1] - he1
@@ -1041,6 +1041,23 @@ def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     mcache_i[a, 1] = va
     mcache_i[a, 2] = vb
     _put_fit(mcache_f, a, value, w0, w1, w2, info)
+
+
+@nb.njit(cache=True, _nrt=False)
+def _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first, n, proxy_key):
+    """Queue the merges deferred on plane p's adjacency nodes first..first+n whose key is at most
+    proxy_key (p's proxy key, m^2); store the least key left deferred in p's row. Returns the heap size."""
+    least = np.inf
+    for x in range(first, first + n):
+        if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
+            q = anode[x, _AN_PLANE]
+            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY], anode[x, _AN_KIND],
+                            min(p, q), max(p, q), anode[x, _AN_VA], anode[x, _AN_VB])
+            akey[x, _AN_KEY] = np.inf
+        elif akey[x, _AN_KEY] < least:
+            least = akey[x, _AN_KEY]
+    pf[p, _PDEFER] = least
+    return gsize
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -1185,7 +1202,7 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
            + a(n_pixels + 1))
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
     n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + a(gcap * 5) + a(far * 5) + a(far // _Q_CHUNK * 3)
-             + 2 * a(n_pixels * 3) + a(n_pixels * 2) + a(n_pixels + 1))
+             + a(n_pixels * 3) + 2 * a(n_pixels * 2) + a(n_pixels + 1))
     return n_f, n_i, n_i32
 
 
@@ -1202,6 +1219,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
+    refined_growth, merge_loop_growth: extract_plane_hierarchy's refined_merge_growth and
+    merge_loop_growth (0: off).
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
     The work pools have fixed capacities (queue gcap, candidate nodes hcap, adjacency nodes acap) so
     that no array is reassigned inside the loops: numba then keeps reference counting (atomic
@@ -1309,10 +1328,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     o32 = _aligned(o32 + n_pixels * 3)
     mcache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
-    # the last hybrid merge refined per plane, on its smaller plane (_keep_refined_merge): partner,
-    # own version, partner's count; the plane's residual model at the union's w
-    rcache_i = work_i32[o32:o32 + n_pixels * 3].reshape((n_pixels, 3))
-    o32 = _aligned(o32 + n_pixels * 3)
+    # the last hybrid merge refined per plane, on its smaller plane (_keep_refined_merge; the
+    # partner is in the plane's float row): own version, partner's count; the plane's residual
+    # model at the union's w
+    rcache_i = work_i32[o32:o32 + n_pixels * 2].reshape((n_pixels, 2))
+    o32 = _aligned(o32 + n_pixels * 2)
     rcache_f = work_f[of:of + n_pixels * 13].reshape((n_pixels, 13))
     of = _aligned(of + n_pixels * 13)
     # the least candidate fit of each small plane's current version: ray, version (here); SSE, w,
@@ -1491,17 +1511,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     overflow[0] = 2 * (gcap + pi[p, _PADJN])
                     return _empty_log(stats, overflow)
                 if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
-                    least = np.inf
-                    for x in range(pi[p, _PADJ], pi[p, _PADJ] + pi[p, _PADJN]):
-                        if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
-                            q = anode[x, _AN_PLANE]
-                            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY],
-                                            anode[x, _AN_KIND], min(p, q), max(p, q), anode[x, _AN_VA],
-                                            anode[x, _AN_VB])
-                            akey[x, _AN_KEY] = np.inf
-                        elif akey[x, _AN_KEY] < least:
-                            least = akey[x, _AN_KEY]
-                    pf[p, _PDEFER] = least
+                    gsize = _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf,
+                                              p, pi[p, _PADJ], pi[p, _PADJN], proxy_key)
             else:
                 a = ea
                 b = eb
@@ -1860,8 +1871,8 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
-                elif pf[q, _PRPARTNER] == p and rcache_i[q, 1] == pi[q, _PVER] and \
-                        pi[p, _PCOUNT] <= rcache_i[q, 2] * (1.0 + refined_growth):
+                elif pf[q, _PRPARTNER] == p and rcache_i[q, 0] == pi[q, _PVER] and \
+                        pi[p, _PCOUNT] <= rcache_i[q, 1] * (1.0 + refined_growth):
                     # refined before, q unchanged since and p grown a little: q's residual model
                     # at the refined union's w stands for its exact residuals
                     inc = _refined_merge_increment(pf, p, rcache_f, q)
@@ -1887,18 +1898,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         anode[x, _AN_VB] = pi[b, _PMVER]
         pi[p, _PADJN] = n_adj
         pf[p, _PDEFER] = least
-        if release:
-            # the kept deferred merges that p's new proxy key no longer precedes
-            least = np.inf
-            for x in range(first, first + n_adj):
-                if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
-                    q = anode[x, _AN_PLANE]
-                    gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY],
-                                    anode[x, _AN_KIND], min(p, q), max(p, q), anode[x, _AN_VA], anode[x, _AN_VB])
-                    akey[x, _AN_KEY] = np.inf
-                elif akey[x, _AN_KEY] < least:
-                    least = akey[x, _AN_KEY]
-            pf[p, _PDEFER] = least
+        if release:  # the kept deferred merges that p's new proxy key no longer precedes
+            gsize = _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first,
+                                      n_adj, proxy_key)
 
     stats[_ST_HEAP_PEAK] = gcap
     return (log_kind[:n_actions].astype(np.int8), log_a[:n_actions].copy(), log_b[:n_actions].copy(),
