@@ -948,3 +948,7 @@ def test_partial_merge_loops_of_large_planes_keep_the_segmentation():
     labels = partial.cut(max_error_increment=0.0484).labels
     assert labels.max() > 20
     np.testing.assert_array_equal(labels, full.cut(max_error_increment=0.0484).labels)
+    # the partial loops' pushes (released merges) within the pools' capacity checks: pools that
+    # start at one row and run out again and again give the same log
+    tiny = extract_plane_hierarchy(scan.points, origins=scan.origins, pool_capacity=1, **settings)
+    assert np.array_equal(tiny.actions, partial.actions)
