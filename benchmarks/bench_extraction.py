@@ -6,7 +6,10 @@ Rows: the SynPEB scan pc_01 (500 x 500, lmax 0.18 m, e 0.0484 m^2), real Ouster 
 and 32 x 1024, with their beam origins), a scaling series of generated scans (125^2 .. 1000^2) and
 the first-call JIT compile time (a fresh process with an empty numba cache). Each row runs in its
 own subprocess so that peak memory (ru_maxrss) is that row's. Times are medians after a warm-up
-call (numba cache on). Needs ../shared/data for the real-scan rows (skipped with a note otherwise).
+call (numba cache on). A second table gives each row's time and the greedy's work per action (its
+counters, PlaneHierarchy.stats): work that stays flat while the time per action grows is the memory
+hierarchy, not the algorithm. Needs ../shared/data for the real-scan rows (skipped with a note
+otherwise).
 """
 
 from __future__ import annotations
@@ -47,14 +50,14 @@ def run():
     h = extract_plane_hierarchy(points, origins=origins, max_neighbor_distance=spec['lmax'],
                                 max_error_increment=spec['e'])
     planes = h.cut(max_error_increment=spec['e'])
-    return time.perf_counter() - start, planes.num_planes, len(h.actions)
+    return time.perf_counter() - start, planes.num_planes, len(h.actions), h.stats
 first = time.perf_counter(); run(); first = time.perf_counter() - first
 times = []
 for _ in range(spec['repeats']):
-    t, n_planes, n_actions = run()
+    t, n_planes, n_actions, stats = run()
     times.append(t)
 print(json.dumps({'first_call': first, 'median': float(np.median(times)), 'min': float(min(times)),
-                  'planes': n_planes, 'actions': n_actions, 'shape': list(points.shape[:2]),
+                  'planes': n_planes, 'actions': n_actions, 'stats': stats, 'shape': list(points.shape[:2]),
                   'valid': float(np.isfinite(points).all(axis=2).mean()),
                   'peak_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 '''
@@ -93,11 +96,22 @@ def main(argv: list[str] | None = None) -> int:
           f'{" --quick" if args.quick else ""}; {time.strftime("%Y-%m-%d")}\n')
     print('| input | grid | valid | planes | actions | median s | min s | first call s | peak MB |')
     print('|---|---|---|---|---|---|---|---|---|')
+    results = []
     for name, spec in rows:
         spec['repeats'] = args.repeats
         r = run_row(spec)
+        results.append((name, r))
         print(f"| {name} | {r['shape'][0]}x{r['shape'][1]} | {r['valid']:.0%} | {r['planes']} | {r['actions']} | "
               f"{r['median']:.3f} | {r['min']:.3f} | {r['first_call']:.2f} | {r['peak_mb']:.0f} |", flush=True)
+    print('\nper action (median time / actions; the greedy\'s counters / actions):\n')
+    print('| input | µs | heap pops | merge valuations | merge refinements | refinement rays | new candidates '
+          '| re-linearisation rays |')
+    print('|---|---|---|---|---|---|---|---|')
+    for name, r in results:
+        per = {key: value / max(r['actions'], 1) for key, value in r['stats'].items()}
+        print(f"| {name} | {1e6 * r['median'] / max(r['actions'], 1):.2f} | {per['heap_pops']:.2f} | "
+              f"{per['merge_evaluations']:.2f} | {per['merge_refinements']:.2f} | {per['merge_refinement_rays']:.2f} | "
+              f"{per['new_candidates']:.2f} | {per['relinearisation_rays']:.2f} |")
     if not args.quick:
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache)
