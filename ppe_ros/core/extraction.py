@@ -1361,6 +1361,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # invalid go through the heap); ties by anchor id; the keys in that order too
     # (seed_key[seed_order[i]] would be a random access)
     seed_order, seed_sorted_key = _sort_seed_keys(seed_key, cutoff)
+    seed_sorted_best = np.empty(len(seed_order), np.int32)  # read in order with the keys
+    for t in range(len(seed_order)):
+        seed_sorted_best[t] = seed_best[seed_order[t]]
     n_seeds = len(seed_order)
     seed_ptr = 0
 
@@ -1399,13 +1402,13 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     sk = seed_sorted_key[seed_ptr]
                     if sk < gkey[0] or (sk == gkey[0] and (gint[0, 0] > _G_SEED or (
                             gint[0, 0] == _G_SEED and (gint[0, 1] > sa or (
-                                gint[0, 1] == sa and gint[0, 2] > seed_best[sa]))))):
+                                gint[0, 1] == sa and gint[0, 2] > seed_sorted_best[seed_ptr]))))):
                         take_sorted = True
             if take_sorted:
                 key = seed_sorted_key[seed_ptr]
                 kind = _G_SEED
                 ea = sa
-                eb = seed_best[sa]
+                eb = seed_sorted_best[seed_ptr]
                 eva = 0
                 evb = 0
                 seed_ptr += 1
