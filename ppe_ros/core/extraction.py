@@ -867,6 +867,19 @@ def _model_merge(pf, a, b):
     return inc, pf[b, _PW] + z0, pf[b, _PW + 1] + z1, pf[b, _PW + 2] + z2
 
 
+@nb.njit(cache=True, inline='always')
+def _model_offset(pf, big, w0, w1, w2):
+    """Plane big's information H (6), e = w - w_big (3) and H e (3): its quadratic model at w is
+    E_big + e^T H e, with half gradient H e."""
+    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
+        pf[big, _PH + 5]
+    e0 = w0 - pf[big, _PW]
+    e1 = w1 - pf[big, _PW + 1]
+    e2 = w2 - pf[big, _PW + 2]
+    he = (h0 * e0 + h1 * e1 + h2 * e2, h1 * e0 + h3 * e1 + h4 * e2, h2 * e0 + h4 * e1 + h5 * e2)
+    return (h0, h1, h2, h3, h4, h5), (e0, e1, e2), he
+
+
 @nb.njit(cache=True, _nrt=False)
 def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """model_big(w) + exact radial SSE of rays idx[:count] at w, with its Gauss-Newton system.
@@ -874,14 +887,7 @@ def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     Returns (value, info6, r0, r1, r2): info6 = H_big + J^T J (a tuple a00 a01 a02 a11 a12 a22) and
     r = H_big (w - w_big) + J^T f.
     """
-    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
-        pf[big, _PH + 5]
-    e0 = w0 - pf[big, _PW]
-    e1 = w1 - pf[big, _PW + 1]
-    e2 = w2 - pf[big, _PW + 2]
-    r0 = h0 * e0 + h1 * e1 + h2 * e2
-    r1 = h1 * e0 + h3 * e1 + h4 * e2
-    r2 = h2 * e0 + h4 * e1 + h5 * e2
+    (h0, h1, h2, h3, h4, h5), (e0, e1, e2), (r0, r1, r2) = _model_offset(pf, big, w0, w1, w2)
     value = pf[big, _PE] + e0 * r0 + e1 * r1 + e2 * r2
     for t in range(count):
         f, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
@@ -943,14 +949,7 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     (rcache_i); its SSE at w minus e_small, its half gradient J^T f (3) and Gauss-Newton information
     J^T J (6) at w, and w (3) (rcache_f).
     """
-    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
-        pf[big, _PH + 5]
-    e0 = w0 - pf[big, _PW]
-    e1 = w1 - pf[big, _PW + 1]
-    e2 = w2 - pf[big, _PW + 2]
-    he0 = h0 * e0 + h1 * e1 + h2 * e2
-    he1 = h1 * e0 + h3 * e1 + h4 * e2
-    he2 = h2 * e0 + h4 * e1 + h5 * e2
+    (h0, h1, h2, h3, h4, h5), (e0, e1, e2), (he0, he1, he2) = _model_offset(pf, big, w0, w1, w2)
     pf[small, _PRPARTNER] = big
     rcache_i[small, 0] = pi[small, _PVER]
     rcache_i[small, 1] = pi[big, _PCOUNT]
@@ -974,25 +973,20 @@ def _refined_merge_increment(pf, big, rcache_f, small):
     """Merge increment (m^2) of big's current model plus small's residual model kept by _keep_refined_merge.
 
     min over w of E_big + (w - w_big)^T H_big (w - w_big) + s + 2 r^T u + u^T H_s u (u = w - w*),
-    minus E_big and small's exact E: excess + d^T H_big d - c^T S^-1 c with d = w_big - w*,
-    c = H_big d - r, S = H_big + H_s. Equals the refined increment while big is unchanged.
+    minus E_big and small's exact E: excess + e^T H_big e - c^T S^-1 c with e = w* - w_big,
+    c = H_big e + r, S = H_big + H_s (the minimiser is u = -S^-1 c). Equals the refined increment
+    while big is unchanged.
     """
-    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
-        pf[big, _PH + 5]
-    d0 = pf[big, _PW] - rcache_f[small, 10]
-    d1 = pf[big, _PW + 1] - rcache_f[small, 11]
-    d2 = pf[big, _PW + 2] - rcache_f[small, 12]
-    hd0 = h0 * d0 + h1 * d1 + h2 * d2
-    hd1 = h1 * d0 + h3 * d1 + h4 * d2
-    hd2 = h2 * d0 + h4 * d1 + h5 * d2
-    c0 = hd0 - rcache_f[small, 1]
-    c1 = hd1 - rcache_f[small, 2]
-    c2 = hd2 - rcache_f[small, 3]
+    (h0, h1, h2, h3, h4, h5), (e0, e1, e2), (he0, he1, he2) = _model_offset(
+        pf, big, rcache_f[small, 10], rcache_f[small, 11], rcache_f[small, 12])
+    c0 = he0 + rcache_f[small, 1]
+    c1 = he1 + rcache_f[small, 2]
+    c2 = he2 + rcache_f[small, 3]
     y0, y1, y2, ok = _solve_sym3(h0 + rcache_f[small, 4], h1 + rcache_f[small, 5], h2 + rcache_f[small, 6],
                                  h3 + rcache_f[small, 7], h4 + rcache_f[small, 8], h5 + rcache_f[small, 9], c0, c1, c2)
     if not ok:
         return np.inf
-    inc = rcache_f[small, 0] + d0 * hd0 + d1 * hd1 + d2 * hd2 - (c0 * y0 + c1 * y1 + c2 * y2)
+    inc = rcache_f[small, 0] + e0 * he0 + e1 * he1 + e2 * he2 - (c0 * y0 + c1 * y1 + c2 * y2)
     if inc < 0.0:
         inc = 0.0
     return inc
