@@ -37,6 +37,7 @@ from ppe_ros.core.extraction import (
     _ray_columns,
     _refined_merge_increment,
     _seed_errors,
+    _seed_exceeds,
     _set_exact_state,
     _union_fit,
     _work_memory,
@@ -771,6 +772,100 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     assert none.sum() > 10
     np.testing.assert_array_equal(best_config, np.where(none, -1, np.argmin(slow, axis=1)))
     np.testing.assert_array_equal(best_key, slow.min(axis=1))
+
+
+def test_seeds_left_to_the_general_fit_above_the_cutoff_are_not_fitted():
+    """With a cutoff, a seed whose SSE provably exceeds it gets inf instead of a fit; all others are unchanged.
+
+    Half the returns missing puts most valid seeds into sparse blocks (the general fit), where the
+    scatter test applies; the room's seeds across depth steps and its 20 mm noise are above 1e-3.
+    """
+    scan_in = scenes.room_scan(rows=30, cols=40, noise=0.02, seed=3)
+    points = scan_in.points.copy()
+    points[np.random.default_rng(0).random(points.shape[:2]) < 0.3] = np.nan
+    scan = make_ray_scan(points, scan_in.origins)
+    ok_right, ok_down = _edge_masks(scan, np.inf)
+    P, V = np.ascontiguousarray(scan.endpoints.T), np.ascontiguousarray(scan.directions.T)
+    cutoff = 1e-3
+    tables = []
+    for seed_cutoff in (np.inf, cutoff):
+        table, best_config, best_key = np.empty((scan.size, 17)), np.empty(scan.size, np.int32), np.empty(scan.size)
+        _seed_errors(scan.endpoints, scan.directions, P, V, ok_right, ok_down, scan.height, scan.width,
+                     TETROMINO_OFFSETS, table, best_config, best_key, seed_cutoff)
+        tables.append((table, best_config, best_key))
+    (full, _, full_key), (cut, cut_config, cut_key) = tables
+    skipped = np.isfinite(full) & np.isinf(cut)
+    assert skipped.sum() > 100  # the test exercises the skip
+    assert (full[skipped] > cutoff).all()  # only seeds the run could never create
+    np.testing.assert_array_equal(cut[~skipped], full[~skipped])
+    # the greedy's initial seeds up to the cutoff are the same
+    below = full_key <= cutoff
+    assert below.sum() > 50
+    np.testing.assert_array_equal(cut_key[below], full_key[below])
+    np.testing.assert_array_equal(cut_config[below], np.argmin(full, axis=1)[below])
+    assert (cut_key[~below] > cutoff).all()
+
+
+def _four_rays(rng, grazing: bool, step_rad: float):
+    """Four neighbouring rays (a 2 x 2 patch of a grid with angular step step_rad) hitting a noisy plane."""
+    start = rng.normal(scale=0.3, size=3) * rng.integers(0, 2)
+    centre = rng.normal(size=3)
+    centre /= np.linalg.norm(centre)
+    a = np.cross(centre, rng.normal(size=3))
+    a /= np.linalg.norm(a)
+    b = np.cross(centre, a)
+    directions = np.array([centre + step_rad * (i * a + j * b) for i in (-0.5, 0.5) for j in (-0.5, 0.5)])
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    normal = rng.normal(size=3)
+    normal -= (normal @ centre) * centre  # in the plane of the rays: grazing
+    normal /= np.linalg.norm(normal)
+    tilt = rng.uniform(0.01, 0.2) if grazing else rng.uniform(0.3, 1.0)
+    normal = np.sqrt(1 - tilt**2) * normal + tilt * centre
+    distance = rng.uniform(2.0, 40.0) * tilt
+    ranges = (distance - normal @ start) / (directions @ normal)
+    ranges += rng.normal(scale=10.0 ** rng.uniform(-3, -0.5), size=4)
+    return start + ranges[:, None] * directions, directions
+
+
+def test_seed_bound_never_exceeds_the_radial_fit_and_is_tight_far_above_it():
+    """_seed_exceeds(c) is sound (False at c just above a plane's radial SSE) and catches seeds far above c.
+
+    Four neighbouring rays on noisy planes at normal and grazing incidence, grid steps of 0.35 and
+    1.4 degrees (an OS-1-128's and an OS-1-32's), noise of 1 mm to 0.3 m (a depth step); the radial
+    SSE of _fit_rays's plane (a local minimum) bounds the least one from above.
+    """
+    rng = np.random.default_rng(7)
+    idx = np.arange(4)
+    far_above = caught = 0
+    for trial in range(2000):
+        points, directions = _four_rays(rng, grazing=trial % 2 == 0, step_rad=np.deg2rad((0.35, 1.4)[trial % 4 // 2]))
+        sse = _fit_rays(points, directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
+        if not np.isfinite(sse):
+            continue
+        assert not _seed_exceeds_py(points, directions, idx, sse * (1 + 1e-6))  # a plane has SSE below that
+        for factor in (10.0, 100.0):
+            far_above += 1
+            caught += _seed_exceeds_py(points, directions, idx, sse / factor)
+    assert far_above > 3000
+    assert caught >= 0.9 * far_above, (caught, far_above)
+
+
+def test_seed_bound_on_the_scatter_alone():
+    """Points with a smallest scatter eigenvalue above c always exceed c, whatever the ray directions."""
+    rng = np.random.default_rng(8)
+    idx = np.arange(4)
+    for _ in range(300):
+        points = rng.normal(scale=rng.uniform(0.01, 1.0), size=(4, 3)) + rng.normal(scale=5.0, size=3)
+        directions = rng.normal(size=(4, 3))
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        centred = points - points.mean(axis=0)
+        smallest = np.linalg.eigvalsh(centred.T @ centred)[0]
+        assert _seed_exceeds_py(points, directions, idx, smallest * 0.999)
+
+
+@nb.njit
+def _seed_exceeds_py(points, directions, idx, cutoff):
+    return _seed_exceeds(points, directions, idx, cutoff)
 
 
 def test_ray_columns_are_the_transposed_rays():

@@ -268,8 +268,79 @@ def _tetromino_edges(offsets, width):
     return edges
 
 
+@nb.njit(cache=True, inline='always')
+def _positive_definite(a00, a01, a02, a11, a12, a22):
+    """True if the symmetric 3x3 matrix is positive definite (its Cholesky factorisation has positive pivots)."""
+    if not a00 > 0.0:
+        return False
+    l10 = a01 / a00
+    l20 = a02 / a00
+    b11 = a11 - l10 * a01
+    if not b11 > 0.0:
+        return False
+    b12 = a12 - l20 * a01
+    return a22 - l20 * a02 - b12 * b12 / b11 > 0.0
+
+
+#: Values of t = |n . mean direction| at which _seed_exceeds tests its bound (see there).
+_SEED_BOUND_T = (1.0, 0.3, 0.1, 0.03, 0.01)
+
+
+@nb.njit(cache=True, inline='always')
+def _seed_exceeds(endpoints, directions, idx, cutoff):
+    """True if every plane leaves the 4 rays idx[:4] a radial SSE (m^2) above cutoff (False: may not).
+
+    A plane n . x = d (unit n) leaves ray k the radial residual (n . p_k - d) / (n . v_k). With
+    the endpoints' scatter matrix S about their mean, the mean direction u and
+    delta = max_k |v_k - u|: |n . v_k| <= t + delta with t = |n . u|, so the radial SSE is at
+    least n'Sn / (t + delta)^2. Young's inequality, (t + delta)^2 <= (1 + eps) t^2 + (1 + 1/eps) delta^2
+    for every eps > 0, turns "n'Sn > c (t + delta)^2 for every n" into a sufficient test: the matrix
+    S - c (1 + eps) u u' - c (1 + 1/eps) delta^2 I is positive definite. It is tried at
+    eps = delta / t for the t of _SEED_BOUND_T (the tightest where the best plane has |n . u| = t:
+    grazing rays have small t), and at eps = inf in the form S - c I (|n . v_k| <= 1). The rays of a
+    seed are neighbours, so delta is about the grid's angular step and the test is nearly as tight
+    as the radial fit for seeds whose SSE is far above c. c exceeds cutoff by 1e-9 of itself and
+    1e-12 of S's trace, far more than the rounding of S and of the factorisation.
+    """
+    m0 = 0.25 * (endpoints[idx[0], 0] + endpoints[idx[1], 0] + endpoints[idx[2], 0] + endpoints[idx[3], 0])
+    m1 = 0.25 * (endpoints[idx[0], 1] + endpoints[idx[1], 1] + endpoints[idx[2], 1] + endpoints[idx[3], 1])
+    m2 = 0.25 * (endpoints[idx[0], 2] + endpoints[idx[1], 2] + endpoints[idx[2], 2] + endpoints[idx[3], 2])
+    u0 = 0.25 * (directions[idx[0], 0] + directions[idx[1], 0] + directions[idx[2], 0] + directions[idx[3], 0])
+    u1 = 0.25 * (directions[idx[0], 1] + directions[idx[1], 1] + directions[idx[2], 1] + directions[idx[3], 1])
+    u2 = 0.25 * (directions[idx[0], 2] + directions[idx[1], 2] + directions[idx[2], 2] + directions[idx[3], 2])
+    s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+    delta2 = 0.0
+    for t in range(4):
+        x = endpoints[idx[t], 0] - m0
+        y = endpoints[idx[t], 1] - m1
+        z = endpoints[idx[t], 2] - m2
+        s00 += x * x
+        s01 += x * y
+        s02 += x * z
+        s11 += y * y
+        s12 += y * z
+        s22 += z * z
+        dx = directions[idx[t], 0] - u0
+        dy = directions[idx[t], 1] - u1
+        dz = directions[idx[t], 2] - u2
+        delta2 = max(delta2, dx * dx + dy * dy + dz * dz)
+    c = cutoff * (1.0 + 1e-9) + 1e-12 * (s00 + s11 + s22)
+    if _positive_definite(s00 - c, s01, s02, s11 - c, s12, s22 - c):
+        return True
+    delta = np.sqrt(delta2) * (1.0 + 1e-12) + 1e-15
+    for t in _SEED_BOUND_T:
+        eps = delta / t
+        cu = c * (1.0 + eps)
+        ci = c * (1.0 + 1.0 / eps) * delta2 * (1.0 + 1e-9)
+        if _positive_definite(s00 - cu * u0 * u0 - ci, s01 - cu * u0 * u1, s02 - cu * u0 * u2,
+                              s11 - cu * u1 * u1 - ci, s12 - cu * u1 * u2, s22 - cu * u2 * u2 - ci):
+            return True
+    return False
+
+
 @nb.njit(cache=True, parallel=True)
-def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key):
+def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key,
+                 cutoff=np.inf):
     """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
 
     P, V: the endpoints and directions as (3, n) arrays (_ray_columns), which the vectorised
@@ -282,7 +353,10 @@ def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, 
     _SEED_BLOCK anchors that holds at least _SEED_BLOCK_MIN valid seeds (a vectorised loop); the
     valid seeds of the other blocks (sparse rows such as a 32-beam lidar's with a distance limit) and
     the seeds the loop did not finish are fitted by the general Gauss-Newton. The values are
-    bit-identical to fitting every seed with _fit_rays.
+    bit-identical to fitting every seed with _fit_rays, except that a seed left to the general fit
+    whose SSE provably exceeds cutoff (m^2; _seed_exceeds) is not fitted and gets inf: a run
+    that stops at cutoff never creates it (at lmax inf, most seeds the loop does not finish span a
+    depth step or meet a surface at a grazing angle, with SSEs far above any useful e).
     """
     edges = _tetromino_edges(offsets, width)
     for i in nb.prange(height):
@@ -340,6 +414,8 @@ def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, 
                 sse = row[j]
                 if np.isnan(sse):
                     _seed_rays(idx, base + j, o0, o1, o2, o3)
+                    if cutoff < np.inf and _seed_exceeds(endpoints, directions, idx, cutoff):
+                        continue  # errors[c, j] stays inf: never a create in this run
                     sse, _, _, _ = _fit_rays(endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
                                              _FIT_TOLERANCE)
                 errors[c, j] = sse if np.isfinite(sse) else np.inf
@@ -2155,8 +2231,10 @@ def extract_plane_hierarchy(
     seed_key = _reusable('seed_key', scan.size, np.float64)
     columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
     _ray_columns(scan.endpoints, scan.directions, columns[:3], columns[3:])
+    # seeds above the kernel's cutoff are never created: the greedy's cutoff (see _ppe_kernel)
+    seed_cutoff = stop_increment if stop_count >= scan.size else np.inf
     _seed_errors(scan.endpoints, scan.directions, columns[:3], columns[3:], ok_right, ok_down, scan.height,
-                 scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key)
+                 scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, seed_cutoff)
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
     # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
     # again (np.empty only reserves memory: rows that are never used cost no RAM)
