@@ -129,7 +129,7 @@ _Q_PER_OCTAVE = 1 << _Q_FRACTION_BITS
 _Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _q_chunks(capacity):
     """Far-bucket chunks that hold capacity entries: full chunks plus one partly filled per bucket."""
     return (capacity + _Q_CHUNK - 1) // _Q_CHUNK + _Q_BUCKETS
@@ -230,7 +230,7 @@ def _float_bits(typingctx, x):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _seed_rays(idx, anchor, o0, o1, o2, o3):
     """Write the ray ids of the seed at anchor with the tetromino's id offsets o0..o3 into idx[:4]."""
     idx[0] = anchor + o0
@@ -245,7 +245,7 @@ _SEED_BLOCK = 16
 _SEED_BLOCK_MIN = 3
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _tetromino_edges(offsets, width):
     """Internal edges of each tetromino as (id offset of the edge's first cell, 0 right / 1 down), (17, 4, 2).
 
@@ -268,7 +268,7 @@ def _tetromino_edges(offsets, width):
     return edges
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _positive_definite(a00, a01, a02, a11, a12, a22):
     """True if the symmetric 3x3 matrix is positive definite (its Cholesky factorisation has positive pivots)."""
     if not a00 > 0.0:
@@ -286,7 +286,7 @@ def _positive_definite(a00, a01, a02, a11, a12, a22):
 _SEED_BOUND_T = (1.0, 0.3, 0.1, 0.03, 0.01)
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _seed_exceeds(endpoints, directions, idx, cutoff):
     """True if every plane leaves the 4 rays idx[:4] a radial SSE (m^2) above cutoff (False: may not).
 
@@ -443,7 +443,7 @@ def _ray_columns(endpoints, directions, P, V):
                 V[c, k] = directions[k, c]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _sort_seed_keys(seed_key, cutoff=np.inf):
     """Anchors with a finite seed key <= cutoff, in the order of (key, anchor): a stable LSD radix sort.
 
@@ -491,7 +491,7 @@ def _sort_seed_keys(seed_key, cutoff=np.inf):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _g_less(gkey, gint, i, j):
     if gkey[i] != gkey[j]:
         return gkey[i] < gkey[j]
@@ -502,7 +502,7 @@ def _g_less(gkey, gint, i, j):
     return gint[i, 2] < gint[j, 2]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _g_before(key, kind, a, b, gkey, gint, j):
     """True when the entry (key, kind, a, b) comes before heap slot j."""
     if key != gkey[j]:
@@ -514,20 +514,20 @@ def _g_before(key, kind, a, b, gkey, gint, j):
     return b < gint[j, 2]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _g_move(gkey, gint, dst, src):
     gkey[dst] = gkey[src]
     for c in range(5):
         gint[dst, c] = gint[src, c]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _g_entry(gkey, gint, i):
     """Heap slot i as (key, kind, a, b, va, vb)."""
     return gkey[i], gint[i, 0], gint[i, 1], gint[i, 2], gint[i, 3], gint[i, 4]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
     """Write the entry (key, kind, a, b, va, vb) into slot i."""
     gkey[i] = key
@@ -543,7 +543,7 @@ def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
 # every array argument on each call, with atomic instructions (about a tenth of pc_01's greedy).
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     """Push an entry; the caller guarantees capacity. Returns the new size."""
     i = size
@@ -558,7 +558,7 @@ def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     return size + 1
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _g_sift_down(gkey, gint, size, i, key, kind, a, b, va, vb):
     """Place an entry into the hole at slot i of a heap of size slots (smaller children move up)."""
     while True:
@@ -577,7 +577,7 @@ def _g_sift_down(gkey, gint, size, i, key, kind, a, b, va, vb):
     _g_set(gkey, gint, i, key, kind, a, b, va, vb)
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _g_pop(gkey, gint, size):
     """Remove the minimum (moved to index size-1, where the caller reads it). Returns the new size."""
     last = size - 1
@@ -589,7 +589,7 @@ def _g_pop(gkey, gint, size):
     return last
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _g_heapify(gkey, gint, size):
     """Arrange slots 0..size-1 into a 4-ary heap (sift-down from the last parent)."""
     for top in range((size - 2) // 4, -1, -1):
@@ -606,7 +606,7 @@ def _g_heapify(gkey, gint, size):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _q_bucket(key):
     """Bucket index of a key >= 0, non-decreasing in the key."""
     if not key > 0.0:
@@ -624,7 +624,7 @@ def _q_bucket(key):
             + ((bits >> (52 - _Q_FRACTION_BITS)) & (_Q_PER_OCTAVE - 1)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _q_new(capacity):
     """An empty queue: heap (gkey, gint), far-bucket chunk pool (fkey, fint, fnext), bucket heads, state.
 
@@ -639,7 +639,7 @@ def _q_new(capacity):
             np.full(_Q_BUCKETS, -1, np.int64), qstate)
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b, va, vb):
     """Push an entry into the heap or its far bucket (the caller guarantees capacity). Returns the heap size."""
     bucket = _q_bucket(key)
@@ -664,7 +664,7 @@ def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b
     return gsize
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
     """Move the next non-empty far bucket(s) into the empty heap, dropping stale entries.
 
@@ -711,14 +711,14 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _h_less(hf, hi, x, y):
     if hf[x, 0] != hf[y, 0]:
         return hf[x, 0] < hf[y, 0]
     return hi[x, 0] < hi[y, 0]
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _h_meld(hf, hi, x, y):
     """Meld two skew heaps (top-down, iterative). Returns the root."""
     if x < 0:
@@ -741,7 +741,7 @@ def _h_meld(hf, hi, x, y):
     return root
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _h_drop_taken(hf, hi, owner, root, hfree):
     """Remove the tops of a plane's candidate heap whose ray another (or the same) plane has taken.
 
@@ -760,7 +760,7 @@ def _h_drop_taken(hf, hi, owner, root, hfree):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _find(parent, x):
     root = x
     while parent[root] != root:
@@ -772,7 +772,7 @@ def _find(parent, x):
     return root
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _gather(pi, nextpix, p, buf, endpoints, directions, start=0):
     """Write plane p's pixel ids into buf from index start on; returns their count.
 
@@ -791,7 +791,7 @@ def _gather(pi, nextpix, p, buf, endpoints, directions, start=0):
     return n
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _store_state(pf, p, sse, w0, w1, w2, information):
     """Store plane p's E, w (also as its linearisation point) and information."""
     pf[p, _PE] = sse
@@ -805,7 +805,7 @@ def _store_state(pf, p, sse, w0, w1, w2, information):
         pf[p, _PH + i] = information[i]
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
     sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS,
@@ -813,7 +813,7 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     _store_state(pf, p, sse, w0, w1, w2, information)
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _put_fit(fits, r, value, w0, w1, w2, information):
     """Write a fit into row r of an (n, 10) fit table: value (SSE, m^2), w (3) and information (6)."""
     fits[r, 0] = value
@@ -824,14 +824,14 @@ def _put_fit(fits, r, value, w0, w1, w2, information):
         fits[r, 4 + t] = information[t]
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _get_fit(fits, r):
     """Row r of an (n, 10) fit table: (value, w0, w1, w2, information)."""
     return fits[r, 0], fits[r, 1], fits[r, 2], fits[r, 3], (fits[r, 4], fits[r, 5], fits[r, 6], fits[r, 7],
                                                             fits[r, 8], fits[r, 9])
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version, ecache_i, ecache_f):
     """Increment (m^2) of extending plane p (at its current version) by ray k.
 
@@ -853,7 +853,7 @@ def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version
     return sse - pf[p, _PE]
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _relinearise(endpoints, directions, pf, idx, count, p):
     """Re-linearise large plane p on its rays idx[:count]: one Gauss-Newton step from its current w.
 
@@ -873,7 +873,7 @@ def _relinearise(endpoints, directions, pf, idx, count, p):
                  (a00, a01, a02, a11, a12, a22))
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _model_extension(endpoints, directions, pf, p, k):
     """Increment of adding ray k to plane p under p's quadratic model (rank-one update).
 
@@ -891,7 +891,7 @@ def _model_extension(endpoints, directions, pf, p, k):
     return f * f / denom, x0, x1, x2, f, g0, g1, g2
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _model_merge_terms(pf, a, b):
     """Ha (w_a - w_b), Hb (w_a - w_b) and S = Ha + Hb (6) of planes a, b: the merge model's system."""
     # scalar reads (no array views: a view costs reference counting in the hot loop)
@@ -912,7 +912,7 @@ def _model_merge_terms(pf, a, b):
     return (ad0, ad1, ad2), (bd0, bd1, bd2), (ha0 + hb0, ha1 + hb1, ha2 + hb2, ha3 + hb3, ha4 + hb4, ha5 + hb5)
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _model_merge_increment_of(ad, bd, s):
     """Merge increment (ad^T S^-1 bd, at least 0; inf when S is singular) of the terms of _model_merge_terms."""
     y0, y1, y2, ok = _solve_sym3(s[0], s[1], s[2], s[3], s[4], s[5], bd[0], bd[1], bd[2])
@@ -924,14 +924,14 @@ def _model_merge_increment_of(ad, bd, s):
     return inc
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _model_merge_increment(pf, a, b):
     """Merge increment of planes a, b under their quadratic models (inf when the models are singular)."""
     ad, bd, s = _model_merge_terms(pf, a, b)
     return _model_merge_increment_of(ad, bd, s)
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _model_merge(pf, a, b):
     """Merge increment of planes a, b under their quadratic models and the merged w."""
     ad, bd, s = _model_merge_terms(pf, a, b)
@@ -943,7 +943,7 @@ def _model_merge(pf, a, b):
     return inc, pf[b, _PW] + z0, pf[b, _PW + 1] + z1, pf[b, _PW + 2] + z2
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _model_offset(pf, big, w0, w1, w2):
     """Plane big's information H (6), e = w - w_big (3) and H e (3): its quadratic model at w is
     E_big + e^T H e, with half gradient H e."""
@@ -956,7 +956,7 @@ def _model_offset(pf, big, w0, w1, w2):
     return (h0, h1, h2, h3, h4, h5), (e0, e1, e2), he
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """model_big(w) + exact radial SSE of rays idx[:count] at w, with its Gauss-Newton system.
 
@@ -980,7 +980,7 @@ def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     return value, (h0, h1, h2, h3, h4, h5), r0, r1, r2
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving).
 
@@ -1016,7 +1016,7 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     return value, w0, w1, w2, info, (r0, r1, r2)
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, w0, w1, w2, info, r):
     """Keep the small plane's exact residuals of a refined hybrid merge as a quadratic model at its w.
 
@@ -1044,7 +1044,7 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     rcache_f[small, 12] = w2
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _refined_merge_increment(pf, big, rcache_f, small):
     """Merge increment (m^2) of big's current model plus small's residual model kept by _keep_refined_merge.
 
@@ -1068,7 +1068,7 @@ def _refined_merge_increment(pf, big, rcache_f, small):
     return inc
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _union_fit(endpoints, directions, pf, idx, count, a, b):
     """Exact fit of the union of planes a and b (rays idx[:count]); both planes' states are exact fits.
 
@@ -1104,7 +1104,7 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
     return best, b0, b1, b2
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     """Remember the refined merge of planes a < b at versions (va, vb): its value, merged w and information."""
     mcache_i[a, 0] = b
@@ -1113,7 +1113,7 @@ def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     _put_fit(mcache_f, a, value, w0, w1, w2, info)
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first, n, proxy_key):
     """Queue the merges deferred on plane p's adjacency nodes first..first+n whose key is at most
     proxy_key (p's proxy key, m^2); store the least key left deferred in p's row. Returns the heap size."""
@@ -1130,7 +1130,7 @@ def _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode
     return gsize
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff):
     """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
 
@@ -1161,7 +1161,7 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _adj_class(rows):
     """Size class and size of the smallest segment of at least rows rows."""
     c = 0
@@ -1172,7 +1172,7 @@ def _adj_class(rows):
     return c, size
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _adj_copy(anode, dst, src, n):
     """Copy n adjacency nodes from row src on to row dst on."""
     for t in range(n):
@@ -1180,7 +1180,7 @@ def _adj_copy(anode, dst, src, n):
             anode[dst + t, f] = anode[src + t, f]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _adj_release(anode, afree, start, rows):
     """Put the segment of rows rows at start on its size's free list (linked through its first row)."""
     c, _ = _adj_class(rows)
@@ -1188,7 +1188,7 @@ def _adj_release(anode, afree, start, rows):
     afree[c] = start
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _adj_move(anode, afree, pi, x, rows, aused):
     """Move plane x's adjacency nodes to a segment of at least rows rows; returns aused (-1: the pool is full)."""
     c, size = _adj_class(rows)
@@ -1209,7 +1209,7 @@ def _adj_move(anode, afree, pi, x, rows, aused):
     return aused
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _adj_append(anode, akey, afree, pi, x, y, aused):
     """Add plane y to plane x's neighbours; returns aused (-1: the pool is full).
 
@@ -1231,7 +1231,7 @@ def _adj_append(anode, akey, afree, pi, x, y, aused):
     return aused
 
 
-@nb.njit(cache=True, _nrt=False)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _adj_concat(anode, afree, pi, s, o, aused):
     """Append plane o's neighbour nodes to plane s's and free o's segment; returns aused (-1: the pool is full)."""
     ns = pi[s, _PADJN]
@@ -1257,13 +1257,13 @@ def _adj_concat(anode, afree, pi, s, o, aused):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _aligned(offset):
     """The next multiple of 8 elements (64 bytes) from offset: every work array starts on a cache line."""
     return (offset + 7) & ~7
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
@@ -1276,13 +1276,13 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     return n_f, n_i, n_i32
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _empty_log(stats, overflow):
     """The kernel's result when a pool ran out: an empty action log, its stats and overflow."""
     return (np.empty(0, np.int8), np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), stats, overflow)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse, seed_best, seed_key,
                 exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
                 refined_growth, merge_loop_growth, defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
@@ -1985,7 +1985,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _replay(kinds, a_ids, b_ids, n_steps, height, width, offsets):
     """Plane id of every pixel after the first n_steps actions (-1 = atomic or no return)."""
     n_pixels = height * width
@@ -2036,7 +2036,7 @@ def _edge_mask_kernel(endpoints, valid, height, width, max_distance, ok_right, o
                 endpoints, k, k + width) <= max_distance
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _distance(endpoints, a, b):
     """Distance (m) between endpoints a and b (summed in the order of np.linalg.norm)."""
     d0 = endpoints[a, 0] - endpoints[b, 0]

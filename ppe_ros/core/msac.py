@@ -64,7 +64,7 @@ class MsacPlanes:
         return len(self.offsets)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plane_through(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z):
     """Unit normal and offset of the plane through three points; a zero normal if collinear."""
     ax, ay, az = p1x - p0x, p1y - p0y, p1z - p0z
@@ -82,7 +82,7 @@ def _plane_through(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z):
     return nx, ny, nz, nx * p0x + ny * p0y + nz * p0z
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _msac_kernel(xyz, valid, distance, stop_count, max_trials, confidence, max_scored, seed):
     """Sequential MSAC over the valid rows of ``xyz`` (N, 3); returns per-point labels and planes."""
     np.random.seed(seed)  # noqa: NPY002 (numba's per-thread generator; no Generator objects in kernels)

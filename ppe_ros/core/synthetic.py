@@ -868,7 +868,7 @@ def _pack_faces(polygons: Sequence[np.ndarray]) -> _PackedFaces:
     return packed
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cast_rays_kernel(
     origins: np.ndarray,
     directions: np.ndarray,
@@ -975,7 +975,7 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray) -> tupl
 # --------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _find_root(parents: np.ndarray, index: int) -> int:
     while parents[index] != index:
         parents[index] = parents[parents[index]]  # path halving
@@ -983,7 +983,7 @@ def _find_root(parents: np.ndarray, index: int) -> int:
     return index
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _union(parents: np.ndarray, first: int, second: int) -> None:
     """Join the sets of two pixels; the smaller root becomes the root of both."""
     first = _find_root(parents, first)
@@ -994,7 +994,7 @@ def _union(parents: np.ndarray, first: int, second: int) -> None:
         parents[first] = second
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _component_roots_kernel(face_labels: np.ndarray) -> np.ndarray:
     """4-connected components of equal positive labels in an ``(H, W)`` image, by union-find.
 

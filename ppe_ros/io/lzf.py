@@ -27,7 +27,7 @@ _MAX_MATCH = 264  # encoded length (match - 2) at most 7 + 255
 _MAX_LITERAL = 32
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _lzf_decompress(src, dst):
     """Decode ``src`` into ``dst``; returns (status, input position, output position)."""
     n_in = src.shape[0]
@@ -69,7 +69,7 @@ def _lzf_decompress(src, dst):
     return _OK, ip, op
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _lzf_compress(src, dst):
     """Encode ``src`` into ``dst`` (large enough: n + n // 32 + 16); returns the output size."""
     n = src.shape[0]

@@ -106,7 +106,7 @@ def _project_vertices(points, labels, normals, offsets, origin, grazing_cosine):
     return vertices
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _cell(labels, r, c):
     """(plane label, kind) of the cell at (r, c): a plane owning >= 3 of its 4 corners, else (0, 0)."""
     la, lb, lc, ld = labels[r, c], labels[r, c + 1], labels[r + 1, c], labels[r + 1, c + 1]
@@ -123,7 +123,7 @@ def _cell(labels, r, c):
     return 0, _NO_CELL
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _cell_label_at(cell_labels, r, c):
     """Label of cell (r, c), 0 outside the cell grid."""
     if r < 0 or c < 0 or r >= cell_labels.shape[0] or c >= cell_labels.shape[1]:
@@ -131,7 +131,7 @@ def _cell_label_at(cell_labels, r, c):
     return cell_labels[r, c]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _boundary_label(label_0, label_1, cell_label_0, cell_label_1):
     """Plane of a grid side between two pixels if exactly one adjacent cell's triangles use it, else 0."""
     if label_0 <= 0 or label_1 != label_0:
@@ -144,13 +144,13 @@ def _boundary_label(label_0, label_1, cell_label_0, cell_label_1):
 # numba an atomic reference-count increment and decrement, several per cell.
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _vertex(vertices, r, c):
     """Vertex (r, c) as a 3-tuple."""
     return vertices[r, c, 0], vertices[r, c, 1], vertices[r, c, 2]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _put_segment(segments, s, vertices, r0, c0, r1, c1):
     """Write the segment from vertex (r0, c0) to vertex (r1, c1) into ``segments[s]``."""
     for k in range(3):
@@ -158,7 +158,7 @@ def _put_segment(segments, s, vertices, r0, c0, r1, c1):
         segments[s, 1, k] = vertices[r1, c1, k]
 
 
-@nb.njit(cache=True, inline='always')
+@nb.njit(cache=True, nogil=True, inline='always')
 def _put_triangle(triangles, areas, slot, normal, label, va, vb, vc):
     """Write triangle (va, vb, vc) (3-tuples) into ``triangles[slot]``, wound counter-clockwise around ``normal``."""
     e10, e11, e12 = vb[0] - va[0], vb[1] - va[1], vb[2] - va[2]
@@ -174,7 +174,7 @@ def _put_triangle(triangles, areas, slot, normal, label, va, vb, vc):
     areas[label - 1] += 0.5 * abs(facing)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _mesh_kernel(vertices, labels, normals, num_planes):
     """Triangles, outline segments (grouped by plane) and areas of all planes; see plane_geometry."""
     height, width = labels.shape
