@@ -8,6 +8,7 @@ from __future__ import annotations
 import gc
 import itertools
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from ppe_ros.core.synthetic import plane_scan
-from ppe_ros.ros.node import ExtractorNode, LatestMailbox
+from ppe_ros.ros.node import ExtractorNode, LatestMailbox, Turnstile
 from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2, xyz_to_pointcloud2
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(300)]
@@ -320,7 +321,7 @@ def test_numba_threads_parameter(ros_context, executor, namespace, scan_points):
     [result] = harness.node.set_parameters([Parameter('numba_threads', value=1)])
     assert result.successful
     harness.send(make_cloud(scan_points))
-    assert harness.node._numba_threads_applied == 1
+    assert harness.node._numba_threads_applied == [1]
     too_many = numba.config.NUMBA_NUM_THREADS + 1
     [result] = harness.node.set_parameters([Parameter('numba_threads', value=too_many)])
     assert not result.successful and 'NUMBA_NUM_THREADS' in result.reason
@@ -367,6 +368,77 @@ def test_mailbox_keeps_the_newest_item():
     mailbox.close()
     start = time.monotonic()
     assert mailbox.take(timeout=5.0) is None and time.monotonic() - start < 1.0
+
+
+def test_mailbox_numbers_items_in_the_order_they_are_taken():
+    mailbox = LatestMailbox()
+    assert mailbox.take_numbered(timeout=0.01) is None and not mailbox.pending()
+    mailbox.put('a')
+    assert mailbox.pending()
+    assert mailbox.take_numbered(timeout=0.01) == (0, 'a')
+    mailbox.put('b')
+    mailbox.put('c')  # replaces b, which never gets a number
+    assert mailbox.take(timeout=0.01) == 'c'  # number 1
+    mailbox.put('d')
+    assert mailbox.take_numbered(timeout=0.01) == (2, 'd')
+
+
+def test_turnstile_lets_numbers_through_in_order():
+    """Holders that finish out of order pass in number order; released numbers (skipped frames) never block."""
+    turns = Turnstile()
+    passed = []
+    lock = threading.Lock()
+
+    def holder(number, delay):
+        time.sleep(delay)
+        assert turns.wait_turn(number, timeout=10.0)
+        with lock:
+            passed.append(number)
+        turns.release(number)
+
+    delays = {0: 0.2, 1: 0.0, 3: 0.05, 4: 0.0}  # 2 is a skipped frame: released without waiting
+    threads = [threading.Thread(target=holder, args=item) for item in delays.items()]
+    for thread in threads:
+        thread.start()
+    time.sleep(0.1)
+    assert passed == []  # 1 and 4 are done but wait for 0
+    turns.release(2)
+    for thread in threads:
+        thread.join(10.0)
+    assert passed == [0, 1, 3, 4]
+    assert not turns.wait_turn(7, timeout=0.01)  # 5 and 6 not released
+    turns.close()
+    assert not turns.wait_turn(5, timeout=5.0)  # closed: no waiting
+
+
+def test_two_workers_extract_at_once_and_publish_in_arrival_order(ros_context, executor, namespace, scan_points):
+    """A slow frame and a fast one behind it: both extracted at once, published slow first."""
+    harness = Harness(ros_context, executor, namespace, overrides=[Parameter('workers', value=2)])
+    node = harness.node
+    assert spin_until(executor, lambda: sum(w.is_alive() for w in node._workers) == 2)
+    slow = plane_scan(3, rows=200, cols=600, radial_sigma=0.005, seed=4).points
+    harness.publisher.publish(make_cloud(slow, sec=1))
+    assert spin_until(executor, lambda: node._stats.busy == 1 and not node._mailbox.pending())
+    harness.publisher.publish(make_cloud(scan_points, sec=2))
+    assert spin_until(executor, lambda: len(harness.received['planes']) == 2, timeout=60.0)
+    assert [m.header.stamp.sec for m in harness.received['planes']] == [1, 2]
+    assert [m.header.stamp.sec for m in harness.received['labeled_points']] == [1, 2]
+    values = values_of(node.diagnostics_status())
+    assert values['workers'] == '2' and values['frames_in_progress_peak'] == '2'
+    counts = node.frame_counts()
+    assert (counts['processed'], counts['dropped'], counts['failed']) == (2, 0, 0)
+    # one worker again: the second parks, frames still flow; two again: no new thread needed
+    [result] = node.set_parameters([Parameter('workers', value=1)])
+    assert result.successful
+    harness.send(make_cloud(scan_points, sec=3))
+    assert harness.received['planes'][-1].header.stamp.sec == 3
+    [result] = node.set_parameters([Parameter('workers', value=3)])
+    assert result.successful
+    assert spin_until(executor, lambda: sum(w.is_alive() for w in node._workers) == 3)
+    harness.send(make_cloud(scan_points, sec=4))
+    assert harness.received['planes'][-1].header.stamp.sec == 4
+    [result] = node.set_parameters([Parameter('workers', value=0)])
+    assert not result.successful and 'workers' in result.reason
 
 
 def test_frames_arriving_while_busy_are_dropped_and_counted(ros_context, executor, namespace, scan_points):

@@ -97,6 +97,7 @@ def test_config_yaml_holds_every_parameter_with_the_code_defaults():
     ('marker_mesh_stride', 0, 'marker_mesh_stride'),
     ('max_points', 0, 'max_points'),
     ('numba_threads', -1, 'numba_threads'),
+    ('workers', 0, 'workers'),
 ])
 def test_invalid_values_are_rejected_with_the_reason(name, value, message):
     with pytest.raises(ValueError, match=message):

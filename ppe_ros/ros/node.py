@@ -1,9 +1,11 @@
 """``ros2 run ppe_ros extractor``: the live plane-extraction node.
 
 Threads: the executor thread runs the subscription callback (it only drops the newest cloud into a
-one-slot mailbox), the diagnostics timer and the parameter services; one worker thread converts,
-extracts and publishes. A cloud that arrives while the worker is busy replaces the waiting one and
-is counted as dropped, so the executor never stalls and the node always works on the newest frame.
+one-slot mailbox), the diagnostics timer and the parameter services; ``workers`` worker threads
+(default 1) convert, extract and publish. A cloud that arrives while every worker is busy replaces
+the waiting one and is counted as dropped, so the executor never stalls and the node always works
+on the newest frame. With several workers, frames are numbered as they are taken and published in
+that order (a worker that finishes early waits for the frames before its own).
 The compiled kernels release the GIL (``nogil``; the parallel ones release it as numba's parallel
 launches do), so the executor keeps receiving, answering parameter requests and publishing
 diagnostics while the worker extracts (a kernel holding the GIL froze it for the whole greedy,
@@ -139,6 +141,7 @@ class LatestMailbox:
         self._condition = threading.Condition()
         self._item: Any = None
         self._closed = False
+        self._taken = 0
 
     def put(self, item: Any) -> bool:
         """Leave ``item`` for the worker; True if it replaced an item nobody had taken (a dropped frame)."""
@@ -150,14 +153,62 @@ class LatestMailbox:
 
     def take(self, timeout: float) -> Any:
         """The waiting item (emptying the slot), or None after ``timeout`` seconds or once closed."""
+        taken = self.take_numbered(timeout)
+        return None if taken is None else taken[1]
+
+    def take_numbered(self, timeout: float) -> tuple[int, Any] | None:
+        """(number, item) like :meth:`take`; items are numbered 0, 1, 2, ... in the order they are taken."""
         with self._condition:
             if self._item is None and not self._closed:
                 self._condition.wait(timeout)
             item, self._item = self._item, None
-            return item
+            if item is None:
+                return None
+            self._taken += 1
+            return self._taken - 1, item
+
+    def pending(self) -> bool:
+        """True while an item waits to be taken."""
+        with self._condition:
+            return self._item is not None
 
     def close(self) -> None:
         """Wake every waiting ``take``."""
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
+
+
+class Turnstile:
+    """Lets numbered holders through in number order (0, 1, 2, ...): the workers' publishing order.
+
+    A holder with nothing to publish (a skipped or failed frame) releases its number at once; the
+    others wait for their turn, publish, then release theirs.
+    """
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._next = 0
+        self._released: set[int] = set()
+        self._closed = False
+
+    def wait_turn(self, number: int, timeout: float | None = None) -> bool:
+        """Wait until every lower number is released; False on timeout or once closed."""
+        with self._condition:
+            self._condition.wait_for(lambda: self._next == number or self._closed, timeout)
+            return self._next == number and not self._closed
+
+    def release(self, number: int) -> None:
+        """``number`` is done (published, skipped or failed); in any order."""
+        with self._condition:
+            self._released.add(number)
+            while self._next in self._released:
+                self._released.remove(self._next)
+                self._next += 1
+            self._condition.notify_all()
+
+    def close(self) -> None:
+        """Release every waiter (they get False)."""
         with self._condition:
             self._closed = True
             self._condition.notify_all()
@@ -185,6 +236,8 @@ class FrameStats:
     window_failed: int = 0
     window_dropped: int = 0
     window_times: list = field(default_factory=list)
+    busy: int = 0  # frames being extracted right now
+    busy_peak: int = 0  # the most at once since start
 
 
 class ExtractorNode(Node):
@@ -219,18 +272,21 @@ class ExtractorNode(Node):
 
         self._stats = FrameStats()
         self._mailbox = LatestMailbox()
+        self._turns = Turnstile()
         self._warned_at: dict[str, float] = {}
         self._suppressed: Counter = Counter()
         self._stop_requested = threading.Event()
         self.ready = threading.Event()
-        """Set once the JIT warm-up is done and the worker waits for clouds."""
-        self._numba_threads_applied: int | None = None
+        """Set once the JIT warm-up is done and the workers wait for clouds."""
+        self._numba_threads_applied: list[int | None] = []  # per worker: numba's count is per thread
+        self._workers: list[threading.Thread] = []
+        self._workers_lock = threading.Lock()
+        self._parallel_workers_safe = True  # False under numba's workqueue layer (see _work)
 
         self._subscription_lock = threading.Lock()
         self._subscription = self._subscribe(self._params.input_reliability)
         self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
-        self._worker = threading.Thread(target=self._work, name=f'{node_name}-worker', daemon=False)
-        self._worker.start()
+        self._start_workers(self._params.workers)
 
     # ---------------------------------------------------------------- parameters
 
@@ -306,6 +362,8 @@ class ExtractorNode(Node):
         self.get_logger().info('parameters changed: ' + ', '.join(f'{k}={v!r}' for k, v in changes.items()))
         if self._params.input_reliability != previous.input_reliability:
             self._resubscribe(self._params.input_reliability)
+        if self._params.workers > previous.workers:
+            self._start_workers(self._params.workers)
 
     # ---------------------------------------------------------------- input
 
@@ -336,14 +394,29 @@ class ExtractorNode(Node):
 
     # ---------------------------------------------------------------- worker
 
-    def _apply_numba_threads(self, count: int) -> None:
-        """numba's thread count is per calling thread: this runs in the worker, which runs the kernels."""
-        if count == self._numba_threads_applied:
-            return
+    def _start_workers(self, count: int) -> None:
+        """Start worker threads up to ``count`` (a lower ``workers`` value parks the extra ones)."""
+        with self._workers_lock:
+            while len(self._workers) < count and not self._stop_requested.is_set():
+                index = len(self._workers)
+                self._numba_threads_applied.append(None)
+                worker = threading.Thread(target=self._work, args=(index,),
+                                          name=f'{self.get_name()}-worker-{index}', daemon=False)
+                self._workers.append(worker)
+                worker.start()
+
+    def _apply_numba_threads(self, index: int, params: ExtractorParams) -> None:
+        """numba's thread count is per calling thread: each worker sets its own before its kernels run.
+
+        ``numba_threads`` 0 shares the cores numba sees out among the workers (at least one each).
+        """
         import numba
 
-        numba.set_num_threads(count or numba.config.NUMBA_NUM_THREADS)
-        self._numba_threads_applied = count
+        count = params.numba_threads or max(1, numba.config.NUMBA_NUM_THREADS // max(params.workers, 1))
+        if count == self._numba_threads_applied[index]:
+            return
+        numba.set_num_threads(count)
+        self._numba_threads_applied[index] = count
 
     def _warm_up(self) -> None:
         """Run the whole pipeline once on a small synthetic cloud (compiles or loads the numba cache)."""
@@ -359,23 +432,52 @@ class ExtractorNode(Node):
             'in the warm-up cloud)'
         )
 
-    def _work(self) -> None:
+    def _check_threading_layer(self) -> None:
+        """Several workers launch numba's parallel kernels at once: only the omp and tbb layers allow that."""
+        import numba
+
         try:
-            self._apply_numba_threads(self._params.numba_threads)
-            self._warm_up()
-        except Exception as exc:  # a failed warm-up must not kill the node
-            self._record_failure(f'warm-up failed: {type(exc).__name__}: {exc}')
-        self.ready.set()
-        if not self._stop_requested.is_set():
-            self.get_logger().info(
-                f'ready: waiting for organized PointCloud2 on {self.input_topic} '
-                f'({self._params.input_reliability})'
-            )
+            layer = numba.threading_layer()
+        except ValueError:  # no parallel kernel has run yet (the warm-up failed)
+            return
+        if layer == 'workqueue':
+            self._parallel_workers_safe = False
+            if self._params.workers > 1:
+                self.get_logger().error(
+                    "workers > 1 needs numba's omp or tbb threading layer (numba uses 'workqueue' here, which "
+                    'aborts the process when two threads launch parallel kernels at once; pip install tbb): '
+                    'running one worker')
+
+    def _active(self, index: int) -> bool:
+        """Whether worker ``index`` takes frames under the current ``workers`` value."""
+        return index == 0 or (index < self._params.workers and self._parallel_workers_safe)
+
+    def _work(self, index: int) -> None:
+        if index == 0:
+            try:
+                self._apply_numba_threads(index, self._params)
+                self._warm_up()
+                self._check_threading_layer()
+            except Exception as exc:  # a failed warm-up must not kill the node
+                self._record_failure(f'warm-up failed: {type(exc).__name__}: {exc}')
+            self.ready.set()
+            if not self._stop_requested.is_set():
+                self.get_logger().info(
+                    f'ready: waiting for organized PointCloud2 on {self.input_topic} '
+                    f'({self._params.input_reliability}, {self._params.workers} worker(s))'
+                )
         while not self._stop_requested.is_set():
-            msg = self._mailbox.take(WORKER_POLL_S)
-            if msg is None or self._stop_requested.is_set():
+            if not self.ready.is_set() or not self._active(index):
+                self._stop_requested.wait(WORKER_POLL_S)  # warming up, or parked by a lower workers value
                 continue
-            self._process(msg)
+            taken = self._mailbox.take_numbered(WORKER_POLL_S)
+            if taken is None:
+                continue
+            number, msg = taken
+            try:
+                self._process(index, msg, number)
+            finally:
+                self._turns.release(number)  # published, skipped or failed: the next frame may go
 
     def _wanted_outputs(self, params: ExtractorParams) -> OutputSelection:
         """The enabled outputs that somebody subscribes to (nobody listening: not built)."""
@@ -386,28 +488,42 @@ class ExtractorNode(Node):
             plane_table=params.publish_plane_table and self._plane_table_pub.get_subscription_count() > 0,
         )
 
-    def _process(self, msg: Any) -> None:
+    def _process(self, index: int, msg: Any, number: int) -> None:
+        """Extract frame ``number`` (taken in that order) and publish it when the frames before it are out."""
         params = self._params
         start = time.perf_counter()
+        stats = self._stats
+        with stats.lock:
+            stats.busy += 1
+            stats.busy_peak = max(stats.busy_peak, stats.busy)
         try:
-            self._apply_numba_threads(params.numba_threads)
+            self._apply_numba_threads(index, params)
             frame = process_cloud(msg, params, self._types, outputs=self._wanted_outputs(params))
+        except FrameSkipped as exc:
+            self._record_skip(exc)
+            return
+        except Exception as exc:  # the node keeps running on any per-frame failure
+            if self.context.ok():  # shutting down: nothing to report
+                self._record_failure(f'frame failed: {type(exc).__name__}: {exc}')
+            return
+        finally:
+            with stats.lock:
+                stats.busy -= 1
+        while not self._turns.wait_turn(number, WORKER_POLL_S):  # the frames taken before this one first
+            if self._stop_requested.is_set():
+                return
+        try:
             if frame.labeled_points is not None:
                 self._labeled_points_pub.publish(frame.labeled_points)
             if frame.markers is not None:
                 self._markers_pub.publish(frame.markers)  # CDR bytes of a MarkerArray
             if frame.plane_table is not None:
                 self._plane_table_pub.publish(frame.plane_table)
-        except FrameSkipped as exc:
-            self._record_skip(exc)
-            return
-        except Exception as exc:  # the node keeps running on any per-frame failure
-            if not self.context.ok():
-                return  # shutting down: publishing on a closed context fails, nothing to report
-            self._record_failure(f'frame failed: {type(exc).__name__}: {exc}')
+        except Exception as exc:
+            if self.context.ok():
+                self._record_failure(f'publishing failed: {type(exc).__name__}: {exc}')
             return
         elapsed = time.perf_counter() - start
-        stats = self._stats
         with stats.lock:
             stats.processed += 1
             stats.window_times.append(elapsed)
@@ -470,6 +586,7 @@ class ExtractorNode(Node):
             last_error = stats.last_error
             last_error_age = now - stats.last_error_time if stats.last_error else math.nan
             last_planes, frame_id = stats.last_planes, stats.last_frame_id
+            busy, busy_peak = stats.busy, stats.busy_peak
             stats.window_start = now
             stats.window_received = stats.window_skipped = stats.window_failed = stats.window_dropped = 0
             stats.window_times = []
@@ -502,6 +619,9 @@ class ExtractorNode(Node):
             'last_error': last_error,
             'last_error_age_s': f'{last_error_age:.1f}',
             'planes_last_frame': str(last_planes),
+            'workers': str(self._params.workers if self._parallel_workers_safe else 1),
+            'frames_in_progress': str(busy),
+            'frames_in_progress_peak': str(busy_peak),
         }
         return status_type(
             level=level,
@@ -520,15 +640,20 @@ class ExtractorNode(Node):
     # ---------------------------------------------------------------- lifecycle
 
     def stop(self, timeout: float | None = None) -> bool:
-        """Ask the worker to finish its frame and exit, and join it; True once it has exited."""
+        """Ask the workers to finish their frames and exit, and join them; True once all have exited."""
         self._stop_requested.set()
         self._mailbox.close()
-        if self._worker.is_alive() and self._worker is not threading.current_thread():
-            self._worker.join(timeout)
-        return not self._worker.is_alive()
+        self._turns.close()
+        with self._workers_lock:
+            workers = list(self._workers)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        for worker in workers:
+            if worker.is_alive() and worker is not threading.current_thread():
+                worker.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+        return not any(worker.is_alive() for worker in workers)
 
     def destroy_node(self) -> None:
-        """Join the worker, then destroy the node."""
+        """Join the workers, then destroy the node."""
         self.stop()
         super().destroy_node()
 

@@ -143,7 +143,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('marker_mesh_stride', 'integer', 1,
               'mesh every n-th row and column (n^2 fewer triangles for big clouds)', low=1, high=64),
     ParamSpec('numba_threads', 'integer', 0,
-              'threads of the extraction kernels; 0 = all cores numba sees', low=0, high=1024),
+              'threads of the extraction kernels per worker; 0 = the cores numba sees, shared out among the workers',
+              low=0, high=1024),
+    ParamSpec('workers', 'integer', 1,
+              'frames extracted at once, each in its own thread, outputs published in arrival order: more frames '
+              'per second on a multi-core machine, each frame as slow as before (the node only; ppe bag has --jobs)',
+              low=1, high=64),
 )
 PARAM_SPEC_BY_NAME: dict[str, ParamSpec] = {spec.name: spec for spec in PARAM_SPECS}
 
@@ -169,6 +174,7 @@ class ExtractorParams:
     marker_alpha: float = 0.5
     marker_mesh_stride: int = 1
     numba_threads: int = 0
+    workers: int = 1
 
     def __post_init__(self) -> None:
         for spec in PARAM_SPECS:
