@@ -441,6 +441,20 @@ def test_two_workers_extract_at_once_and_publish_in_arrival_order(ros_context, e
     assert not result.successful and 'workers' in result.reason
 
 
+def test_workers_fall_back_to_one_under_the_workqueue_threading_layer(ros_context, executor, namespace,
+                                                                      scan_points, monkeypatch):
+    """numba's workqueue layer aborts on concurrent parallel launches: the node runs one worker instead."""
+    import numba
+
+    monkeypatch.setattr(numba, 'threading_layer', lambda: 'workqueue')
+    harness = Harness(ros_context, executor, namespace, overrides=[Parameter('workers', value=2)])
+    node = harness.node
+    assert not node._active(1) and node._active(0)
+    assert values_of(node.diagnostics_status())['workers'] == '1'
+    harness.send(make_cloud(scan_points, sec=5))
+    assert harness.received['planes'][-1].header.stamp.sec == 5
+
+
 def test_frames_arriving_while_busy_are_dropped_and_counted(ros_context, executor, namespace, scan_points):
     harness = Harness(ros_context, executor, namespace)
     node = harness.node
