@@ -8,7 +8,7 @@ on the newest frame. With several workers, frames are numbered as they are taken
 that order (a worker that finishes early waits for the frames before its own).
 The compiled kernels release the GIL (``nogil``; the parallel ones release it as numba's parallel
 launches do), so the executor keeps receiving, answering parameter requests and publishing
-diagnostics while the worker extracts (a kernel holding the GIL froze it for the whole greedy,
+diagnostics while the workers extract (a kernel holding the GIL froze it for the whole greedy,
 about 0.2 s per 128 x 1024 sweep; ``test/test_threads.py``).
 
 Topics (relative names, remappable):
@@ -216,7 +216,7 @@ class Turnstile:
 
 @dataclass
 class FrameStats:
-    """Counters for diagnostics; the worker and the executor thread share it under ``lock``."""
+    """Counters for diagnostics; the workers and the executor thread share it under ``lock``."""
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     received: int = 0
@@ -245,7 +245,7 @@ class ExtractorNode(Node):
 
     Keyword arguments go to :class:`rclpy.node.Node` (``context``, ``namespace``,
     ``parameter_overrides``, ...). Call :meth:`stop` (or :meth:`destroy_node`, which calls it)
-    before shutting the context down: it joins the worker thread.
+    before shutting the context down: it joins the worker threads.
 
     Raises:
         ValueError: a parameter given at start-up (params file, ``-p``, overrides) is invalid.
