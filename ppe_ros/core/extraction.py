@@ -327,11 +327,11 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
     c = cutoff * (1.0 + 1e-9) + 1e-12 * (s00 + s11 + s22)
     if _positive_definite(s00 - c, s01, s02, s11 - c, s12, s22 - c):
         return True
-    delta = np.sqrt(delta2) * (1.0 + 1e-12) + 1e-15
+    delta = np.sqrt(delta2) * (1.0 + 1e-12) + 1e-15  # rounded up: the bound holds for any delta above the true one
     for t in _SEED_BOUND_T:
         eps = delta / t
         cu = c * (1.0 + eps)
-        ci = c * (1.0 + 1.0 / eps) * delta2 * (1.0 + 1e-9)
+        ci = c * (1.0 + 1.0 / eps) * delta * delta
         if _positive_definite(s00 - cu * u0 * u0 - ci, s01 - cu * u0 * u1, s02 - cu * u0 * u2,
                               s11 - cu * u1 * u1 - ci, s12 - cu * u1 * u2, s22 - cu * u2 * u2 - ci):
             return True
