@@ -147,7 +147,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               low=0, high=1024),
     ParamSpec('workers', 'integer', 1,
               'frames extracted at once, each in its own thread, outputs published in arrival order: more frames '
-              'per second on a multi-core machine, each frame as slow as before (the node only; ppe bag has --jobs)',
+              'per second on a multi-core machine, no frame faster (the node only; ppe bag has --jobs)',
               low=1, high=64),
 )
 PARAM_SPEC_BY_NAME: dict[str, ParamSpec] = {spec.name: spec for spec in PARAM_SPECS}
