@@ -1277,6 +1277,14 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
 
 
 @nb.njit(cache=True, nogil=True)
+def _run_cutoff(max_increment, min_count, n_pixels):
+    """The largest key (m^2) a run can execute: entries above it never are (the run stops before any
+    action above max_increment unless a plane-count target, min_count < n_pixels, keeps it going).
+    The greedy drops such entries and the seed stage does not fit seeds provably above it."""
+    return np.inf if min_count < n_pixels else max_increment
+
+
+@nb.njit(cache=True, nogil=True)
 def _empty_log(stats, overflow):
     """The kernel's result when a pool ran out: an empty action log, its stats and overflow."""
     return (np.empty(0, np.int8), np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), stats, overflow)
@@ -1421,9 +1429,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     of = _aligned(of + n_pixels + 1)
     n_actions = 0
 
-    # entries whose key exceeds the cutoff can never be executed in this run (the run stops
-    # before any action above max_increment unless a plane-count target keeps it going)
-    cutoff = np.inf if min_count < n_pixels else max_increment
+    cutoff = _run_cutoff(max_increment, min_count, n_pixels)
     model_cutoff = MODEL_CUTOFF_FACTOR * cutoff
 
     # initial seeds: the best valid config of every anchor (seed_best, seed_key from _seed_errors)
@@ -2231,10 +2237,10 @@ def extract_plane_hierarchy(
     seed_key = _reusable('seed_key', scan.size, np.float64)
     columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
     _ray_columns(scan.endpoints, scan.directions, columns[:3], columns[3:])
-    # seeds above the kernel's cutoff are never created: the greedy's cutoff (see _ppe_kernel)
-    seed_cutoff = stop_increment if stop_count >= scan.size else np.inf
+    # seeds above the greedy's cutoff are never created
     _seed_errors(scan.endpoints, scan.directions, columns[:3], columns[3:], ok_right, ok_down, scan.height,
-                 scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, seed_cutoff)
+                 scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key,
+                 _run_cutoff(stop_increment, stop_count, scan.size))
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
     # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
     # again (np.empty only reserves memory: rows that are never used cost no RAM)
