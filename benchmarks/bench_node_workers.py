@@ -18,37 +18,16 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from bench_node_overhead import OUSTER, driver_message  # this directory: the driver's point layout
 
-OUSTER = Path(os.environ.get('PPE_SHARED_DATA', Path(__file__).resolve().parents[2] / 'shared' / 'data')) / 'ouster'
 FRAMES = [f'OS-1-128_v2.3.0_1024x10_lb_n3_frame{n}_xyz_m.npy' for n in (1795, 1796, 1797)]
-
-#: The point layout of the Ouster ROS driver's cloud (x y z, intensity, t, reflectivity, ring, ambient, range).
-OUSTER_POINT = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
-    'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
-    'itemsize': 48,
-})
 
 
 def ouster_clouds(types):
-    from std_msgs.msg import Header
-
-    from ppe_ros.ros.pointcloud2 import structured_to_pointcloud2
-
-    clouds = []
-    for name in FRAMES:
-        xyz = np.load(OUSTER / name)
-        points = np.zeros(xyz.shape[:2], OUSTER_POINT)
-        for axis, field in enumerate('xyz'):
-            points[field] = xyz[..., axis]
-        points['range'] = np.nan_to_num(np.linalg.norm(xyz, axis=2) * 1000).astype(np.uint32)
-        clouds.append(structured_to_pointcloud2(points, header=Header(frame_id='os_sensor'),
-                                                msg_class=types.PointCloud2, field_class=types.PointField))
-    return clouds
+    """The three sweeps as driver-like PointCloud2 messages (bench_node_overhead's 48-byte layout)."""
+    return [driver_message(np.load(OUSTER / name).astype(np.float64), types) for name in FRAMES]
 
 
 def run(workers: int, seconds: float, rate: float, clouds) -> dict:
