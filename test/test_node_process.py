@@ -166,18 +166,20 @@ def test_two_workers_publish_in_order_and_stop_cleanly_while_busy(client_factory
             spin_until(executor, lambda: bool(tables), 1.0)
         assert tables, extractor.output
         big = plane_scan(3, rows=200, cols=600, radial_sigma=0.005, seed=4).points
-        for sec in range(2, 12):
+
+        def publish_big(sec: int) -> None:
             header = Header(frame_id='proc_lidar')
             header.stamp.sec = sec
             publisher.publish(xyz_to_pointcloud2(big, header=header, msg_class=PointCloud2, field_class=PointField))
+
+        for sec in range(2, 12):
+            publish_big(sec)
             spin_until(executor, lambda: False, 0.1)
         assert spin_until(executor, lambda: len(tables) >= 4, 60.0), extractor.output
         stamps = [t.header.stamp.sec for t in tables]
         assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps), stamps
         for sec in range(12, 15):  # busy again when the signal comes
-            header = Header(frame_id='proc_lidar')
-            header.stamp.sec = sec
-            publisher.publish(xyz_to_pointcloud2(big, header=header, msg_class=PointCloud2, field_class=PointField))
+            publish_big(sec)
         spin_until(executor, lambda: False, 0.2)
     finally:
         exit_code = extractor.stop(signal.SIGINT)
