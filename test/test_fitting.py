@@ -129,7 +129,7 @@ def test_covariance_is_symmetric_positive_semidefinite_and_scales_with_noise():
         (np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), None, 'at least 3'),
         (np.zeros((0, 3)), None, 'at least 3'),
         (np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [np.nan, 0.0, 1.0]]), None, 'not finite'),
-        (np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]), None, 'zero length'),
+        (np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]), None, 'a length outside'),
         (np.eye(3), np.zeros((2, 3)), 'origins'),
         (np.eye(3), np.zeros(2), 'origins'),
     ],

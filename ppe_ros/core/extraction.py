@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
@@ -36,6 +36,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+from ppe_ros.core.consolidation import consolidate_pieces
 from ppe_ros.core.fitting import (
     _fit,
     _fit4,
@@ -47,6 +48,7 @@ from ppe_ros.core.fitting import (
 )
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan, make_ray_scan
+from ppe_ros.core.sensor import NoiseModel, SensorProfile, sensor_profile
 
 KIND_CREATE = 0
 KIND_EXTEND = 1
@@ -129,7 +131,7 @@ _Q_PER_OCTAVE = 1 << _Q_FRACTION_BITS
 _Q_BUCKETS = (2200 + 2) * _Q_PER_OCTAVE
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _q_chunks(capacity):
     """Far-bucket chunks that hold capacity entries: full chunks plus one partly filled per bucket."""
     return (capacity + _Q_CHUNK - 1) // _Q_CHUNK + _Q_BUCKETS
@@ -230,7 +232,7 @@ def _float_bits(typingctx, x):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _seed_rays(idx, anchor, o0, o1, o2, o3):
     """Write the ray ids of the seed at anchor with the tetromino's id offsets o0..o3 into idx[:4]."""
     idx[0] = anchor + o0
@@ -245,7 +247,7 @@ _SEED_BLOCK = 16
 _SEED_BLOCK_MIN = 3
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _tetromino_edges(offsets, width):
     """Internal edges of each tetromino as (id offset of the edge's first cell, 0 right / 1 down), (17, 4, 2).
 
@@ -268,7 +270,7 @@ def _tetromino_edges(offsets, width):
     return edges
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _positive_definite(a00, a01, a02, a11, a12, a22):
     """True if the symmetric 3x3 matrix is positive definite (its Cholesky factorisation has positive pivots)."""
     if not a00 > 0.0:
@@ -286,7 +288,7 @@ def _positive_definite(a00, a01, a02, a11, a12, a22):
 _SEED_BOUND_T = (1.0, 0.3, 0.1, 0.03, 0.01)
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _seed_exceeds(endpoints, directions, idx, cutoff):
     """True if every plane leaves the 4 rays idx[:4] a radial SSE (m^2) above cutoff (False: may not).
 
@@ -297,7 +299,8 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
     for every eps > 0, turns "n'Sn > c (t + delta)^2 for every n" into a sufficient test: the matrix
     S - c (1 + eps) u u' - c (1 + 1/eps) delta^2 I is positive definite. It is tried at
     eps = delta / t for the t of _SEED_BOUND_T (the tightest where the best plane has |n . u| = t:
-    grazing rays have small t), and at eps = inf in the form S - c I (|n . v_k| <= 1). The rays of a
+    grazing rays have small t), and at eps = inf in the form S - c max|v_k|^2 I (|n . v_k| <= |v_k|: 1 for
+    unit directions; directions scaled by a sensor model's sigma_k are longer or shorter). The rays of a
     seed are neighbours, so delta is about the grid's angular step and the test is nearly as tight
     as the radial fit for seeds whose SSE is far above c. c exceeds cutoff by 1e-9 of itself and
     1e-12 of S's trace, far more than the rounding of S and of the factorisation.
@@ -310,7 +313,9 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
     u2 = 0.25 * (directions[idx[0], 2] + directions[idx[1], 2] + directions[idx[2], 2] + directions[idx[3], 2])
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
     delta2 = 0.0
+    vmax2 = 0.0  # |n . v_k| <= |v_k|: unit directions, or scaled by the rays' noise (sensor models)
     for t in range(4):
+        vmax2 = max(vmax2, directions[idx[t], 0] ** 2 + directions[idx[t], 1] ** 2 + directions[idx[t], 2] ** 2)
         x = endpoints[idx[t], 0] - m0
         y = endpoints[idx[t], 1] - m1
         z = endpoints[idx[t], 2] - m2
@@ -325,7 +330,8 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
         dz = directions[idx[t], 2] - u2
         delta2 = max(delta2, dx * dx + dy * dy + dz * dz)
     c = cutoff * (1.0 + 1e-9) + 1e-12 * (s00 + s11 + s22)
-    if _positive_definite(s00 - c, s01, s02, s11 - c, s12, s22 - c):
+    cv = c if abs(vmax2 - 1.0) <= 1e-12 else c * vmax2
+    if _positive_definite(s00 - cv, s01, s02, s11 - cv, s12, s22 - cv):
         return True
     delta = np.sqrt(delta2) * (1.0 + 1e-12) + 1e-15  # rounded up: the bound holds for any delta above the true one
     for t in _SEED_BOUND_T:
@@ -338,7 +344,7 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
     return False
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key,
                  cutoff=np.inf):
     """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
@@ -432,7 +438,7 @@ def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, 
             best_key[base + j] = least
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _ray_columns(endpoints, directions, P, V):
     """Copy (n, 3) endpoints and directions into (3, n) arrays P and V."""
     n = endpoints.shape[0]
@@ -443,7 +449,7 @@ def _ray_columns(endpoints, directions, P, V):
                 V[c, k] = directions[k, c]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _sort_seed_keys(seed_key, cutoff=np.inf):
     """Anchors with a finite seed key <= cutoff, in the order of (key, anchor): a stable LSD radix sort.
 
@@ -491,7 +497,7 @@ def _sort_seed_keys(seed_key, cutoff=np.inf):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_less(gkey, gint, i, j):
     if gkey[i] != gkey[j]:
         return gkey[i] < gkey[j]
@@ -502,7 +508,7 @@ def _g_less(gkey, gint, i, j):
     return gint[i, 2] < gint[j, 2]
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_before(key, kind, a, b, gkey, gint, j):
     """True when the entry (key, kind, a, b) comes before heap slot j."""
     if key != gkey[j]:
@@ -514,20 +520,20 @@ def _g_before(key, kind, a, b, gkey, gint, j):
     return b < gint[j, 2]
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_move(gkey, gint, dst, src):
     gkey[dst] = gkey[src]
     for c in range(5):
         gint[dst, c] = gint[src, c]
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_entry(gkey, gint, i):
     """Heap slot i as (key, kind, a, b, va, vb)."""
     return gkey[i], gint[i, 0], gint[i, 1], gint[i, 2], gint[i, 3], gint[i, 4]
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
     """Write the entry (key, kind, a, b, va, vb) into slot i."""
     gkey[i] = key
@@ -543,7 +549,7 @@ def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
 # every array argument on each call, with atomic instructions (about a tenth of pc_01's greedy).
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     """Push an entry; the caller guarantees capacity. Returns the new size."""
     i = size
@@ -558,7 +564,7 @@ def _g_push(gkey, gint, size, key, kind, a, b, va, vb):
     return size + 1
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_sift_down(gkey, gint, size, i, key, kind, a, b, va, vb):
     """Place an entry into the hole at slot i of a heap of size slots (smaller children move up)."""
     while True:
@@ -577,7 +583,7 @@ def _g_sift_down(gkey, gint, size, i, key, kind, a, b, va, vb):
     _g_set(gkey, gint, i, key, kind, a, b, va, vb)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _g_pop(gkey, gint, size):
     """Remove the minimum (moved to index size-1, where the caller reads it). Returns the new size."""
     last = size - 1
@@ -589,7 +595,7 @@ def _g_pop(gkey, gint, size):
     return last
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _g_heapify(gkey, gint, size):
     """Arrange slots 0..size-1 into a 4-ary heap (sift-down from the last parent)."""
     for top in range((size - 2) // 4, -1, -1):
@@ -606,7 +612,7 @@ def _g_heapify(gkey, gint, size):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _q_bucket(key):
     """Bucket index of a key >= 0, non-decreasing in the key."""
     if not key > 0.0:
@@ -624,7 +630,7 @@ def _q_bucket(key):
             + ((bits >> (52 - _Q_FRACTION_BITS)) & (_Q_PER_OCTAVE - 1)))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _q_new(capacity):
     """An empty queue: heap (gkey, gint), far-bucket chunk pool (fkey, fint, fnext), bucket heads, state.
 
@@ -639,7 +645,7 @@ def _q_new(capacity):
             np.full(_Q_BUCKETS, -1, np.int64), qstate)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b, va, vb):
     """Push an entry into the heap or its far bucket (the caller guarantees capacity). Returns the heap size."""
     bucket = _q_bucket(key)
@@ -664,7 +670,7 @@ def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b
     return gsize
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
     """Move the next non-empty far bucket(s) into the empty heap, dropping stale entries.
 
@@ -711,14 +717,14 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _h_less(hf, hi, x, y):
     if hf[x, 0] != hf[y, 0]:
         return hf[x, 0] < hf[y, 0]
     return hi[x, 0] < hi[y, 0]
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _h_meld(hf, hi, x, y):
     """Meld two skew heaps (top-down, iterative). Returns the root."""
     if x < 0:
@@ -741,7 +747,7 @@ def _h_meld(hf, hi, x, y):
     return root
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _h_drop_taken(hf, hi, owner, root, hfree):
     """Remove the tops of a plane's candidate heap whose ray another (or the same) plane has taken.
 
@@ -760,7 +766,7 @@ def _h_drop_taken(hf, hi, owner, root, hfree):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _find(parent, x):
     root = x
     while parent[root] != root:
@@ -772,7 +778,7 @@ def _find(parent, x):
     return root
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _gather(pi, nextpix, p, buf, endpoints, directions, start=0):
     """Write plane p's pixel ids into buf from index start on; returns their count.
 
@@ -791,7 +797,7 @@ def _gather(pi, nextpix, p, buf, endpoints, directions, start=0):
     return n
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _store_state(pf, p, sse, w0, w1, w2, information):
     """Store plane p's E, w (also as its linearisation point) and information."""
     pf[p, _PE] = sse
@@ -805,7 +811,7 @@ def _store_state(pf, p, sse, w0, w1, w2, information):
         pf[p, _PH + i] = information[i]
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
     sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS,
@@ -813,7 +819,7 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     _store_state(pf, p, sse, w0, w1, w2, information)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _put_fit(fits, r, value, w0, w1, w2, information):
     """Write a fit into row r of an (n, 10) fit table: value (SSE, m^2), w (3) and information (6)."""
     fits[r, 0] = value
@@ -824,14 +830,14 @@ def _put_fit(fits, r, value, w0, w1, w2, information):
         fits[r, 4 + t] = information[t]
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _get_fit(fits, r):
     """Row r of an (n, 10) fit table: (value, w0, w1, w2, information)."""
     return fits[r, 0], fits[r, 1], fits[r, 2], fits[r, 3], (fits[r, 4], fits[r, 5], fits[r, 6], fits[r, 7],
                                                             fits[r, 8], fits[r, 9])
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version, ecache_i, ecache_f):
     """Increment (m^2) of extending plane p (at its current version) by ray k.
 
@@ -853,7 +859,7 @@ def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version
     return sse - pf[p, _PE]
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _relinearise(endpoints, directions, pf, idx, count, p):
     """Re-linearise large plane p on its rays idx[:count]: one Gauss-Newton step from its current w.
 
@@ -873,7 +879,7 @@ def _relinearise(endpoints, directions, pf, idx, count, p):
                  (a00, a01, a02, a11, a12, a22))
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _model_extension(endpoints, directions, pf, p, k):
     """Increment of adding ray k to plane p under p's quadratic model (rank-one update).
 
@@ -891,7 +897,7 @@ def _model_extension(endpoints, directions, pf, p, k):
     return f * f / denom, x0, x1, x2, f, g0, g1, g2
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _model_merge_terms(pf, a, b):
     """Ha (w_a - w_b), Hb (w_a - w_b) and S = Ha + Hb (6) of planes a, b: the merge model's system."""
     # scalar reads (no array views: a view costs reference counting in the hot loop)
@@ -912,7 +918,7 @@ def _model_merge_terms(pf, a, b):
     return (ad0, ad1, ad2), (bd0, bd1, bd2), (ha0 + hb0, ha1 + hb1, ha2 + hb2, ha3 + hb3, ha4 + hb4, ha5 + hb5)
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _model_merge_increment_of(ad, bd, s):
     """Merge increment (ad^T S^-1 bd, at least 0; inf when S is singular) of the terms of _model_merge_terms."""
     y0, y1, y2, ok = _solve_sym3(s[0], s[1], s[2], s[3], s[4], s[5], bd[0], bd[1], bd[2])
@@ -924,14 +930,14 @@ def _model_merge_increment_of(ad, bd, s):
     return inc
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _model_merge_increment(pf, a, b):
     """Merge increment of planes a, b under their quadratic models (inf when the models are singular)."""
     ad, bd, s = _model_merge_terms(pf, a, b)
     return _model_merge_increment_of(ad, bd, s)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _model_merge(pf, a, b):
     """Merge increment of planes a, b under their quadratic models and the merged w."""
     ad, bd, s = _model_merge_terms(pf, a, b)
@@ -943,7 +949,7 @@ def _model_merge(pf, a, b):
     return inc, pf[b, _PW] + z0, pf[b, _PW + 1] + z1, pf[b, _PW + 2] + z2
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _model_offset(pf, big, w0, w1, w2):
     """Plane big's information H (6), e = w - w_big (3) and H e (3): its quadratic model at w is
     E_big + e^T H e, with half gradient H e."""
@@ -956,7 +962,7 @@ def _model_offset(pf, big, w0, w1, w2):
     return (h0, h1, h2, h3, h4, h5), (e0, e1, e2), he
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """model_big(w) + exact radial SSE of rays idx[:count] at w, with its Gauss-Newton system.
 
@@ -980,7 +986,7 @@ def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     return value, (h0, h1, h2, h3, h4, h5), r0, r1, r2
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving).
 
@@ -1016,7 +1022,7 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
     return value, w0, w1, w2, info, (r0, r1, r2)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, w0, w1, w2, info, r):
     """Keep the small plane's exact residuals of a refined hybrid merge as a quadratic model at its w.
 
@@ -1044,7 +1050,7 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     rcache_f[small, 12] = w2
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _refined_merge_increment(pf, big, rcache_f, small):
     """Merge increment (m^2) of big's current model plus small's residual model kept by _keep_refined_merge.
 
@@ -1068,7 +1074,7 @@ def _refined_merge_increment(pf, big, rcache_f, small):
     return inc
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _union_fit(endpoints, directions, pf, idx, count, a, b):
     """Exact fit of the union of planes a and b (rays idx[:count]); both planes' states are exact fits.
 
@@ -1104,7 +1110,7 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
     return best, b0, b1, b2
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     """Remember the refined merge of planes a < b at versions (va, vb): its value, merged w and information."""
     mcache_i[a, 0] = b
@@ -1113,7 +1119,7 @@ def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     _put_fit(mcache_f, a, value, w0, w1, w2, info)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first, n, proxy_key):
     """Queue the merges deferred on plane p's adjacency nodes first..first+n whose key is at most
     proxy_key (p's proxy key, m^2); store the least key left deferred in p's row. Returns the heap size."""
@@ -1130,7 +1136,7 @@ def _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode
     return gsize
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff):
     """Queue plane p's extension proxy for the top of its candidate heap (the caller reserves room).
 
@@ -1161,7 +1167,7 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _adj_class(rows):
     """Size class and size of the smallest segment of at least rows rows."""
     c = 0
@@ -1172,7 +1178,7 @@ def _adj_class(rows):
     return c, size
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _adj_copy(anode, dst, src, n):
     """Copy n adjacency nodes from row src on to row dst on."""
     for t in range(n):
@@ -1180,7 +1186,7 @@ def _adj_copy(anode, dst, src, n):
             anode[dst + t, f] = anode[src + t, f]
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _adj_release(anode, afree, start, rows):
     """Put the segment of rows rows at start on its size's free list (linked through its first row)."""
     c, _ = _adj_class(rows)
@@ -1188,7 +1194,7 @@ def _adj_release(anode, afree, start, rows):
     afree[c] = start
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _adj_move(anode, afree, pi, x, rows, aused):
     """Move plane x's adjacency nodes to a segment of at least rows rows; returns aused (-1: the pool is full)."""
     c, size = _adj_class(rows)
@@ -1209,7 +1215,7 @@ def _adj_move(anode, afree, pi, x, rows, aused):
     return aused
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _adj_append(anode, akey, afree, pi, x, y, aused):
     """Add plane y to plane x's neighbours; returns aused (-1: the pool is full).
 
@@ -1231,7 +1237,7 @@ def _adj_append(anode, akey, afree, pi, x, y, aused):
     return aused
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _adj_concat(anode, afree, pi, s, o, aused):
     """Append plane o's neighbour nodes to plane s's and free o's segment; returns aused (-1: the pool is full)."""
     ns = pi[s, _PADJN]
@@ -1257,13 +1263,13 @@ def _adj_concat(anode, afree, pi, s, o, aused):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _aligned(offset):
     """The next multiple of 8 elements (64 bytes) from offset: every work array starts on a cache line."""
     return (offset + 7) & ~7
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
@@ -1276,7 +1282,7 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     return n_f, n_i, n_i32
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _run_cutoff(max_increment, min_count, n_pixels):
     """The largest key (m^2) a run can execute: entries above it never are (the run stops before any
     action above max_increment unless a plane-count target, min_count < n_pixels, keeps it going).
@@ -1284,13 +1290,13 @@ def _run_cutoff(max_increment, min_count, n_pixels):
     return np.inf if min_count < n_pixels else max_increment
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _empty_log(stats, overflow):
     """The kernel's result when a pool ran out: an empty action log, its stats and overflow."""
     return (np.empty(0, np.int8), np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), stats, overflow)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse, seed_best, seed_key,
                 exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
                 refined_growth, merge_loop_growth, defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
@@ -1991,7 +1997,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _replay(kinds, a_ids, b_ids, n_steps, height, width, offsets):
     """Plane id of every pixel after the first n_steps actions (-1 = atomic or no return)."""
     n_pixels = height * width
@@ -2031,7 +2037,7 @@ def _edge_masks(scan: RayScan, max_neighbor_distance: float) -> tuple[np.ndarray
     return ok_right, ok_down
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _edge_mask_kernel(endpoints, valid, height, width, max_distance, ok_right, ok_down):
     """ok_right[k]: rays k and k+1 (same row) valid and at most max_distance (m) apart; ok_down[k]: k and k+W."""
     for i in nb.prange(height):
@@ -2042,7 +2048,7 @@ def _edge_mask_kernel(endpoints, valid, height, width, max_distance, ok_right, o
                 endpoints, k, k + width) <= max_distance
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _distance(endpoints, a, b):
     """Distance (m) between endpoints a and b (summed in the order of np.linalg.norm)."""
     d0 = endpoints[a, 0] - endpoints[b, 0]
@@ -2095,6 +2101,7 @@ class PlaneHierarchy:
     complete: bool
     seconds: float = 0.0
     stats: dict | None = None
+    sigmas: np.ndarray | None = None
 
     def steps_for_error(self, max_error_increment: float) -> int:
         """Number of actions before the first one whose increment exceeds e (m^2)."""
@@ -2125,7 +2132,7 @@ class PlaneHierarchy:
             steps = self.steps_for_count(max_planes)
         planes, _ = _fit_pixel_groups(
             self.scan, self.plane_ids(steps), min_plane_points=min_plane_points, residuals=False,
-            max_error_increment=max_error_increment, max_planes=max_planes, actions=steps,
+            sigmas=self.sigmas, max_error_increment=max_error_increment, max_planes=max_planes, actions=steps,
         )
         return planes
 
@@ -2178,6 +2185,7 @@ def extract_plane_hierarchy(
     merge_loop_growth: float = MERGE_LOOP_GROWTH,
     defer_merges: bool = True,
     pool_capacity: int | None = None,
+    noise: NoiseModel | None = None,
 ) -> PlaneHierarchy:
     """Run PPE and return its action log.
 
@@ -2209,10 +2217,16 @@ def extract_plane_hierarchy(
         pool_capacity: initial rows of each of the greedy's work pools (None: from the scan size).
             A pool that runs out is enlarged and the greedy run again, so the result does not
             depend on it (tests use small values to exercise that path).
+        noise: the rays' range noise (:class:`~ppe_ros.core.sensor.NoiseModel`): the greedy minimises
+            the squared residuals divided by sigma_k^2, and increments (and max_error_increment) are
+            dimensionless; None: the paper's model (increments in m^2).
     """
     import time
 
     scan = make_ray_scan(points, origins)
+    sigmas = None
+    if noise is not None:
+        scan, sigmas = _noise_scaled(scan, noise)
     lmax = float(max_neighbor_distance)
     if not (lmax > 0):
         raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {max_neighbor_distance!r}')
@@ -2272,52 +2286,163 @@ def extract_plane_hierarchy(
     complete = stop_increment == np.inf and stop_count < 0
     return PlaneHierarchy(scan=scan, actions=actions, plane_counts=plane_counts, initial_plane_count=n_valid,
                           complete=complete, seconds=seconds,
-                          stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)))
+                          stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)), sigmas=sigmas)
+
+
+def _noise_scaled(scan: RayScan, noise: NoiseModel) -> tuple[RayScan, np.ndarray]:
+    """The scan with each ray's direction scaled by its sigma_k, and the sigmas (m; NaN: invalid).
+
+    The residual (w . p - 1) / (w . v) of a plane w then is (r_k - rhat_k) / sigma_k exactly.
+    """
+    sigmas = np.where(scan.valid, noise.sigmas(scan.ranges, scan.directions), np.nan)
+    directions = scan.directions * np.where(scan.valid, sigmas, 0.0)[:, None]
+    return replace(scan, directions=directions), sigmas
+
+
+class _ProfileDefault:
+    """The default of an extract_planes argument: today's value without a sensor, else the profile's."""
+
+    def __repr__(self) -> str:
+        return 'the profile default'
+
+
+PROFILE_DEFAULT = _ProfileDefault()
+#: extract_planes's defaults without a sensor profile (sensor=None).
+_NO_PROFILE_DEFAULTS = {'max_error_increment': 0.01, 'max_neighbor_distance': np.inf, 'min_plane_points': 4}
 
 
 def extract_planes(
     points: np.ndarray,
     *,
     origins: np.ndarray | None = None,
-    max_error_increment: float | Sequence[float] | None = 0.01,
+    sensor: str | SensorProfile | None = None,
+    max_error_increment: float | Sequence[float] | None = PROFILE_DEFAULT,
     max_planes: int | Sequence[int] | None = None,
-    max_neighbor_distance: float = np.inf,
-    min_plane_points: int = 4,
+    max_neighbor_distance: float = PROFILE_DEFAULT,
+    min_plane_points: int = PROFILE_DEFAULT,
+    surface_tolerance: float | None = PROFILE_DEFAULT,
+    connected_only: bool = PROFILE_DEFAULT,
 ) -> PlaneSet | list[PlaneSet]:
     """Extract finite planes from an organized scan with PPE.
 
     Args:
         points: organized ``(H, W, 3)`` endpoints in metres (any frame), NaN = no return.
         origins: ray starts in the same frame: None (the frame origin), ``(3,)`` or ``(H, W, 3)``.
-        max_error_increment: the paper's e (m^2): a snapshot is the state before the first action
-            whose error increment exceeds it. One value or a list (one snapshot each).
+        sensor: None (the paper's model with the defaults e 0.01 m^2, lmax inf, 4 points: the
+            results of earlier versions), or a sensor profile: ``'lidar'``, ``'depth_camera'``,
+            ``'paper'`` or a :class:`~ppe_ros.core.sensor.SensorProfile`. A profile sets the range
+            noise model and the defaults of the arguments below; arguments given explicitly win.
+        max_error_increment: the paper's e: a snapshot is the state before the first action whose
+            error increment exceeds it (m^2 in the paper's model; dimensionless, in units of the
+            rays' noise variance, with a noise model). One value or a list (one snapshot each).
         max_planes: the paper's J_max (atomic rays and regular planes counted), one value or a list.
         max_neighbor_distance: largest distance (m) between neighbouring endpoints that may be
             joined (the paper's d / lmax).
         min_plane_points: planes with fewer rays are reported as no plane.
+        surface_tolerance: tau (m): after the greedy, pieces of one physical surface (deviating from
+            their common plane by at most tau RMS) are merged (ppe_ros.core.consolidation); None:
+            no consolidation.
+        connected_only: consolidate only pieces that touch in the grid (not across occluders).
 
     Returns:
         A PlaneSet when both thresholds are single values (or None), else a list of PlaneSets:
         one per e (in the given order), then one per n.
     """
+    profile = None if sensor is None else sensor_profile(sensor)
+
+    def setting(name, value):
+        if value is not PROFILE_DEFAULT:
+            return value
+        if profile is None:
+            return _NO_PROFILE_DEFAULTS.get(name)
+        return getattr(profile, name)
+
+    max_error_increment = setting('max_error_increment', max_error_increment)
+    max_neighbor_distance = setting('max_neighbor_distance', max_neighbor_distance)
+    min_plane_points = setting('min_plane_points', min_plane_points)
+    surface_tolerance = setting('surface_tolerance', surface_tolerance)
+    connected_only = bool(setting('connected_only', connected_only))
     e_list = _as_threshold_list(max_error_increment, 'max_error_increment', float)
     n_list = _as_threshold_list(max_planes, 'max_planes', int)
     if int(min_plane_points) < 1:
         raise ValueError(f'min_plane_points must be >= 1; got {min_plane_points!r}')
+    if surface_tolerance is not None and not (np.isfinite(float(surface_tolerance)) and surface_tolerance > 0):
+        raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
+    noise = None if profile is None else profile.noise
     hierarchy = extract_plane_hierarchy(
         points,
         origins=origins,
         max_neighbor_distance=max_neighbor_distance,
         max_error_increment=max(e_list) if e_list else None,
         max_planes=min(n_list) if n_list else None,
+        noise=noise,
     )
-    cuts = [hierarchy.cut(max_error_increment=e, min_plane_points=min_plane_points) for e in e_list or []]
-    cuts += [hierarchy.cut(max_planes=n, min_plane_points=min_plane_points) for n in n_list or []]
+    cut_kwargs = [{'max_error_increment': e} for e in e_list or []] + [{'max_planes': n} for n in n_list or []]
+    if surface_tolerance is None and profile is None:
+        cuts = [hierarchy.cut(**kw, min_plane_points=min_plane_points) for kw in cut_kwargs]
+    else:
+        cuts = [_surfaces(hierarchy, kw, profile, min_plane_points, surface_tolerance, connected_only)
+                for kw in cut_kwargs]
     if not cuts:
         steps = len(hierarchy.actions)
-        planes, _ = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps),
+        planes, _ = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), sigmas=hierarchy.sigmas,
                                       min_plane_points=min_plane_points, residuals=False, actions=steps)
         cuts = [planes]
     scalar = not isinstance(max_error_increment, Sequence | np.ndarray) and not isinstance(
         max_planes, Sequence | np.ndarray)
     return cuts[0] if scalar and len(cuts) == 1 else cuts
+
+
+def _surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile | None, min_plane_points: int,
+              surface_tolerance: float | None, connected_only: bool) -> PlaneSet:
+    """One snapshot of the greedy, consolidated into whole surfaces and filtered for planarity."""
+    if 'max_error_increment' in cut:
+        steps = hierarchy.steps_for_error(cut['max_error_increment'])
+    else:
+        steps = hierarchy.steps_for_count(cut['max_planes'])
+    ids = hierarchy.plane_ids(steps)
+    scan = hierarchy.scan
+    sigmas = hierarchy.sigmas
+    unit_scan = scan if sigmas is None else replace(
+        scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
+    ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
+    if surface_tolerance is not None:
+        ids = consolidate_pieces(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only=connected_only,
+                                 noise_factor=0.0 if profile is None else profile.noise_factor)
+    planes, _ = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
+                                  actions=steps, **cut)
+    factor = np.inf if profile is None else profile.max_plane_rmse_factor
+    if np.isfinite(factor) and planes.num_planes:
+        planes = _drop_non_planar(unit_scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor, factor,
+                                  sigmas, min_plane_points, steps, cut)
+    return planes
+
+
+def _drop_non_planar(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float, noise_factor: float,
+                     factor: float, sigmas: np.ndarray | None, min_plane_points: int, steps: int,
+                     cut: dict) -> PlaneSet:
+    """Report as no plane every plane whose RMS point-to-plane distance exceeds
+    factor * sqrt(tau^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
+    plus the sensor's noise along the normal (lambda: noise_factor).
+    """
+    labels = planes.labels.reshape(-1)
+    on = np.flatnonzero(labels > 0)
+    j = labels[on] - 1
+    normals_internal = planes.normals[j]
+    points = scan.endpoints[on] + scan.center
+    distance = np.einsum('ij,ij->i', points, normals_internal) - planes.offsets[j]
+    along = np.abs(np.einsum('ij,ij->i', scan.directions[on], normals_internal)) * ray_sigmas[on]
+    count = np.maximum(planes.point_counts, 1)
+    mean_d2 = np.bincount(j, weights=distance**2, minlength=planes.num_planes) / count
+    noise2 = np.bincount(j, weights=along**2, minlength=planes.num_planes) / count
+    sigma2 = np.bincount(j, weights=ray_sigmas[on] ** 2, minlength=planes.num_planes) / count
+    planar = mean_d2 <= factor**2 * (tau**2 + noise_factor**2 * sigma2 + noise2)
+    if planar.all():
+        return planes
+    keep = np.concatenate([[False], planar])
+    ids = np.where(keep[labels], labels, -1).astype(np.int64)
+    fit_scan = scan if sigmas is None else replace(
+        scan, directions=scan.directions * np.where(scan.valid, sigmas, 0.0)[:, None])
+    refit, _ = _fit_pixel_groups(fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
+                                 actions=steps, **cut)
+    return refit

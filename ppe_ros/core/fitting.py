@@ -19,7 +19,7 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.planes import PlaneSet
-from ppe_ros.core.scan import RayScan, make_ray_scan
+from ppe_ros.core.scan import MAX_RANGE, MIN_RANGE, RayScan, make_ray_scan
 
 #: Gauss-Newton stops when the SSE decreases by less than this fraction (or the step is tiny).
 FIT_RELATIVE_TOLERANCE = 1e-13
@@ -31,7 +31,7 @@ FIT_MAX_ITERATIONS = 50
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """Solve the symmetric positive definite 3x3 system A x = b (adjugate, one division).
 
@@ -59,7 +59,7 @@ _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _ZERO10 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _init_add(acc, x, y, z):
     """Add the point (x, y, z) to the normal equations (a00 a01 a02 a11 a12 a22 b0 b1 b2) of _linear_init."""
     a00, a01, a02, a11, a12, a22, b0, b1, b2 = acc
@@ -72,7 +72,7 @@ def _init_add(acc, x, y, z):
 # reference counting of their array arguments on each call; see ppe_ros.core.extraction).
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _linear_init(endpoints, idx, count):
     """Initial plane w: minimises sum |p|^2 (w . p - 1)^2, a range-weighted algebraic fit."""
     acc = _ZERO9
@@ -82,7 +82,7 @@ def _linear_init(endpoints, idx, count):
     return _solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _ray_terms_at(px, py, pz, vx, vy, vz, w0, w1, w2):
     """Radial residual f = (w . p - 1) / (w . v) of the ray (p, v) at w (m), gradient df/dw = (p - f v) / (w . v)."""
     inv_den = 1.0 / (w0 * vx + w1 * vy + w2 * vz)
@@ -90,14 +90,14 @@ def _ray_terms_at(px, py, pz, vx, vy, vz, w0, w1, w2):
     return f, (px - f * vx) * inv_den, (py - f * vy) * inv_den, (pz - f * vz) * inv_den
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _ray_terms(endpoints, directions, k, w0, w1, w2):
     """:func:`_ray_terms_at` of ray k."""
     return _ray_terms_at(endpoints[k, 0], endpoints[k, 1], endpoints[k, 2], directions[k, 0], directions[k, 1],
                          directions[k, 2], w0, w1, w2)
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _gn_add(acc, res, g0, g1, g2):
     """Add a ray's residual and gradient to (SSE, J^T J (6), J^T r (3))."""
     sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = acc
@@ -105,7 +105,7 @@ def _gn_add(acc, res, g0, g1, g2):
             a22 + g2 * g2, b0 + g0 * res, b1 + g1 * res, b2 + g2 * res)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     """One pass over rays idx[:count] at w: SSE, Gauss-Newton information J^T J (6) and J^T r (3)."""
     acc = _ZERO10
@@ -115,7 +115,7 @@ def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     return acc
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """Minimise the radial SSE over w from the start (w0, w1, w2).
 
@@ -160,7 +160,7 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
     return sse, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """Exact fit of rays idx[:count]; starts from (w0, w1, w2) if finite, else the algebraic fit.
 
@@ -181,7 +181,7 @@ def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative
     return sse, w0, w1, w2, information
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """:func:`_fit` without the information: (sse, w0, w1, w2)."""
     sse, w0, w1, w2, _ = _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance)
@@ -193,7 +193,7 @@ def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, rel
 # as (3, n) arrays so that neighbouring anchors read neighbouring memory.
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _fit4_pass(P, V, rays, w0, w1, w2):
     """:func:`_gn_pass` of the four rays (same operations in the same order)."""
     acc = _ZERO10
@@ -204,7 +204,7 @@ def _fit4_pass(P, V, rays, w0, w1, w2):
     return acc
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _fit4_step(P, V, rays, state):
     """One iteration of :func:`_gauss_newton` with a full step, as selects instead of returns.
 
@@ -226,7 +226,7 @@ def _fit4_step(P, V, rays, state):
     return w, system, stopped | stop_now | fallback | (accept & tiny), fallback
 
 
-@nb.njit(cache=True, nogil=True, inline='always')
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _fit4(P, V, k0, k1, k2, k3):
     """:func:`_fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
 
@@ -251,7 +251,7 @@ def _fit4(P, V, k0, k1, k2, k3):
     return state[1][0], good & state[2] & (not state[3])
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _fit_groups(endpoints, directions, members, starts, max_iterations, relative_tolerance, out_w, out_sse,
                 out_info):
     """Fit every group g = members[starts[g]:starts[g+1]] exactly (parallel over groups)."""
@@ -358,7 +358,8 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
         org = None
     scan = make_ray_scan(pts[:, None, :], org)
     if not scan.valid.all():
-        raise ValueError(f'{int((~scan.valid).sum())} of {len(pts)} rays are not finite or have zero length')
+        raise ValueError(f'{int((~scan.valid).sum())} of {len(pts)} rays are not finite or have a length outside '
+                         f'{MIN_RANGE:g}..{MAX_RANGE:g} m')
     planes, residuals = _fit_pixel_groups(scan, np.zeros(len(pts), np.int64), min_plane_points=3)
     if planes.num_planes != 1 or not np.isfinite(planes.sse[0]):
         raise ValueError('degenerate ray set: the rays do not determine a plane (collinear endpoints?)')
@@ -374,12 +375,16 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
 
 
 def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, residuals: bool = True,
-                      **meta) -> tuple[PlaneSet, np.ndarray | None]:
+                      sigmas: np.ndarray | None = None, **meta) -> tuple[PlaneSet, np.ndarray | None]:
     """Fit every group of pixels sharing a plane id >= 0 (ids < 0: no plane).
 
     Groups smaller than ``min_plane_points`` become no plane. Planes are numbered 1..J by
     decreasing size (ties: first pixel in row-major order). Returns the PlaneSet and an
     ``(H, W)`` image of radial residuals (NaN where no plane; None when ``residuals`` is False).
+
+    With ``sigmas`` (the rays' range noise, m), the scan's directions are scaled by them (a sensor
+    model): the fits minimise the normalised residuals, the covariances follow from that weighted
+    fit, and sse, rmse and the residual image are in metres again.
     """
     height, width = scan.height, scan.width
     ids = np.where(scan.valid, plane_ids, -1).astype(np.int64)
@@ -413,34 +418,42 @@ def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points:
     covariances = np.full((n_planes, 3, 3), np.nan)
     plane_fitted = np.isfinite(out_w).all(axis=1)
     fitted = np.flatnonzero(plane_fitted)
-    residual_image = np.full(scan.size, np.nan) if residuals else None
+    residual_image = np.full(scan.size, np.nan) if residuals or sigmas is not None else None
     if len(fitted):
         w = out_w[fitted]
         normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
         covariances[fitted] = _closest_point_covariances(w, scan.center, out_info[fitted], out_sse[fitted],
                                                          point_counts[fitted])
-        if residuals:
+        if residual_image is not None:
             member_plane = np.repeat(np.arange(n_planes), point_counts)
             on_fitted = plane_fitted[member_plane]
             idx = members[on_fitted]
             w_of_pixel = out_w[member_plane[on_fitted]]
             residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
                 'ij,ij->i', scan.directions[idx], w_of_pixel)
+    sse = out_sse.copy()
+    if sigmas is not None:  # residuals in metres again
+        residual_image *= sigmas
+        on_plane = np.flatnonzero(labels > 0)
+        metric = np.bincount(labels[on_plane] - 1, weights=residual_image[on_plane] ** 2, minlength=n_planes)
+        sse = np.where(plane_fitted, metric, out_sse)
+        if not residuals:
+            residual_image = None
     planes = PlaneSet(
         labels=labels.reshape(height, width),
         normals=normals,
         offsets=offsets,
         centroids=centroids,
         point_counts=point_counts,
-        sse=out_sse.copy(),
-        rmse=np.sqrt(out_sse / point_counts),
+        sse=sse,
+        rmse=np.sqrt(sse / point_counts),
         covariances=covariances,
         **meta,
     )
     return planes, None if residual_image is None else residual_image.reshape(height, width)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _id_counts(ids):
     """Pixel count and first pixel (row-major) of every id in 0..len(ids)-1 (ids < 0 ignored)."""
     n = len(ids)
@@ -455,7 +468,7 @@ def _id_counts(ids):
     return counts, first
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True)
 def _group_members(ids, rank, starts, endpoints, members, labels, sums):
     """Members of plane r in members[starts[r]:starts[r+1]] (row-major order), labels (r + 1; 0 for
     no plane) and the sum of each plane's endpoints, for the plane ranks ``rank[id]`` (-1: none)."""

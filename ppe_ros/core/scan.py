@@ -14,6 +14,11 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+#: Shortest ray (m) the extractor uses: a shorter one (a point on or next to its ray start) is a no-return.
+MIN_RANGE = 1e-3
+#: Longest ray (m) the extractor uses: a longer one (garbage such as a misread cloud) is a no-return.
+MAX_RANGE = 1e5
+
 
 @dataclass(frozen=True)
 class RayScan:
@@ -25,7 +30,7 @@ class RayScan:
             ``center``), metres; rows of invalid rays are 0.
         directions: ``(H*W, 3)`` unit ray directions (0 for invalid rays).
         ranges: ``(H*W,)`` measured ray lengths ``r_k = |p_k - s_k|`` in metres (NaN if invalid).
-        valid: ``(H*W,)`` bool: finite endpoint and start, and ``r_k > 0``.
+        valid: ``(H*W,)`` bool: finite endpoint and start, and ``MIN_RANGE <= r_k <= MAX_RANGE``.
         center: ``(3,)`` the internal frame origin in input coordinates (mean valid ray start).
     """
 
@@ -116,9 +121,9 @@ def make_ray_scan(points: np.ndarray, origins: np.ndarray | None = None) -> RayS
     )
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _ranges(points, starts, ranges, valid):
-    """Ray lengths |p - s| (m; NaN when invalid) and validity (finite, > 0) of (n, 3) endpoints.
+    """Ray lengths |p - s| (m; NaN when invalid) and validity (MIN_RANGE <= r <= MAX_RANGE) of (n, 3) endpoints.
 
     ``starts`` is ``(n, 3)`` or ``(1, 3)`` (one start for every ray).
     """
@@ -129,12 +134,12 @@ def _ranges(points, starts, ranges, valid):
         d1 = points[k, 1] - starts[s, 1]
         d2 = points[k, 2] - starts[s, 2]
         r = np.sqrt((d0 * d0 + d2 * d2) + d1 * d1)  # numpy's einsum order: equal to it bit for bit
-        ok = np.isfinite(r) and r > 0.0
+        ok = r >= MIN_RANGE and r <= MAX_RANGE  # False for NaN
         valid[k] = ok
         ranges[k] = r if ok else np.nan
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _rays(points, starts, ranges, valid, center, endpoints, directions):
     """Endpoints relative to ``center`` and unit directions (p - s) / r; rows of invalid rays 0."""
     step = 0 if starts.shape[0] == 1 else 1  # start row of ray k: k * step

@@ -1,0 +1,404 @@
+"""Whole surfaces: consolidate the greedy's planes into one plane per physical planar surface.
+
+Pure numpy/numba; no ROS import.
+
+The model. A physical planar surface is a plane up to a smooth deviation (flatness, the sensor's
+systematic errors: per-beam range biases and angle errors, depth distortion) whose RMS distance
+from the plane, measured along the normal, is at most the *surface tolerance* tau (metres). Two
+pieces A and B are the same surface when
+
+* they are *candidates*: they touch in the grid (4-neighbours), or, unless ``connected_only``,
+  they are seen on either side of an occluder: along a grid row or column, every ray between a
+  pixel of A and a pixel of B has no return or ends in front of the plane of the piece it leads
+  to (by more than 2 tau plus 2 sigma of that ray), over at most ``max_gap`` pixels; and
+* the orthogonal least-squares plane U of their union lies within tau RMS of each piece's own
+  plane over that piece's points:
+  ``dev(P, U)^2 = mean_P dist_U(p)^2 - mean_P dist_P(p)^2 <= tau^2 + lambda^2 mean_P sigma_k^2`` for
+  P = A and P = B (lambda, ``noise_factor``, lets the tolerance grow with the sensor's noise, as a
+  depth camera's systematic errors grow with depth; 0 for a constant tau).
+  (A step between two parallel pieces is at most tau from their union's plane for the larger
+  piece and the full step for a much smaller one; two pieces of equal size pass with a step of up
+  to 2 tau, the worst case.)
+
+``dev(A, U)^2 N_A + dev(B, U)^2 N_B`` is the union's increase of the sum of squared point-to-plane
+distances, so the test is the paper's merge increment divided per point and per piece instead of
+summed: a merge of two large, nearly coplanar pieces costs about ``N delta^2`` in the paper's error,
+but only ``delta^2`` here, which is why large surfaces stay whole while a kerb (a 12 cm step), a
+window recessed 10 cm, a ramp at 5 deg or two walls at 90 deg stay apart (their deviation is far
+above a tau of a few cm).
+
+The pass merges candidate pairs greedily, cheapest first (cost ``max(dev(A, U)^2, dev(B, U)^2)``, ties by
+the smaller then the larger piece id), re-valuing a merged piece's pairs with all the neighbours of
+both pieces, until no admissible pair is left. Candidate pairs are found once, from the greedy's
+pieces. Moments (count, sums, sums of products) make every valuation O(1).
+:func:`consolidate_reference` (test/reference_consolidation.py) is the brute-force definition the
+kernel is tested against.
+"""
+
+from __future__ import annotations
+
+import heapq
+
+import numba as nb
+import numpy as np
+
+from ppe_ros.core.scan import RayScan
+
+#: Largest gap (pixels along a row or column) an occluder may cover between two pieces of a surface.
+DEFAULT_MAX_GAP = 64
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _piece_moments(ids, endpoints, sigmas, n_pieces):
+    """(K, 11) moments of each piece: count, sum x y z, sum xx xy xz yy yz zz (internal frame, m), sum sigma^2."""
+    mom = np.zeros((n_pieces, 11))
+    for k in range(len(ids)):
+        g = ids[k]
+        if g < 0:
+            continue
+        x = endpoints[k, 0]
+        y = endpoints[k, 1]
+        z = endpoints[k, 2]
+        mom[g, 0] += 1.0
+        mom[g, 1] += x
+        mom[g, 2] += y
+        mom[g, 3] += z
+        mom[g, 4] += x * x
+        mom[g, 5] += x * y
+        mom[g, 6] += x * z
+        mom[g, 7] += y * y
+        mom[g, 8] += y * z
+        mom[g, 9] += z * z
+        mom[g, 10] += sigmas[k] * sigmas[k]
+    return mom
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _smallest_eigen(a00, a01, a02, a11, a12, a22):
+    """Smallest eigenvalue and its unit eigenvector (value, n0, n1, n2) of a symmetric 3x3 matrix.
+
+    Trigonometric solution for the eigenvalue; the eigenvector is the largest cross product of two
+    rows of A - value I (they span its orthogonal complement). A repeated smallest eigenvalue gives
+    one of its eigenvectors.
+    """
+    q = (a00 + a11 + a22) / 3.0
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    if p2 <= 1e-300:
+        return q, 0.0, 0.0, 1.0
+    p = np.sqrt(p2 / 6.0)
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    phi = np.arccos(min(max(det / 2.0, -1.0), 1.0)) / 3.0
+    value = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest of the three
+    r00, r11, r22 = a00 - value, a11 - value, a22 - value
+    # rows (r00 a01 a02), (a01 r11 a12), (a02 a12 r22): their three cross products
+    x0, x1, x2 = a01 * a12 - a02 * r11, a02 * a01 - r00 * a12, r00 * r11 - a01 * a01
+    y0, y1, y2 = a01 * r22 - a02 * a12, a02 * a02 - r00 * r22, r00 * a12 - a01 * a02
+    z0, z1, z2 = r11 * r22 - a12 * a12, a12 * a02 - a01 * r22, a01 * a12 - r11 * a02
+    nx = x0 * x0 + x1 * x1 + x2 * x2
+    ny = y0 * y0 + y1 * y1 + y2 * y2
+    nz = z0 * z0 + z1 * z1 + z2 * z2
+    if nx >= ny and nx >= nz:
+        c0, c1, c2, norm2 = x0, x1, x2, nx
+    elif ny >= nz:
+        c0, c1, c2, norm2 = y0, y1, y2, ny
+    else:
+        c0, c1, c2, norm2 = z0, z1, z2, nz
+    if not norm2 > 0.0:
+        return value, 0.0, 0.0, 1.0
+    inv = 1.0 / np.sqrt(norm2)
+    return value, c0 * inv, c1 * inv, c2 * inv
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _scatter(m):
+    """Mean (3) and per-point scatter (6: xx xy xz yy yz zz) of moments m (count, sums, sums of products)."""
+    inv = 1.0 / m[0]
+    m0, m1, m2 = m[1] * inv, m[2] * inv, m[3] * inv
+    return (m0, m1, m2), (m[4] * inv - m0 * m0, m[5] * inv - m0 * m1, m[6] * inv - m0 * m2,
+                          m[7] * inv - m1 * m1, m[8] * inv - m1 * m2, m[9] * inv - m2 * m2)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _plane_of(m, out):
+    """The orthogonal LS plane of moments m into out (11): mean (3), scatter (6), own (the smallest
+    eigenvalue, >= 0: the mean squared distance from the plane), then nothing; normal returned."""
+    mean, sc = _scatter(m)
+    value, n0, n1, n2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
+    out[0], out[1], out[2] = mean
+    out[3], out[4], out[5], out[6], out[7], out[8] = sc
+    out[9] = max(value, 0.0)
+    return n0, n1, n2
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _deviation(piece, n0, n1, n2, c0, c1, c2):
+    """dev^2 (m^2) of a piece (its _plane_of row) from the plane with unit normal n through c: the mean
+    squared distance of its points from that plane less that from its own plane."""
+    q = (n0 * n0 * piece[3] + n1 * n1 * piece[6] + n2 * n2 * piece[8]
+         + 2.0 * (n0 * n1 * piece[4] + n0 * n2 * piece[5] + n1 * n2 * piece[7]))
+    offset = n0 * (piece[0] - c0) + n1 * (piece[1] - c1) + n2 * (piece[2] - c2)
+    return max(q + offset * offset - piece[9], 0.0)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
+    """Cost of joining pieces A and B: max over P of dev(P, U)^2 / (tau^2 + lambda^2 mean_P sigma^2).
+
+    U is the union's LS plane; m_*: moments; plane_*: their _plane_of rows. Admissible: cost <= 1.
+    """
+    mean_u, sc = _scatter(m_a + m_b)
+    _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
+    allowed_a = tau2 + noise_factor2 * m_a[10] / m_a[0]
+    allowed_b = tau2 + noise_factor2 * m_b[10] / m_b[0]
+    return max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
+               _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b)
+
+
+def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise_factor: float = 0.0) -> float:
+    """:func:`_merge_cost` of two pieces given by their (11,) moments (see _piece_moments); <= 1: admissible."""
+    m_a = np.asarray(m_a, np.float64)
+    m_b = np.asarray(m_b, np.float64)
+    plane_a, plane_b = np.empty(11), np.empty(11)
+    _plane_of(m_a, plane_a)
+    _plane_of(m_b, plane_b)
+    return float(_merge_cost(m_a, m_b, plane_a, plane_b, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, connected_only):
+    """True if ray k may lie between two pieces of the surface with plane (normal, mean).
+
+    It may if it has no plane and ends on the plane (within 2 tau + 2 sigma_k |n . v_k| along the
+    normal), or, unless connected_only, if it has no return or ends in front of the plane (on the
+    sensor's side) by more than that: an occluder.
+    """
+    if not np.isfinite(ranges[k]):
+        return not connected_only
+    r = ranges[k]
+    along = normal[0] * directions[k, 0] + normal[1] * directions[k, 1] + normal[2] * directions[k, 2]
+    margin = 2.0 * tau + 2.0 * sigmas[k] * abs(along)
+    height = (normal[0] * (endpoints[k, 0] - mean[0]) + normal[1] * (endpoints[k, 1] - mean[1])
+              + normal[2] * (endpoints[k, 2] - mean[2]))
+    if abs(height) <= margin:
+        return ids[k] < 0
+    if connected_only:
+        return False
+    # the sensor's side: the ray start's side of the plane (the endpoint minus the ray)
+    start_height = height - r * along
+    return height * start_height > 0.0 and abs(start_height) > abs(height)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _candidate_pairs(ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap,
+                     connected_only):
+    """Candidate pairs (a < b) as an (m, 2) array, possibly with repeats (see the module docstring)."""
+    out = np.empty((2 * len(ids) + 16, 2), np.int64)
+    n_out = 0
+    for direction in range(2):  # 0: along rows (left), 1: along columns (up)
+        step = 1 if direction == 0 else width
+        for k in range(len(ids)):
+            b = ids[k]
+            if b < 0:
+                continue
+            i = k // width
+            j = k - i * width
+            position = j if direction == 0 else i
+            if position == 0:
+                continue
+            back = ids[k - step]
+            if back == b:
+                continue
+            a = back
+            if back < 0 or _bridges(ids, endpoints, directions, ranges, sigmas, k - step, normals[b], means[b], tau,
+                                    connected_only):
+                # walk back over rays that bridge to b's plane, to the first ray that does not: a
+                # candidate if it is on a plane and every ray between bridges to that plane too
+                a = -1
+                for g in range(1, min(max_gap, position) + 1):
+                    q = k - g * step
+                    if ids[q] == b:
+                        break
+                    if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals[b], means[b], tau,
+                                connected_only):
+                        continue
+                    if ids[q] >= 0 and _gap_bridges(ids, endpoints, directions, ranges, sigmas, q, k, step,
+                                                    normals[ids[q]], means[ids[q]], tau, connected_only):
+                        a = ids[q]
+                    break
+                if a < 0:
+                    continue
+            if n_out == len(out):
+                grown = np.empty((2 * len(out), 2), np.int64)
+                grown[:n_out] = out[:n_out]
+                out = grown
+            out[n_out, 0] = min(a, b)
+            out[n_out, 1] = max(a, b)
+            n_out += 1
+    return out[:n_out]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _gap_bridges(ids, endpoints, directions, ranges, sigmas, first, last, step, normal, mean, tau, connected_only):
+    """True if every ray strictly between pixels first and last (a line of the grid) bridges to the plane."""
+    for q in range(first + step, last, step):
+        if not _bridges(ids, endpoints, directions, ranges, sigmas, q, normal, mean, tau, connected_only):
+            return False
+    return True
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _find(parent, x):
+    while parent[x] != x:
+        parent[x] = parent[parent[x]]
+        x = parent[x]
+    return x
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
+    """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
+
+    A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2).
+    """
+    n = moments.shape[0]
+    mom = moments.copy()
+    parent = np.arange(n)
+    version = np.zeros(n, np.int64)
+    # half-edges: a linked list of neighbours per root (head, tail, next)
+    m = pairs.shape[0]
+    other = np.empty(2 * m, np.int64)
+    nxt = np.full(2 * m, -1, np.int64)
+    head = np.full(n, -1, np.int64)
+    tail = np.full(n, -1, np.int64)
+    for e in range(m):
+        for side in range(2):
+            h = 2 * e + side
+            u = pairs[e, side]
+            other[h] = pairs[e, 1 - side]
+            if head[u] < 0:
+                head[u] = h
+            else:
+                nxt[tail[u]] = h
+            tail[u] = h
+    plane = np.empty((n, 11))
+    for x in range(n):
+        _plane_of(mom[x], plane[x])
+    heap = [(0.0, np.int64(0), np.int64(0), np.int64(0), np.int64(0))]
+    heap.pop()
+    for e in range(m):
+        a = pairs[e, 0]
+        b = pairs[e, 1]
+        cost = _merge_cost(mom[a], mom[b], plane[a], plane[b], tau2, noise_factor2)
+        if cost <= 1.0:
+            heapq.heappush(heap, (cost, a, b, np.int64(0), np.int64(0)))
+    stamp = np.full(n, -1, np.int64)
+    n_merges = 0
+    while len(heap) > 0:
+        cost, a, b, va, vb = heapq.heappop(heap)
+        if parent[a] != a or parent[b] != b or version[a] != va or version[b] != vb:
+            continue
+        # merge b into a (a < b: the smaller id survives)
+        parent[b] = a
+        mom[a] += mom[b]
+        _plane_of(mom[a], plane[a])
+        version[a] += 1
+        n_merges += 1
+        if head[b] >= 0:
+            if head[a] < 0:
+                head[a] = head[b]
+            else:
+                nxt[tail[a]] = head[b]
+            tail[a] = tail[b]
+        # re-value a's pairs with every distinct neighbour root; the list keeps one half-edge per
+        # distinct neighbour (self-loops and repeats dropped), so its length stays the degree
+        h = head[a]
+        head[a] = -1
+        tail[a] = -1
+        while h >= 0:
+            following = nxt[h]
+            c = _find(parent, other[h])
+            if c != a and stamp[c] != n_merges:
+                stamp[c] = n_merges
+                other[h] = c
+                nxt[h] = -1
+                if head[a] < 0:
+                    head[a] = h
+                else:
+                    nxt[tail[a]] = h
+                tail[a] = h
+                lo = min(a, c)
+                hi = max(a, c)
+                value = _merge_cost(mom[lo], mom[hi], plane[lo], plane[hi], tau2, noise_factor2)
+                if value <= 1.0:
+                    heapq.heappush(heap, (value, lo, hi, version[lo], version[hi]))
+            h = following
+    roots = np.empty(n, np.int64)
+    for x in range(n):
+        roots[x] = _find(parent, x)
+    return roots
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _piece_planes(moments):
+    """Unit normals and means (internal frame) of the LS planes of pieces given by (K, 10) moments."""
+    normals = np.empty((len(moments), 3))
+    means = np.empty((len(moments), 3))
+    row = np.empty(11)
+    for g in range(len(moments)):
+        normals[g, 0], normals[g, 1], normals[g, 2] = _plane_of(moments[g], row)
+        means[g, 0], means[g, 1], means[g, 2] = row[0], row[1], row[2]
+    return normals, means
+
+
+def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
+                       noise_factor: float = 0.0, connected_only: bool = False,
+                       max_gap: int = DEFAULT_MAX_GAP) -> np.ndarray:
+    """Merge the pieces of one physical surface (see the module docstring).
+
+    Args:
+        scan: the ray model (unit directions).
+        piece_ids: ``(H*W,)`` piece of each pixel (>= 0), -1 for none; pieces of fewer than 3
+            pixels are left as they are.
+        sigmas: ``(H*W,)`` range noise of each ray (m); NaN for invalid rays.
+        surface_tolerance: tau (m), > 0.
+        noise_factor: lambda: a piece may deviate by sqrt(tau^2 + lambda^2 mean sigma_k^2) (its rays'
+            range noise; a depth camera's systematic errors grow with depth as its noise does).
+        connected_only: consider only pieces that touch in the grid.
+        max_gap: the largest occluded gap (pixels) between two pieces of a surface.
+
+    Returns:
+        ``(H*W,)`` surface id of each pixel (the smallest piece id of its surface), -1 for none.
+    """
+    tau = float(surface_tolerance)
+    if not (np.isfinite(tau) and tau > 0.0):
+        raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
+    if int(max_gap) < 1:
+        raise ValueError(f'max_gap must be >= 1 pixel; got {max_gap!r}')
+    ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
+    if ids.shape != (scan.size,):
+        raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
+    uniq, dense = np.unique(ids, return_inverse=True)
+    dense = dense.reshape(-1) - (1 if len(uniq) and uniq[0] < 0 else 0)
+    labels = uniq[uniq >= 0]
+    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
+    if len(labels) < 2:
+        return ids.copy()
+    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
+    moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
+    small = moments[:, 0] < 3
+    dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
+    normals, means = _piece_planes(np.where(small[:, None], np.ones(11), moments))
+    pairs = _candidate_pairs(dense_for_pairs, scan.endpoints, scan.directions, scan.ranges,
+                             np.ascontiguousarray(sigmas, dtype=np.float64), scan.height, scan.width, normals, means,
+                             tau, int(max_gap), bool(connected_only))
+    n = np.int64(len(labels))
+    codes = np.unique(pairs[:, 0] * n + pairs[:, 1])  # sorted by (a, b), each pair once
+    pairs = np.stack([codes // n, codes % n], axis=1)
+    factor = float(noise_factor)
+    if not (np.isfinite(factor) and factor >= 0.0):
+        raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
+    roots = _consolidate_kernel(moments, np.ascontiguousarray(pairs), tau * tau, factor * factor)
+    return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)

@@ -1,0 +1,145 @@
+"""Sensor models: the range noise of each ray, and the extraction profile of each kind of sensor.
+
+Pure numpy; no ROS import. A :class:`NoiseModel` gives every ray k a standard deviation sigma_k (m) of
+its measured length r_k; the extractor then minimises the sum of squared *normalised* residuals
+((r_k - rhat_k) / sigma_k)^2, so that its error increments are dimensionless (chi^2 units). The
+paper's model is the special case sigma_k = 1 m: the increments are the paper's m^2, bit for bit.
+
+The noise model (all terms independent, added in quadrature)::
+
+    sigma_k^2 = constant^2 + (proportional * r_k)^2 + (depth_quadratic * z_k^2 * r_k / z_k)^2
+
+``z_k`` is the depth of the endpoint along ``optical_axis`` (a depth camera's z; its axial noise
+``depth_quadratic * z^2`` turned into ray-length noise by the ray's obliquity ``r / z``).
+
+A :class:`SensorProfile` bundles a noise model with the extraction settings chosen for that kind of
+sensor (the greedy's stop, the surface tolerance of the consolidation, the smallest plane); see
+docs/algorithm.md ("Sensor models and whole surfaces").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+#: The depth cameras' optical axis in their optical frame (x right, y down, z forward).
+OPTICAL_AXIS = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Standard deviation of a ray's measured length, sigma(r, z) in metres (see the module docstring).
+
+    Attributes:
+        constant: range noise independent of range (m).
+        proportional: range noise per metre of range (dimensionless).
+        depth_quadratic: axial noise coefficient c of sigma_z = c z^2 (1/m), for depth cameras.
+        optical_axis: the axis along which z is measured (unit vector, the input frame).
+        minimum: a floor on sigma (m), so that no ray gets an infinite weight.
+    """
+
+    constant: float = 0.0
+    proportional: float = 0.0
+    depth_quadratic: float = 0.0
+    optical_axis: tuple[float, float, float] = OPTICAL_AXIS
+    minimum: float = 1e-4
+
+    def __post_init__(self) -> None:
+        for name in ('constant', 'proportional', 'depth_quadratic', 'minimum'):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f'noise model {name} must be finite and >= 0; got {value!r}')
+        if not self.minimum > 0.0:
+            raise ValueError(f'noise model minimum must be > 0 m; got {self.minimum!r}')
+        axis = np.asarray(self.optical_axis, dtype=np.float64)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0:
+            raise ValueError(f'optical_axis must be a non-zero 3-vector; got {self.optical_axis!r}')
+        if self.constant == 0.0 and self.proportional == 0.0 and self.depth_quadratic == 0.0:
+            raise ValueError('a noise model needs at least one of constant, proportional, depth_quadratic > 0')
+
+    def sigmas(self, ranges: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """sigma_k (m) of rays with lengths ``ranges`` (n,) and unit ``directions`` (n, 3).
+
+        Invalid rays (NaN range) get NaN.
+        """
+        r = np.asarray(ranges, dtype=np.float64)
+        variance = np.full(r.shape, self.constant**2)
+        if self.proportional:
+            variance += (self.proportional * r) ** 2
+        if self.depth_quadratic:
+            axis = np.asarray(self.optical_axis, dtype=np.float64)
+            axis = axis / np.linalg.norm(axis)
+            cos = np.abs(directions @ axis)
+            z = r * cos
+            # sigma_r = c z^2 / cos: the axial noise along the ray; rays at 90 deg to the axis get
+            # the noise of their range as depth
+            with np.errstate(divide='ignore', invalid='ignore'):
+                along_ray = np.where(cos > 1e-3, self.depth_quadratic * z * z / cos, self.depth_quadratic * r * r)
+            variance += along_ray**2
+        return np.maximum(np.sqrt(variance), self.minimum)
+
+
+@dataclass(frozen=True)
+class SensorProfile:
+    """The extraction settings of one kind of sensor.
+
+    Attributes:
+        name: 'paper', 'lidar' or 'depth_camera' (or a user's own).
+        noise: the range noise model; None = the paper's (sigma = 1 m: increments in m^2).
+        max_error_increment: the greedy's stop (dimensionless with a noise model, m^2 without).
+        max_neighbor_distance: lmax (m); inf = no limit.
+        surface_tolerance: tau (m): the RMS deviation from its plane that one physical surface may
+            show (flatness, the sensor's systematic errors); None = no consolidation (the paper).
+        noise_factor: lambda: the tolerance of a piece is sqrt(tau^2 + lambda^2 mean sigma_k^2).
+        connected_only: consolidate only pieces that touch in the grid (no merge across occluders).
+        min_plane_points: smaller planes are reported as no plane.
+        max_plane_rmse_factor: a consolidated plane whose RMS point-to-plane distance exceeds this
+            multiple of sqrt(tau^2 + its sensor noise^2) is not planar (trees, bushes, curved
+            bodies) and is reported as no plane; inf = keep every plane.
+    """
+
+    name: str
+    noise: NoiseModel | None = None
+    max_error_increment: float = 0.01
+    max_neighbor_distance: float = np.inf
+    surface_tolerance: float | None = None
+    noise_factor: float = 0.0
+    connected_only: bool = False
+    min_plane_points: int = 4
+    max_plane_rmse_factor: float = np.inf
+    extra: dict = field(default_factory=dict)
+
+    def with_overrides(self, **overrides) -> SensorProfile:
+        """A copy with the given (non-None) settings replaced."""
+        return replace(self, **{k: v for k, v in overrides.items() if v is not None})
+
+
+#: Spinning lidars (Ouster OS-0/1/2, Velodyne, Hesai): 2 cm range noise, plus 0.1 % of the range.
+LIDAR_NOISE = NoiseModel(constant=0.02, proportional=0.001)
+#: Kinect v1 (Khoshelham and Elberink 2012): axial sigma_z = 1.43e-3 z^2, a 1 mm floor.
+KINECT_V1_NOISE = NoiseModel(constant=0.001, depth_quadratic=1.43e-3)
+#: Intel RealSense D435-class stereo: about 2 % of depth at 2 m (sigma_z = 5e-3 z^2).
+REALSENSE_NOISE = NoiseModel(constant=0.001, depth_quadratic=5e-3)
+
+#: The built-in profiles (see docs/algorithm.md for how their defaults were chosen).
+PROFILES: dict[str, SensorProfile] = {
+    'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
+                           min_plane_points=4),
+    'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
+                           min_plane_points=20, max_plane_rmse_factor=2.0),
+    'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
+                                  surface_tolerance=0.005, noise_factor=2.0, min_plane_points=100,
+                                  max_plane_rmse_factor=2.0),
+}
+
+
+def sensor_profile(sensor: str | SensorProfile) -> SensorProfile:
+    """The profile named ``sensor`` ('paper', 'lidar', 'depth_camera'), or ``sensor`` itself."""
+    if isinstance(sensor, SensorProfile):
+        return sensor
+    try:
+        return PROFILES[str(sensor)]
+    except KeyError:
+        raise ValueError(f"sensor must be one of {', '.join(repr(k) for k in PROFILES)} or a SensorProfile; "
+                         f'got {sensor!r}') from None
