@@ -371,3 +371,15 @@ def test_modules_do_not_import_rclpy_or_rosbags() -> None:
     )
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True, timeout=60)
     assert result.stdout.strip() == '[]'
+
+
+@pytest.mark.parametrize('flavour', FLAVOURS)
+def test_zero_points_become_nan_only_when_asked(flavour):
+    points = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0], [-0.0, 0.0, 0.0]]])
+    cloud_class, field_class = _classes(flavour)
+    msg = xyz_to_pointcloud2(points, header=_header(flavour), msg_class=cloud_class, field_class=field_class)
+    np.testing.assert_array_equal(pointcloud2_to_xyz(msg), points)  # a general converter keeps them
+    read = pointcloud2_to_xyz(msg, zero_is_no_return=True)
+    assert np.isnan(read[0, 0]).all() and np.isnan(read[1, 1]).all()  # -0.0 == 0.0
+    np.testing.assert_array_equal(read[0, 1], points[0, 1])
+    np.testing.assert_array_equal(read[1, 0], points[1, 0])

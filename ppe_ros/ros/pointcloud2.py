@@ -151,7 +151,7 @@ def is_organized(msg: Any) -> bool:
     return int(msg.height) > 1
 
 
-def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarray:
+def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False, zero_is_no_return: bool = False) -> np.ndarray:
     """The x, y, z fields of ``msg`` as an ``(height, width, 3)`` float64 array (NaN = no return).
 
     A point with any non-finite coordinate becomes all NaN. x, y, z must share one datatype
@@ -160,6 +160,8 @@ def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarr
     Args:
         msg: a PointCloud2 message of any flavour (rclpy, rosbags or an equivalent object).
         require_organized: raise if the cloud is unorganized (``height == 1``).
+        zero_is_no_return: a point at exactly (0, 0, 0) becomes all NaN too (many drivers, Ouster's
+            among them, publish that for a pixel without a return; the file loaders do the same).
 
     Raises:
         PointCloudError: see :func:`pointcloud2_to_structured`; missing x/y/z; x/y/z of different
@@ -185,13 +187,17 @@ def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarr
         if cloud.dtype[axis].shape != ():
             raise PointCloudError(f'field {axis!r} has count {int(by_name[axis].count)}; expected 1')
     xyz = np.empty((*cloud.shape, 3), dtype=np.float64)
-    for index, axis in enumerate('xyz'):
-        xyz[..., index] = cloud[axis]
+    with np.errstate(invalid='ignore'):  # a signalling NaN (e.g. bytes of the wrong byte order) warns
+        for index, axis in enumerate('xyz'):
+            xyz[..., index] = cloud[axis]
     # a sum is non-finite exactly when a term is (inf - inf is NaN; only coordinates beyond 1e307 m
     # could overflow it); a sum over the small last axis, or isfinite(xyz).all(axis=2), costs ten
     # times more on a 128 x 1024 cloud
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
-    invalid = ~np.isfinite(x + y + z)
+    with np.errstate(invalid='ignore', over='ignore'):
+        invalid = ~np.isfinite(x + y + z)
+    if zero_is_no_return:
+        invalid |= (x == 0.0) & (y == 0.0) & (z == 0.0)
     # only points that are not all NaN already need writing
     partial = invalid & ~(np.isnan(x) & np.isnan(y) & np.isnan(z))
     if partial.any():
