@@ -8,6 +8,7 @@ from __future__ import annotations
 import gc
 import itertools
 import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -664,3 +665,51 @@ def test_setting_an_unknown_parameter_names_it(ros_context, executor, namespace)
     assert 'max_error_increment' in message and ': []' not in message
     [result] = harness.node.set_parameters([Parameter('use_sim_time', value=False)])  # ROS's own ones still work
     assert result.successful
+
+
+# ------------------------------------------------------------------ a stop during the start-up
+
+
+def _shut_down_before(original):
+    def hook(self, *args, **kwargs):
+        rclpy.get_default_context().try_shutdown()  # what rclpy's SIGINT/SIGTERM handler does
+        return original(self, *args, **kwargs)
+    return hook
+
+
+def _sigint_before(original):
+    def hook(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return original(self, *args, **kwargs)
+    return hook
+
+
+@pytest.mark.parametrize('point', ['declare_parameter', 'create_publisher', 'create_subscription', 'create_timer',
+                                   '_start_workers', 'sigint_in_create_publisher', 'sigint_in_rclpy_init'])
+def test_main_exits_0_quietly_when_stopped_during_start_up(monkeypatch, capfd, point, namespace):
+    """Issue 17 item 10: a signal during ExtractorNode.__init__ made create_publisher raise RCLError (exit 1)."""
+    from ppe_ros.ros import node as node_module
+
+    if point == 'sigint_in_rclpy_init':
+        def interrupted_init(*args, **kwargs):
+            raise KeyboardInterrupt
+        monkeypatch.setattr(node_module.rclpy, 'init', interrupted_init)
+    elif point.startswith('sigint_in_'):
+        name = point.removeprefix('sigint_in_')
+        monkeypatch.setattr(ExtractorNode, name, _sigint_before(getattr(ExtractorNode, name)))
+    else:
+        monkeypatch.setattr(ExtractorNode, point, _shut_down_before(getattr(ExtractorNode, point)))
+    argv = ['extractor', '--ros-args', '-r', f'__ns:={namespace}']
+    assert node_module.main(argv) == 0
+    assert not rclpy.get_default_context().ok()
+    err = capfd.readouterr().err
+    assert 'Traceback' not in err and 'error' not in err.lower(), err
+
+
+def test_main_still_exits_2_on_an_invalid_parameter(capfd, namespace):
+    from ppe_ros.ros import node as node_module
+
+    argv = ['extractor', '--ros-args', '-r', f'__ns:={namespace}', '-p', 'marker_alpha:=4.0']
+    assert node_module.main(argv) == 2
+    err = capfd.readouterr().err
+    assert "extractor: error: invalid parameter 'marker_alpha'" in err and 'Traceback' not in err
