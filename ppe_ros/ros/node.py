@@ -14,14 +14,23 @@ about 0.2 s per 128 x 1024 sweep; ``test/test_threads.py``).
 Topics (relative names, remappable):
 
 * in ``points`` (``sensor_msgs/PointCloud2``, organized), QoS depth 1, reliability from the
-  ``input_reliability`` parameter;
+  ``input_reliability`` parameter. No return: a point with a NaN or infinite coordinate, or exactly
+  at (0, 0, 0) (what many drivers publish for a pixel without a return; the file loaders read it so
+  too); such points get label 0 and NaN coordinates in ``planes/labeled_points``;
 * out ``planes/labeled_points``, ``planes/markers``, ``planes`` (see :mod:`ppe_ros.ros.processing`)
   and ``/diagnostics`` (about 1 Hz). Outputs are reliable (they match reliable and best-effort
   subscribers); an output nobody subscribes to is not built.
 
 Parameters: :data:`ppe_ros.ros.processing.PARAM_SPECS`, loaded with
 ``--ros-args --params-file config/extractor.yaml`` and changeable at runtime (an invalid value is
-rejected with the reason).
+rejected with the reason; an integer array is accepted for ``ray_origin``; a name the node does not
+have is refused naming it).
+
+Bad input never stops the node: a cloud it cannot use is skipped (a warning per kind at most every
+5 s, counted by kind), a frame whose extraction or publishing raises is counted as failed and logged
+as one error line naming the frame (stamp, frame_id) and the reason; the worker goes on with the next
+frame whatever the exception. Diagnostics say WARN for skipped, ERROR for failed frames and for a
+worker thread that is not running.
 """
 
 from __future__ import annotations
@@ -726,7 +735,8 @@ def usage() -> str:
         '',
         'Plane extraction (PPE) on organized sensor_msgs/PointCloud2 clouds.',
         '',
-        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability)',
+        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability;',
+        '       NaN, infinite or exactly (0, 0, 0) points are no return)',
         f'  out  {LABELED_POINTS_TOPIC} (sensor_msgs/PointCloud2: x y z label rgb)',
         f'       {MARKERS_TOPIC} (visualization_msgs/MarkerArray)',
         f'       {PLANE_TABLE_TOPIC} (sensor_msgs/PointCloud2, one point per plane)',
