@@ -587,7 +587,7 @@ class ExtractorNode(Node):
             else:
                 logger.warning(message)
         except Exception as exc:  # logging must not take a worker down
-            print(f'[{self.get_name()}] {message} (logging failed: {type(exc).__name__}: {exc})', file=sys.stderr)
+            print(f'extractor: {message} (logging failed: {type(exc).__name__}: {exc})', file=sys.stderr)
 
     def _record_skip(self, exc: FrameSkipped) -> None:
         stats = self._stats
