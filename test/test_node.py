@@ -8,6 +8,7 @@ from __future__ import annotations
 import gc
 import itertools
 import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -528,3 +529,187 @@ def test_unknown_parameter_names_and_non_ros_arguments():
     argv = ['extractor', '--help', '--ros-args', '-p', 'a:=1', '--params-file', 'f.yaml', '--', 'x']
     assert _non_ros_arguments(argv) == ['--help', 'x']
     assert _non_ros_arguments(['extractor', '--ros-args', '-r', 'points:=/lidar']) == []
+
+
+# ------------------------------------------------------------------ a bad frame never stops the worker
+
+
+def byte_swapped_cloud(points, sec):
+    """The issue's failing frame: little-endian floats in a cloud that says is_bigendian (extreme values)."""
+    msg = make_cloud(points, frame_id='swapped', sec=sec)
+    msg.is_bigendian = True
+    return msg
+
+
+@pytest.mark.parametrize('order', ['skip_first', 'failure_first'])
+def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(ros_context, executor, namespace,
+                                                                              scan_points, order, monkeypatch):
+    """Issue 17 item 1: a warning and an error from the throttled logger killed the worker thread."""
+    import ppe_ros.core.extraction as extraction
+
+    real_extract = extraction.extract_planes
+
+    def extract_or_fail(points, **kwargs):  # the failing frame, whatever the core does with swapped bytes
+        if not np.isfinite(points).all(axis=2).any() or np.nanmax(np.abs(points)) > 1e6:
+            raise SystemError('CPUDispatcher(<function _seed_errors at 0x1>) returned a result with an '
+                              'exception set') from ZeroDivisionError('division by zero')
+        return real_extract(points, **kwargs)
+
+    monkeypatch.setattr(extraction, 'extract_planes', extract_or_fail)
+    harness = Harness(ros_context, executor, namespace)
+    unorganized = make_cloud(scan_points.reshape(-1, 3), sec=10)
+    swapped = byte_swapped_cloud(scan_points, sec=11)
+    for msg in ([unorganized, swapped] if order == 'skip_first' else [swapped, unorganized]):
+        harness.send(msg, wait_for='')
+        if msg is swapped:  # one line naming the frame and the reason inside the kernel
+            assert harness.node.frame_counts()['last_error'] == (
+                "frame failed (stamp 11.000000005 s, frame_id 'swapped'): ZeroDivisionError: division by zero "
+                '(in the compiled kernel _seed_errors)')
+    counts = harness.node.frame_counts()
+    assert (counts['skipped'], counts['failed']) == (1, 1), counts
+    for sec in (20, 21, 22):  # every good cloud after them gets its outputs
+        harness.send(make_cloud(scan_points, sec=sec))
+        assert harness.received['planes'][-1].header.stamp.sec == sec
+    assert all(worker.is_alive() for worker in harness.node._workers)
+    assert harness.node.frame_counts()['processed'] == 3
+
+
+def test_the_issues_repro_with_the_real_extractor(ros_context, executor, namespace, scan_points):
+    """Height-1 cloud, then a byte-swapped one (whatever the extractor makes of it), then good clouds."""
+    harness = Harness(ros_context, executor, namespace)
+    harness.send(make_cloud(scan_points.reshape(-1, 3), sec=1), wait_for='')
+    harness.send(byte_swapped_cloud(scan_points, sec=2), wait_for='')
+    harness.send(make_cloud(scan_points.reshape(-1, 3), sec=3), wait_for='')
+    for sec in (4, 5, 6):
+        harness.send(make_cloud(scan_points, sec=sec))
+        assert harness.received['planes'][-1].header.stamp.sec == sec
+    counts = harness.node.frame_counts()
+    assert counts['skipped'] == 2 and counts['processed'] + counts['failed'] == 4, counts
+
+
+def test_an_unexpected_exception_in_the_worker_is_a_failed_frame(ros_context, executor, namespace, scan_points,
+                                                                 monkeypatch):
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    real_process = node._process
+    calls = []
+
+    def process_once_broken(index, msg, number):
+        calls.append(number)
+        if len(calls) == 1:
+            raise RuntimeError('a defect in the node')
+        real_process(index, msg, number)
+
+    monkeypatch.setattr(node, '_process', process_once_broken)
+    harness.send(make_cloud(scan_points, frame_id='broken', sec=30), wait_for='')
+    counts = node.frame_counts()
+    assert counts['failed'] == 1
+    assert counts['last_error'] == ("frame failed (stamp 30.000000005 s, frame_id 'broken'): "
+                                    'internal error: RuntimeError: a defect in the node')
+    status = harness.latest_status()
+    assert status.level == DiagnosticStatus.ERROR and 'a defect in the node' in status.message
+    harness.send(make_cloud(scan_points, sec=31))
+    assert harness.received['planes'][-1].header.stamp.sec == 31
+
+
+@pytest.mark.filterwarnings('ignore::pytest.PytestUnhandledThreadExceptionWarning')  # the thread it ends
+def test_diagnostics_say_error_when_a_worker_thread_is_not_running(ros_context, executor, namespace, scan_points,
+                                                                   monkeypatch):
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    assert values_of(node.diagnostics_status())['worker_threads_alive'] == '1'
+
+    def exit_thread(index, msg, number):
+        raise SystemExit  # not an Exception: ends the thread, as nothing in the node should
+
+    monkeypatch.setattr(node, '_process', exit_thread)
+    harness.publisher.publish(make_cloud(scan_points))
+    assert spin_until(executor, lambda: not node._workers[0].is_alive())
+    status = node.diagnostics_status()
+    assert status.level == DiagnosticStatus.ERROR
+    assert 'worker thread(s) ' in status.message and 'not running' in status.message
+    assert values_of(status)['worker_threads_alive'] == '0'
+
+
+def test_throttled_warnings_and_errors_from_one_key_and_both_severities(ros_context, executor, namespace):
+    """The throttled logger logs a warning and an error in turn without rclpy's 'severity cannot be changed'."""
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    for index in range(4):
+        node._warn_throttled(f'kind{index}', f'message {index}', error=bool(index % 2))
+    assert set(node._warned_at) == {'kind0', 'kind1', 'kind2', 'kind3'}
+
+
+# ------------------------------------------------------------------ parameters from the parameter service
+
+
+def test_an_integer_array_for_ray_origin_is_accepted_at_runtime(ros_context, executor, namespace):
+    """`ros2 param set /extractor ray_origin "[0, 0, 1]"` sends an INTEGER_ARRAY, read as array('q')."""
+    harness = Harness(ros_context, executor, namespace)
+    from_service = Parameter.from_parameter_msg(Parameter('ray_origin', value=[0, 0, 1]).to_parameter_msg())
+    assert from_service.type_ == Parameter.Type.INTEGER_ARRAY
+    [result] = harness.node.set_parameters([from_service])
+    assert result.successful, result.reason
+    assert harness.node.params.ray_origin == (0.0, 0.0, 1.0)
+    assert harness.node.get_parameter('ray_origin').type_ == Parameter.Type.DOUBLE_ARRAY
+
+
+def test_setting_an_unknown_parameter_names_it(ros_context, executor, namespace):
+    from rclpy.exceptions import ParameterNotDeclaredException
+
+    harness = Harness(ros_context, executor, namespace)
+    with pytest.raises(ParameterNotDeclaredException) as caught:
+        harness.node.set_parameters([Parameter('max_error_incremnt', value=0.1)])
+    message = str(caught.value)
+    assert "['max_error_incremnt']: the extractor has no such parameter; known: [" in message, message
+    assert 'max_error_increment' in message and ': []' not in message
+    [result] = harness.node.set_parameters([Parameter('use_sim_time', value=False)])  # ROS's own ones still work
+    assert result.successful
+
+
+# ------------------------------------------------------------------ a stop during the start-up
+
+
+def _shut_down_before(original):
+    def hook(self, *args, **kwargs):
+        rclpy.get_default_context().try_shutdown()  # what rclpy's SIGINT/SIGTERM handler does
+        return original(self, *args, **kwargs)
+    return hook
+
+
+def _sigint_before(original):
+    def hook(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return original(self, *args, **kwargs)
+    return hook
+
+
+@pytest.mark.parametrize('point', ['declare_parameter', 'create_publisher', 'create_subscription', 'create_timer',
+                                   '_start_workers', 'sigint_in_create_publisher', 'sigint_in_rclpy_init'])
+def test_main_exits_0_quietly_when_stopped_during_start_up(monkeypatch, capfd, point, namespace):
+    """Issue 17 item 10: a signal during ExtractorNode.__init__ made create_publisher raise RCLError (exit 1)."""
+    from ppe_ros.ros import node as node_module
+
+    if point == 'sigint_in_rclpy_init':
+        def interrupted_init(*args, **kwargs):
+            raise KeyboardInterrupt
+        monkeypatch.setattr(node_module.rclpy, 'init', interrupted_init)
+    elif point.startswith('sigint_in_'):
+        name = point.removeprefix('sigint_in_')
+        monkeypatch.setattr(ExtractorNode, name, _sigint_before(getattr(ExtractorNode, name)))
+    else:
+        monkeypatch.setattr(ExtractorNode, point, _shut_down_before(getattr(ExtractorNode, point)))
+    argv = ['extractor', '--ros-args', '-r', f'__ns:={namespace}']
+    assert node_module.main(argv) == 0
+    assert not rclpy.get_default_context().ok()
+    err = capfd.readouterr().err
+    assert 'Traceback' not in err and 'error' not in err.lower(), err
+
+
+def test_main_still_exits_2_on_an_invalid_parameter(capfd, namespace):
+    from ppe_ros.ros import node as node_module
+
+    argv = ['extractor', '--ros-args', '-r', f'__ns:={namespace}', '-p', 'marker_alpha:=4.0']
+    assert node_module.main(argv) == 2
+    err = capfd.readouterr().err
+    assert "extractor: error: invalid parameter 'marker_alpha'" in err and 'Traceback' not in err

@@ -307,6 +307,8 @@ MALFORMED = {
     'data too long': (dict(data=bytes(50)), r'data has 50 bytes, expected row_step × height = 24 × 2 = 48'),
     'empty width': (dict(width=0, row_step=0, data=b''), r'empty cloud: height 2, width 0'),
     'empty height': (dict(height=0, data=b''), r'empty cloud: height 0, width 2'),
+    'point_step beyond numpy': (dict(point_step=2**31, row_step=2**32 - 1),
+                                r'point_step is 2147483648; at most 2147483647 bytes per point'),
 }
 
 
@@ -371,3 +373,31 @@ def test_modules_do_not_import_rclpy_or_rosbags() -> None:
     )
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True, timeout=60)
     assert result.stdout.strip() == '[]'
+
+
+@pytest.mark.parametrize('flavour', FLAVOURS)
+def test_zero_points_become_nan_only_when_asked(flavour):
+    points = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0], [-0.0, 0.0, 0.0]]])
+    cloud_class, field_class = _classes(flavour)
+    msg = xyz_to_pointcloud2(points, header=_header(flavour), msg_class=cloud_class, field_class=field_class)
+    np.testing.assert_array_equal(pointcloud2_to_xyz(msg), points)  # a general converter keeps them
+    read = pointcloud2_to_xyz(msg, zero_is_no_return=True)
+    assert np.isnan(read[0, 0]).all() and np.isnan(read[1, 1]).all()  # -0.0 == 0.0
+    np.testing.assert_array_equal(read[0, 1], points[0, 1])
+    np.testing.assert_array_equal(read[1, 0], points[1, 0])
+
+
+def test_negative_sizes_are_named() -> None:
+    """rosbags messages take any integer (a corrupted bag): a negative height is not an "empty" cloud."""
+    cloud = _message('rosbags', fields=_XYZ, height=-2, width=2, point_step=12, row_step=24, data=bytes(48))
+    with pytest.raises(PointCloudError, match='negative size: height -2, width 2'):
+        pointcloud2_to_xyz(cloud)
+
+
+@pytest.mark.parametrize('flavour', FLAVOURS)
+def test_a_count_zero_field_does_not_shadow_a_real_one(flavour: str) -> None:
+    """count 0 declares no bytes: a later count-0 'x' of another datatype must not hide the real x."""
+    points = np.arange(12, dtype='<f4').reshape(2, 2, 3)
+    cloud = _message(flavour, fields=[*_XYZ, ('x', 0, FLOAT64, 0)], height=2, width=2, point_step=12, row_step=24,
+                     data=points.tobytes())
+    np.testing.assert_array_equal(pointcloud2_to_xyz(cloud), points)

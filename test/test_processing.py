@@ -25,6 +25,9 @@ from ppe_ros.ros.processing import (
     ExtractorParams,
     FrameSkipped,
     OutputSelection,
+    cloud_points,
+    failure_reason,
+    frame_label,
     process_cloud,
 )
 
@@ -334,3 +337,57 @@ def test_inconsistent_sizes_are_skipped(types, scan):
     bad_step = cloud(types, scan)
     bad_step.point_step = 8
     expect_skip(types, bad_step, 'invalid_cloud', 'point_step')
+
+
+def test_zero_points_are_no_return(types, scan):
+    """Many drivers publish (0, 0, 0) for a pixel without a return: the frame path reads it as NaN, like ppe_ros.io."""
+    points = scan.copy()
+    points[:, 5] = 0.0  # a column of no-returns
+    points[7, 9] = (0.0, 0.0, 1.5)  # a zero coordinate alone is a point
+    frame = process_cloud(cloud(types, points), ExtractorParams(min_plane_points=20), types)
+    assert np.isnan(frame.points[:, 5]).all()
+    assert np.isfinite(frame.points[7, 9]).all()
+    assert not frame.planes.labels[:, 5].any()
+    labeled = pointcloud2_to_structured(frame.labeled_points)
+    assert np.isnan(labeled['x'][:, 5]).all() and not labeled['label'][:, 5].any()
+    with_nan = points.copy()
+    with_nan[:, 5] = np.nan
+    same = process_cloud(cloud(types, with_nan), ExtractorParams(min_plane_points=20), types)
+    np.testing.assert_array_equal(frame.planes.labels, same.planes.labels)
+
+
+def test_all_zero_cloud_is_skipped_as_without_valid_points(types):
+    skipped = expect_skip(types, cloud(types, np.zeros((4, 6, 3))), 'no_valid_points', 'no finite point')
+    assert '(0, 0, 0)' in skipped.reason
+
+
+def test_byte_swapped_float_cloud_never_warns_or_raises_in_the_conversion(types, scan):
+    """A little-endian cloud labelled big-endian reads as garbage (signalling NaNs, 1e-38 .. 1e38): no numpy
+    warning and no exception in the conversion (the extractor decides about the values)."""
+    msg = cloud(types, scan)
+    msg.is_bigendian = True
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        points = cloud_points(msg, ExtractorParams())
+    assert points.shape == scan.shape
+
+
+def test_failure_reason_names_the_exception_inside_a_compiled_kernel():
+    try:
+        try:
+            raise ZeroDivisionError('division by zero')
+        except ZeroDivisionError as cause:
+            raise SystemError('CPUDispatcher(<function _seed_errors at 0x7f>) returned a result with an '
+                              'exception set') from cause
+    except SystemError as exc:
+        assert failure_reason(exc) == 'ZeroDivisionError: division by zero (in the compiled kernel _seed_errors)'
+    assert failure_reason(RuntimeError('kernel exploded')) == 'RuntimeError: kernel exploded'
+    assert failure_reason(MemoryError()) == 'MemoryError: (no message)'
+    assert failure_reason(ValueError('two\nlines')) == 'ValueError: two lines'
+
+
+def test_frame_label_names_stamp_and_frame_id(types):
+    assert frame_label(cloud(types, np.zeros((2, 2, 3)))) == "stamp 1700000123.456000000 s, frame_id 'os_lidar'"
+    assert frame_label(object()) == 'a frame without a readable header'

@@ -14,18 +14,28 @@ about 0.2 s per 128 x 1024 sweep; ``test/test_threads.py``).
 Topics (relative names, remappable):
 
 * in ``points`` (``sensor_msgs/PointCloud2``, organized), QoS depth 1, reliability from the
-  ``input_reliability`` parameter;
+  ``input_reliability`` parameter. No return: a point with a NaN or infinite coordinate, or exactly
+  at (0, 0, 0) (what many drivers publish for a pixel without a return; the file loaders read it so
+  too); such points get label 0 and NaN coordinates in ``planes/labeled_points``;
 * out ``planes/labeled_points``, ``planes/markers``, ``planes`` (see :mod:`ppe_ros.ros.processing`)
   and ``/diagnostics`` (about 1 Hz). Outputs are reliable (they match reliable and best-effort
   subscribers); an output nobody subscribes to is not built.
 
 Parameters: :data:`ppe_ros.ros.processing.PARAM_SPECS`, loaded with
 ``--ros-args --params-file config/extractor.yaml`` and changeable at runtime (an invalid value is
-rejected with the reason).
+rejected with the reason; an integer array is accepted for ``ray_origin``; a name the node does not
+have is refused naming it).
+
+Bad input never stops the node: a cloud it cannot use is skipped (a warning per kind at most every
+5 s, counted by kind), a frame whose extraction or publishing raises is counted as failed and logged
+as one error line naming the frame (stamp, frame_id) and the reason; the worker goes on with the next
+frame whatever the exception. Diagnostics say WARN for skipped, ERROR for failed frames and for a
+worker thread that is not running.
 """
 
 from __future__ import annotations
 
+import array
 import gc
 import math
 import sys
@@ -44,7 +54,7 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import ParameterException, ParameterNotDeclaredException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -61,6 +71,8 @@ from ppe_ros.ros.processing import (
     FrameSkipped,
     OutputSelection,
     ParamSpec,
+    failure_reason,
+    frame_label,
     process_cloud,
 )
 
@@ -116,10 +128,14 @@ def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
 
 
 def _as_declared_type(spec: ParamSpec, value: Any) -> Any:
-    """Integers given for a double (array) parameter become floats (``-p max_error_increment:=1``)."""
+    """Integers given for a double (array) parameter become floats (``-p max_error_increment:=1``).
+
+    An integer array arrives as a list (``-p ray_origin:=[0,0,1]``) or, through the parameter
+    service (``ros2 param set /extractor ray_origin "[0, 0, 1]"``), as an ``array.array('q')``.
+    """
     if spec.kind == 'double' and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    if spec.kind == 'double_array' and isinstance(value, list | tuple) and all(
+    if spec.kind == 'double_array' and isinstance(value, list | tuple | array.array) and all(
             isinstance(v, int | float) and not isinstance(v, bool) for v in value):
         return [float(v) for v in value]
     return value
@@ -274,6 +290,7 @@ class ExtractorNode(Node):
         self._mailbox = LatestMailbox()
         self._turns = Turnstile()
         self._warned_at: dict[str, float] = {}
+        self._warned_lock = threading.Lock()
         self._suppressed: Counter = Counter()
         self._stop_requested = threading.Event()
         self.ready = threading.Event()
@@ -334,6 +351,10 @@ class ExtractorNode(Node):
             )
 
     def _coerce_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
+        unknown = sorted(p.name for p in parameters if not self.has_parameter(p.name))
+        if unknown:  # rclpy's own message would be "Invalid access to undeclared parameter(s): []"
+            raise ParameterNotDeclaredException(
+                f'{unknown}: the extractor has no such parameter; known: {sorted(PARAM_SPEC_BY_NAME)}')
         out = []
         for parameter in parameters:
             spec = PARAM_SPEC_BY_NAME.get(parameter.name)
@@ -453,13 +474,23 @@ class ExtractorNode(Node):
         return index == 0 or (index < self._params.workers and self._parallel_workers_safe)
 
     def _work(self, index: int) -> None:
-        if index == 0:
+        """Worker ``index``'s thread: it ends only on :meth:`stop` (any exception is a failed frame)."""
+        while not self._stop_requested.is_set():
+            try:
+                self._serve(index)
+            except Exception as exc:  # outside any frame (a defect): report it, wait a little, go on
+                self._record_failure(f'worker {index} error: {failure_reason(exc)}')
+                self._stop_requested.wait(WORKER_POLL_S)
+
+    def _serve(self, index: int) -> None:
+        """Warm up (worker 0), then take, extract and publish frames until :meth:`stop`."""
+        if index == 0 and not self.ready.is_set():
             try:
                 self._apply_numba_threads(index, self._params)
                 self._warm_up()
                 self._check_threading_layer()
             except Exception as exc:  # a failed warm-up must not kill the node
-                self._record_failure(f'warm-up failed: {type(exc).__name__}: {exc}')
+                self._record_failure(f'warm-up failed: {failure_reason(exc)}')
             self.ready.set()
             if not self._stop_requested.is_set():
                 self.get_logger().info(
@@ -476,6 +507,8 @@ class ExtractorNode(Node):
             number, msg = taken
             try:
                 self._process(index, msg, number)
+            except Exception as exc:  # a defect in the node itself: count it, say why, keep serving
+                self._record_failure(f'frame failed ({frame_label(msg)}): internal error: {failure_reason(exc)}')
             finally:
                 self._turns.release(number)  # published, skipped or failed: the next frame may go
 
@@ -504,7 +537,7 @@ class ExtractorNode(Node):
             return
         except Exception as exc:  # the node keeps running on any per-frame failure
             if self.context.ok():  # shutting down: nothing to report
-                self._record_failure(f'frame failed: {type(exc).__name__}: {exc}')
+                self._record_failure(f'frame failed ({frame_label(msg)}): {failure_reason(exc)}')
             return
         finally:
             with stats.lock:
@@ -521,7 +554,7 @@ class ExtractorNode(Node):
                 self._plane_table_pub.publish(frame.plane_table)
         except Exception as exc:
             if self.context.ok():
-                self._record_failure(f'publishing failed: {type(exc).__name__}: {exc}')
+                self._record_failure(f'publishing failed ({frame_label(msg)}): {failure_reason(exc)}')
             return
         elapsed = time.perf_counter() - start
         with stats.lock:
@@ -531,17 +564,30 @@ class ExtractorNode(Node):
             stats.last_frame_id = frame.stamped.frame_id
 
     def _warn_throttled(self, key: str, message: str, *, error: bool = False) -> None:
+        """Log ``message`` (a warning, or an error) unless one of ``key`` went out in the last 5 s.
+
+        Never raises: the workers call it on their way to the next frame.
+        """
         now = time.monotonic()
-        last = self._warned_at.get(key)
-        if last is not None and now - last < WARNING_THROTTLE_S:
-            self._suppressed[key] += 1
-            return
-        suppressed = self._suppressed.pop(key, 0)
+        with self._warned_lock:
+            last = self._warned_at.get(key)
+            if last is not None and now - last < WARNING_THROTTLE_S:
+                self._suppressed[key] += 1
+                return
+            suppressed = self._suppressed.pop(key, 0)
+            self._warned_at[key] = now
         if suppressed:
             message += f' ({suppressed} more like this in the last {now - last:.0f} s)'
-        self._warned_at[key] = now
         logger = self.get_logger()
-        (logger.error if error else logger.warning)(message)
+        try:
+            # one call site per severity: rclpy's logger raises "Logger severity cannot be changed
+            # between calls" when one source line logs at two severities
+            if error:
+                logger.error(message)
+            else:
+                logger.warning(message)
+        except Exception as exc:  # logging must not take a worker down
+            print(f'extractor: {message} (logging failed: {type(exc).__name__}: {exc})', file=sys.stderr)
 
     def _record_skip(self, exc: FrameSkipped) -> None:
         stats = self._stats
@@ -591,8 +637,14 @@ class ExtractorNode(Node):
             stats.window_received = stats.window_skipped = stats.window_failed = stats.window_dropped = 0
             stats.window_times = []
         received, skipped, failed, dropped = window
+        with self._workers_lock:
+            workers = list(self._workers)
+        stopped = [] if self._stop_requested.is_set() else [w.name for w in workers if not w.is_alive()]
         status_type = self._types.DiagnosticStatus
-        if failed:
+        if stopped:
+            level, message = status_type.ERROR, (f'worker thread(s) {", ".join(stopped)} not running: '
+                                                 f'frames are not processed; last error: {last_error or "none"}')
+        elif failed:
             level, message = status_type.ERROR, f'{failed} frame(s) failed: {last_error}'
         elif skipped:
             level, message = status_type.WARN, f'{skipped} frame(s) skipped: {last_error}'
@@ -622,6 +674,7 @@ class ExtractorNode(Node):
             'workers': str(self._params.workers if self._parallel_workers_safe else 1),
             'frames_in_progress': str(busy),
             'frames_in_progress_peak': str(busy_peak),
+            'worker_threads_alive': str(len(workers) - len(stopped)) if not self._stop_requested.is_set() else '0',
         }
         return status_type(
             level=level,
@@ -682,7 +735,8 @@ def usage() -> str:
         '',
         'Plane extraction (PPE) on organized sensor_msgs/PointCloud2 clouds.',
         '',
-        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability)',
+        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability;',
+        '       NaN, infinite or exactly (0, 0, 0) points are no return)',
         f'  out  {LABELED_POINTS_TOPIC} (sensor_msgs/PointCloud2: x y z label rgb)',
         f'       {MARKERS_TOPIC} (visualization_msgs/MarkerArray)',
         f'       {PLANE_TABLE_TOPIC} (sensor_msgs/PointCloud2, one point per plane)',
@@ -720,10 +774,16 @@ def _non_ros_arguments(argv: list[str]) -> list[str]:
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``ros2 run ppe_ros extractor``.
 
-    Exit code 0 on SIGINT/SIGTERM (and for ``--help``), 2 on invalid parameters or ROS arguments
-    (e.g. an unreadable ``--params-file``).
+    Exit code 0 on SIGINT/SIGTERM (and for ``--help``), at any point of the start-up too; 2 on
+    invalid parameters or ROS arguments (e.g. an unreadable ``--params-file``).
     """
-    argv = list(sys.argv if args is None else args)
+    try:
+        return _run(list(sys.argv if args is None else args))
+    except KeyboardInterrupt:  # Ctrl-C before rclpy took over the signals, or a second one at the end
+        return 0
+
+
+def _run(argv: list[str]) -> int:
     extra = _non_ros_arguments(argv)
     if '-h' in extra or '--help' in extra:
         print(usage())
@@ -738,6 +798,7 @@ def main(args: list[str] | None = None) -> int:
     except RCLError as exc:
         print(f'extractor: error: invalid ROS arguments: {exc}', file=sys.stderr)
         return 2
+    context = rclpy.get_default_context()
     node = None
     exit_code = 0
     try:
@@ -746,8 +807,14 @@ def main(args: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:
-        print(f'extractor: error: {exc}', file=sys.stderr)
-        exit_code = 2
+        if context.ok():  # else a signal shut the context down during the start-up: a normal stop
+            print(f'extractor: error: {exc}', file=sys.stderr)
+            exit_code = 2
+    except Exception:
+        # a SIGINT/SIGTERM during ExtractorNode.__init__ shuts the context down under it: rclpy then
+        # raises (RCLError from create_publisher, InvalidHandle, ...) where the node was being built
+        if context.ok():
+            raise
     finally:
         if node is not None:
             node.stop()

@@ -40,6 +40,9 @@ INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
 
 _NUMPY_TO_DATATYPE: dict[str, int] = {code: datatype for datatype, code in POINTFIELD_DATATYPES.items()}
 
+#: The largest ``point_step`` read (numpy's limit on the size of one record: 2**31 - 1 bytes).
+MAX_POINT_STEP = 2**31 - 1
+
 #: Colour of label ids <= 0 (unassigned / unlabelled) in :func:`label_colors`: mid grey.
 UNLABELLED_COLOR = 0x808080
 
@@ -73,6 +76,8 @@ def pointcloud2_dtype(msg: Any) -> np.dtype:
     point_step = int(msg.point_step)
     if point_step <= 0:
         raise PointCloudError(f'point_step is {point_step}; it must be the positive size of one point in bytes')
+    if point_step > MAX_POINT_STEP:
+        raise PointCloudError(f'point_step is {point_step}; at most {MAX_POINT_STEP} bytes per point are supported')
     order = '>' if msg.is_bigendian else '<'
     names: list[str] = []
     formats: list[Any] = []
@@ -102,7 +107,10 @@ def pointcloud2_dtype(msg: Any) -> np.dtype:
         names.append(name)
         formats.append(base if count == 1 else (base, (count,)))
         offsets.append(offset)
-    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': point_step})
+    try:
+        return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': point_step})
+    except (ValueError, TypeError) as exc:  # e.g. a field name numpy does not take
+        raise PointCloudError(f'fields {names} at offsets {offsets} do not form a point layout: {exc}') from None
 
 
 def pointcloud2_to_structured(msg: Any, *, allow_empty: bool = False) -> np.ndarray:
@@ -121,7 +129,9 @@ def pointcloud2_to_structured(msg: Any, *, allow_empty: bool = False) -> np.ndar
     """
     height = int(msg.height)
     width = int(msg.width)
-    if height < 0 or width < 0 or (not allow_empty and (height == 0 or width == 0)):
+    if height < 0 or width < 0:
+        raise PointCloudError(f'negative size: height {height}, width {width}')
+    if not allow_empty and (height == 0 or width == 0):
         raise PointCloudError(f'empty cloud: height {height}, width {width}')
     dtype = pointcloud2_dtype(msg)
     if height == 0 or width == 0:
@@ -151,7 +161,7 @@ def is_organized(msg: Any) -> bool:
     return int(msg.height) > 1
 
 
-def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarray:
+def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False, zero_is_no_return: bool = False) -> np.ndarray:
     """The x, y, z fields of ``msg`` as an ``(height, width, 3)`` float64 array (NaN = no return).
 
     A point with any non-finite coordinate becomes all NaN. x, y, z must share one datatype
@@ -160,6 +170,8 @@ def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarr
     Args:
         msg: a PointCloud2 message of any flavour (rclpy, rosbags or an equivalent object).
         require_organized: raise if the cloud is unorganized (``height == 1``).
+        zero_is_no_return: a point at exactly (0, 0, 0) becomes all NaN too (many drivers, Ouster's
+            among them, publish that for a pixel without a return; the file loaders do the same).
 
     Raises:
         PointCloudError: see :func:`pointcloud2_to_structured`; missing x/y/z; x/y/z of different
@@ -176,7 +188,7 @@ def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarr
     if missing:
         present = ', '.join(names) or 'none'
         raise PointCloudError(f'the cloud has no {"/".join(missing)} field (fields: {present})')
-    by_name = {str(f.name): f for f in msg.fields}
+    by_name = {str(f.name): f for f in msg.fields if int(f.count) >= 1}  # the fields the dtype holds
     datatypes = {axis: int(by_name[axis].datatype) for axis in 'xyz'}
     if len(set(datatypes.values())) != 1:
         described = ', '.join(f'{axis} {datatype}' for axis, datatype in datatypes.items())
@@ -185,13 +197,17 @@ def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False) -> np.ndarr
         if cloud.dtype[axis].shape != ():
             raise PointCloudError(f'field {axis!r} has count {int(by_name[axis].count)}; expected 1')
     xyz = np.empty((*cloud.shape, 3), dtype=np.float64)
-    for index, axis in enumerate('xyz'):
-        xyz[..., index] = cloud[axis]
+    with np.errstate(invalid='ignore'):  # a signalling NaN (e.g. bytes of the wrong byte order) warns
+        for index, axis in enumerate('xyz'):
+            xyz[..., index] = cloud[axis]
     # a sum is non-finite exactly when a term is (inf - inf is NaN; only coordinates beyond 1e307 m
     # could overflow it); a sum over the small last axis, or isfinite(xyz).all(axis=2), costs ten
     # times more on a 128 x 1024 cloud
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
-    invalid = ~np.isfinite(x + y + z)
+    with np.errstate(invalid='ignore', over='ignore'):
+        invalid = ~np.isfinite(x + y + z)
+    if zero_is_no_return:
+        invalid |= (x == 0.0) & (y == 0.0) & (z == 0.0)
     # only points that are not all NaN already need writing
     partial = invalid & ~(np.isnan(x) & np.isnan(y) & np.isnan(z))
     if partial.any():
@@ -361,9 +377,10 @@ def xyz_to_pointcloud2(
             )
         layout.append(('rgb', '<u4'))
     table = np.empty(grid, dtype=np.dtype(layout))
-    table['x'] = cloud[..., 0]
-    table['y'] = cloud[..., 1]
-    table['z'] = cloud[..., 2]
+    with np.errstate(over='ignore', invalid='ignore'):  # beyond float32's 3.4e38 m: inf, as a cast gives
+        table['x'] = cloud[..., 0]
+        table['y'] = cloud[..., 1]
+        table['z'] = cloud[..., 2]
     if label_values is not None:
         table['label'] = label_values
     if rgb_values is not None:

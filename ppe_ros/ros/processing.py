@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -271,6 +272,35 @@ class FrameSkipped(ValueError):
         self.reason = reason
 
 
+def frame_label(msg: Any) -> str:
+    """``stamp <sec>.<nanosec> s, frame_id '<id>'`` of a cloud, for log lines (never raises)."""
+    try:
+        stamped = StampedFrame.of(msg.header)
+    except Exception:  # a message without a readable header: say so instead of failing again
+        return 'a frame without a readable header'
+    return f'stamp {stamped.sec}.{stamped.nanosec:09d} s, frame_id {stamped.frame_id!r}'
+
+
+_KERNEL_NAME = re.compile(r'CPUDispatcher\(<function (\w+)')
+
+
+def failure_reason(exc: BaseException) -> str:
+    """One line saying why a frame failed: ``<exception type>: <message>``.
+
+    An exception raised inside a compiled (numba) kernel surfaces as ``SystemError:
+    CPUDispatcher(<function ...>) returned a result with an exception set``; the reason is then the
+    original exception, with the kernel's name.
+    """
+    cause = exc.__cause__ or exc.__context__
+    if isinstance(exc, SystemError) and cause is not None:
+        kernel = _KERNEL_NAME.search(str(exc))
+        where = f' (in the compiled kernel {kernel.group(1)})' if kernel else ''
+        exc = cause
+    else:
+        where = ''
+    return f'{type(exc).__name__}: {str(exc) or "(no message)"}{where}'.replace('\n', ' ')
+
+
 # --------------------------------------------------------------------------------------------
 # output messages
 # --------------------------------------------------------------------------------------------
@@ -385,6 +415,9 @@ class ProcessedFrame:
 def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
     """Validate an input cloud and return its ``(H, W, 3)`` float64 points (NaN = no return).
 
+    No return: a point with a non-finite coordinate, or exactly at (0, 0, 0) (what many drivers
+    publish for a pixel without a return; the file loaders of :mod:`ppe_ros.io` read it so too).
+
     Raises:
         FrameSkipped: empty, unorganized, larger than ``params.max_points``, malformed, or no
             finite point.
@@ -405,13 +438,14 @@ def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
             f'cloud of {height} x {width} = {height * width} points exceeds max_points = {params.max_points}',
         )
     try:
-        points = pointcloud2_to_xyz(msg)
+        points = pointcloud2_to_xyz(msg, zero_is_no_return=True)
     except PointCloudError as exc:
         raise FrameSkipped('invalid_cloud', f'invalid PointCloud2: {exc}') from None
-    # pointcloud2_to_xyz makes a point with any non-finite coordinate all NaN: x alone tells
+    # pointcloud2_to_xyz makes a point without a return all NaN: x alone tells
     if np.isnan(points[..., 0]).all():
         raise FrameSkipped('no_valid_points',
-                           f'cloud of {height} x {width} points has no finite point (all NaN)')
+                           f'cloud of {height} x {width} points has no finite point other than (0, 0, 0) '
+                           '(every point NaN, infinite or exactly 0, 0, 0: no return)')
     return points
 
 
