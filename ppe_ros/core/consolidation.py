@@ -15,10 +15,10 @@ pieces A and B are the same surface when
   plane over that piece's points:
   ``dev(P, U)^2 = mean_P dist_U(p)^2 - mean_P dist_P(p)^2 <= tau^2 + lambda^2 mean_P sigma_k^2`` for
   P = A and P = B (lambda, ``noise_factor``, lets the tolerance grow with the sensor's noise, as a
-  depth camera's systematic errors grow with depth; 0 for a constant tau).
-  (A step between two parallel pieces is at most tau from their union's plane for the larger
-  piece and the full step for a much smaller one; two pieces of equal size pass with a step of up
-  to 2 tau, the worst case.)
+  depth camera's systematic errors grow with depth; 0 for a constant tau); and
+* the two pieces' own planes meet: along U's normal, at the midpoint of the pieces' means, they are
+  at most ``min(t_A, t_B)`` apart (``t_P`` the tolerance above). Without it a step between two
+  side-by-side pieces (a kerb beside the road) would pass, the union's plane tilting to split it.
 
 ``dev(A, U)^2 N_A + dev(B, U)^2 N_B`` is the union's increase of the sum of squared point-to-plane
 distances, so the test is the paper's merge increment divided per point and per piece instead of
@@ -27,7 +27,8 @@ but only ``delta^2`` here, which is why large surfaces stay whole while a kerb (
 window recessed 10 cm, a ramp at 5 deg or two walls at 90 deg stay apart (their deviation is far
 above a tau of a few cm).
 
-The pass merges candidate pairs greedily, cheapest first (cost ``max(dev(A, U)^2, dev(B, U)^2)``, ties by
+The pass merges candidate pairs greedily, cheapest first (cost: the largest of the three tests'
+squared ratios to their tolerance, ties by
 the smaller then the larger piece id), re-valuing a merged piece's pairs with all the neighbours of
 both pieces, until no admissible pair is left. Candidate pairs are found once, from the greedy's
 pieces. Moments (count, sums, sums of products) make every valuation O(1).
@@ -123,13 +124,14 @@ def _scatter(m):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _plane_of(m, out):
-    """The orthogonal LS plane of moments m into out (11): mean (3), scatter (6), own (the smallest
-    eigenvalue, >= 0: the mean squared distance from the plane), then nothing; normal returned."""
+    """The orthogonal LS plane of moments m into out (13): mean (3), scatter (6), own (the smallest
+    eigenvalue, >= 0: the mean squared distance from the plane), unit normal (3); normal returned."""
     mean, sc = _scatter(m)
     value, n0, n1, n2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
     out[0], out[1], out[2] = mean
     out[3], out[4], out[5], out[6], out[7], out[8] = sc
     out[9] = max(value, 0.0)
+    out[10], out[11], out[12] = n0, n1, n2
     return n0, n1, n2
 
 
@@ -145,23 +147,37 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
-    """Cost of joining pieces A and B: max over P of dev(P, U)^2 / (tau^2 + lambda^2 mean_P sigma^2).
+    """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
+    and step^2 / min(t_A, t_B)^2, with t_P^2 = tau^2 + lambda^2 mean_P sigma^2.
 
-    U is the union's LS plane; m_*: moments; plane_*: their _plane_of rows. Admissible: cost <= 1.
+    U is the union's LS plane; step is the distance between the planes of A and B along U's normal
+    at the midpoint of their means. m_*: moments; plane_*: their _plane_of rows.
     """
     mean_u, sc = _scatter(m_a + m_b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
     allowed_a = tau2 + noise_factor2 * m_a[10] / m_a[0]
     allowed_b = tau2 + noise_factor2 * m_b[10] / m_b[0]
-    return max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
+    cost = max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
                _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b)
+    x0 = 0.5 * (plane_a[0] + plane_b[0])
+    x1 = 0.5 * (plane_a[1] + plane_b[1])
+    x2 = 0.5 * (plane_a[2] + plane_b[2])
+    step = _along_normal(plane_a, x0, x1, x2, u0, u1, u2) - _along_normal(plane_b, x0, x1, x2, u0, u1, u2)
+    return max(cost, step * step / min(allowed_a, allowed_b))
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _along_normal(piece, x0, x1, x2, u0, u1, u2):
+    """Where the line x + t u meets the piece's plane: t (m); inf if parallel."""
+    n0, n1, n2 = piece[10], piece[11], piece[12]
+    return (n0 * (piece[0] - x0) + n1 * (piece[1] - x1) + n2 * (piece[2] - x2)) / (n0 * u0 + n1 * u1 + n2 * u2)
 
 
 def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise_factor: float = 0.0) -> float:
     """:func:`_merge_cost` of two pieces given by their (11,) moments (see _piece_moments); <= 1: admissible."""
     m_a = np.asarray(m_a, np.float64)
     m_b = np.asarray(m_b, np.float64)
-    plane_a, plane_b = np.empty(11), np.empty(11)
+    plane_a, plane_b = np.empty(13), np.empty(13)
     _plane_of(m_a, plane_a)
     _plane_of(m_b, plane_b)
     return float(_merge_cost(m_a, m_b, plane_a, plane_b, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
@@ -211,7 +227,8 @@ def _candidate_pairs(ids, endpoints, directions, ranges, sigmas, height, width, 
             back = ids[k - step]
             if back == b:
                 continue
-            a = back
+            if back >= 0:  # pieces that touch are candidates
+                out, n_out = _add_pair(out, n_out, back, b)
             if back < 0 or _bridges(ids, endpoints, directions, ranges, sigmas, k - step, normals[b], means[b], tau,
                                     connected_only):
                 # walk back over rays that bridge to b's plane, to the first ray that does not: a
@@ -228,16 +245,21 @@ def _candidate_pairs(ids, endpoints, directions, ranges, sigmas, height, width, 
                                                     normals[ids[q]], means[ids[q]], tau, connected_only):
                         a = ids[q]
                     break
-                if a < 0:
-                    continue
-            if n_out == len(out):
-                grown = np.empty((2 * len(out), 2), np.int64)
-                grown[:n_out] = out[:n_out]
-                out = grown
-            out[n_out, 0] = min(a, b)
-            out[n_out, 1] = max(a, b)
-            n_out += 1
+                if a >= 0:
+                    out, n_out = _add_pair(out, n_out, a, b)
     return out[:n_out]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _add_pair(out, n_out, a, b):
+    """Append the pair (min, max) to out[:n_out] (grown when full); returns (out, n_out)."""
+    if n_out == len(out):
+        grown = np.empty((2 * len(out), 2), np.int64)
+        grown[:n_out] = out[:n_out]
+        out = grown
+    out[n_out, 0] = min(a, b)
+    out[n_out, 1] = max(a, b)
+    return out, n_out + 1
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -283,7 +305,7 @@ def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
             else:
                 nxt[tail[u]] = h
             tail[u] = h
-    plane = np.empty((n, 11))
+    plane = np.empty((n, 13))
     for x in range(n):
         _plane_of(mom[x], plane[x])
     heap = [(0.0, np.int64(0), np.int64(0), np.int64(0), np.int64(0))]
@@ -346,7 +368,7 @@ def _piece_planes(moments):
     """Unit normals and means (internal frame) of the LS planes of pieces given by (K, 10) moments."""
     normals = np.empty((len(moments), 3))
     means = np.empty((len(moments), 3))
-    row = np.empty(11)
+    row = np.empty(13)
     for g in range(len(moments)):
         normals[g, 0], normals[g, 1], normals[g, 2] = _plane_of(moments[g], row)
         means[g, 0], means[g, 1], means[g, 2] = row[0], row[1], row[2]

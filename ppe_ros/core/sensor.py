@@ -127,10 +127,10 @@ PROFILES: dict[str, SensorProfile] = {
     'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
                            min_plane_points=4),
     'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
-                           min_plane_points=20, max_plane_rmse_factor=2.0),
+                           min_plane_points=20, max_plane_rmse_factor=1.5),
     'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
                                   surface_tolerance=0.005, noise_factor=2.0, min_plane_points=100,
-                                  max_plane_rmse_factor=2.0),
+                                  max_plane_rmse_factor=1.5),
 }
 
 

@@ -1,0 +1,199 @@
+"""Sensor noise models, whole-surface consolidation and sensor profiles (ppe_ros.core.sensor, .consolidation)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from reference_consolidation import consolidate_reference, cost
+from scenes import cast_scan, face_from_polygon, plane
+
+from ppe_ros import extract_planes
+from ppe_ros.core.consolidation import _piece_moments, _smallest_eigen, consolidate_pieces, merge_cost
+from ppe_ros.core.extraction import extract_plane_hierarchy
+from ppe_ros.core.scan import make_ray_scan
+from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, sensor_profile
+
+
+def test_smallest_eigen_matches_numpy_on_random_and_nearly_planar_scatters():
+    rng = np.random.default_rng(3)
+    for t in range(500):
+        if t % 2:
+            u = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+            s = u @ np.diag([rng.uniform(1, 10), rng.uniform(1, 10), 10.0 ** rng.uniform(-8, -2)]) @ u.T
+        else:
+            a = rng.normal(size=(3, 3))
+            s = a @ a.T
+        value, n0, n1, n2 = _smallest_eigen(s[0, 0], s[0, 1], s[0, 2], s[1, 1], s[1, 2], s[2, 2])
+        values, vectors = np.linalg.eigh(s)
+        assert value == pytest.approx(values[0], abs=1e-12 * values[2])
+        assert abs(np.dot([n0, n1, n2], vectors[:, 0])) == pytest.approx(1.0, abs=1e-9)
+
+
+def _moments(points: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    return _piece_moments(np.zeros(len(points), np.int64), points, sigmas, 1)[0]
+
+
+def test_merge_cost_is_the_per_piece_deviation_from_the_union_plane():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        a = np.c_[rng.uniform(0, 3, (40, 2)), rng.normal(0, 0.01, 40)]
+        b = np.c_[rng.uniform(2, 5, (25, 2)), rng.normal(rng.uniform(-0.1, 0.1), 0.01, 25)]
+        sa, sb = rng.uniform(0.01, 0.03, 40), rng.uniform(0.01, 0.03, 25)
+        expected = cost(a, b, sa, sb, 0.03, 1.5)
+        assert merge_cost(_moments(a, sa), _moments(b, sb), 0.03, 1.5) == pytest.approx(expected, rel=1e-6, abs=1e-9)
+
+
+def test_a_step_of_twelve_centimetres_is_never_one_surface_at_a_tolerance_of_five():
+    rng = np.random.default_rng(1)
+    for share in (0.5, 0.2, 0.05):
+        n_b = int(400 * share)
+        a = np.c_[rng.uniform(0, 4, (400 - n_b, 2)), rng.normal(0, 0.005, 400 - n_b)]
+        b = np.c_[rng.uniform(0, 4, (n_b, 2)) + [4, 0], rng.normal(0.12, 0.005, n_b)]
+        zero_a, zero_b = np.zeros(len(a)), np.zeros(len(b))
+        assert merge_cost(_moments(a, zero_a), _moments(b, zero_b), 0.05) > 1.0
+        flat = b - [0, 0, 0.12]
+        assert merge_cost(_moments(a, zero_a), _moments(flat, zero_b), 0.05) < 0.05
+
+
+# ------------------------------------------------------------------ consolidation against the reference
+
+
+def _wall_behind_a_post(noise: float, seed: int):
+    """A wall at x = 4 with a post in front of it (x = 2), a floor, and a box face 12 cm in front of the wall."""
+    post = face_from_polygon([[2.0, -0.1, -1.0], [2.0, -0.1, 3.0], [2.0, 0.1, 3.0], [2.0, 0.1, -1.0]])
+    panel = face_from_polygon([[3.88, 0.6, 0.3], [3.88, 0.6, 1.2], [3.88, 1.4, 1.2], [3.88, 1.4, 0.3]])
+    faces = [plane([0, 0, 1], 0.0), plane([-1, 0, 0], -4.0), post, panel]
+    return cast_scan(faces, rows=24, cols=40, position=(0.0, 0.0, 1.0), yaw_deg=8.0, pitch_deg=10.0, roll_deg=3.0,
+                     azimuth_fov_deg=70.0, elevation_fov_deg=50.0, noise=noise, seed=seed)
+
+
+def _blocks(truth: np.ndarray, block: int) -> np.ndarray:
+    """Piece ids: each true face cut into block x block tiles (ids unique per face and tile)."""
+    rows, cols = np.indices(truth.shape)
+    tiles = (rows // block) * 1000 + cols // block
+    return np.where(truth >= 0, truth * 100000 + tiles, -1).reshape(-1)
+
+
+@pytest.mark.parametrize('connected_only', [False, True])
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_consolidation_equals_the_brute_force_reference(seed, connected_only):
+    scan_data = _wall_behind_a_post(noise=0.01, seed=seed)
+    scan = make_ray_scan(scan_data.points, scan_data.origins)
+    ids = _blocks(scan_data.truth, 4 + seed)
+    rng = np.random.default_rng(seed)
+    ids[rng.random(ids.shape) < 0.08] = -1  # rays the greedy left out
+    sigmas = np.where(scan.valid, 0.01, np.nan)
+    got = consolidate_pieces(scan, ids, sigmas, 0.02, noise_factor=1.0, connected_only=connected_only, max_gap=8)
+    want = consolidate_reference(scan, ids, sigmas, 0.02, noise_factor=1.0, connected_only=connected_only, max_gap=8)
+    np.testing.assert_array_equal(got, want)
+    assert len(np.unique(got[got >= 0])) < len(np.unique(ids[ids >= 0])) / 4  # it did merge
+
+
+def test_a_wall_behind_a_post_is_one_surface_unless_connected_only():
+    scan_data = _wall_behind_a_post(noise=0.005, seed=4)
+    scan = make_ray_scan(scan_data.points, scan_data.origins)
+    ids = _blocks(scan_data.truth, 5)
+    sigmas = np.where(scan.valid, 0.005, np.nan)
+    wall = scan_data.truth.reshape(-1) == 1
+    joined = consolidate_pieces(scan, ids, sigmas, 0.02)
+    apart = consolidate_pieces(scan, ids, sigmas, 0.02, connected_only=True)
+    assert len(np.unique(joined[wall])) == 1
+    assert len(np.unique(apart[wall])) == 2  # left and right of the post
+    # the panel 12 cm in front of the wall, the floor and the post stay surfaces of their own
+    for face in (0, 2, 3):
+        inside = scan_data.truth.reshape(-1) == face
+        assert len(np.unique(joined[inside])) == 1
+        assert not np.isin(joined[inside], joined[wall]).any()
+
+
+# ------------------------------------------------------------------ noise models and profiles
+
+
+def test_noise_model_sigmas_follow_the_formula():
+    lidar = NoiseModel(constant=0.02, proportional=0.001)
+    ranges = np.array([1.0, 10.0, 100.0])
+    dirs = np.tile([1.0, 0.0, 0.0], (3, 1))
+    np.testing.assert_allclose(lidar.sigmas(ranges, dirs), np.sqrt(0.02**2 + (0.001 * ranges) ** 2))
+    camera = NoiseModel(depth_quadratic=1.43e-3, minimum=1e-6)
+    oblique = np.array([[0.6, 0.0, 0.8]])
+    # z = 0.8 r; sigma_z = c z^2; along the ray sigma_r = sigma_z / cos = c z^2 / 0.8
+    np.testing.assert_allclose(camera.sigmas(np.array([5.0]), oblique), 1.43e-3 * 16.0 / 0.8)
+    with pytest.raises(ValueError, match='at least one'):
+        NoiseModel()
+    with pytest.raises(ValueError, match='constant'):
+        NoiseModel(constant=-1.0)
+
+
+def test_a_constant_noise_model_scales_the_increments_by_one_over_sigma_squared():
+    scan_data = cast_scan([plane([0, 0, 1], 0.0), plane([-1, 0, 0], -3.0)], rows=16, cols=20,
+                          position=(0, 0, 1), pitch_deg=15, roll_deg=7, noise=0.01, seed=2)
+    plain = extract_plane_hierarchy(scan_data.points, origins=scan_data.origins)
+    scaled = extract_plane_hierarchy(scan_data.points, origins=scan_data.origins,
+                                     noise=NoiseModel(constant=0.1, minimum=1e-6))
+    np.testing.assert_array_equal(plain.actions['kind'], scaled.actions['kind'])
+    np.testing.assert_array_equal(plain.actions['a'], scaled.actions['a'])
+    np.testing.assert_allclose(scaled.actions['increment'] * 0.01, plain.actions['increment'], rtol=1e-6, atol=1e-15)
+    # the reported errors are metres again
+    cut_plain = plain.cut(max_error_increment=0.01)
+    cut_scaled = scaled.cut(max_error_increment=1.0)
+    np.testing.assert_array_equal(cut_plain.labels, cut_scaled.labels)
+    np.testing.assert_allclose(cut_scaled.sse, cut_plain.sse, rtol=1e-6)
+
+
+def test_sensor_none_keeps_the_old_defaults_and_paper_is_the_reference_setting():
+    scan_data = _wall_behind_a_post(noise=0.01, seed=0)
+    default = extract_planes(scan_data.points, origins=scan_data.origins)
+    explicit = extract_planes(scan_data.points, origins=scan_data.origins, max_error_increment=0.01,
+                              max_neighbor_distance=np.inf, min_plane_points=4)
+    np.testing.assert_array_equal(default.labels, explicit.labels)
+    paper = extract_planes(scan_data.points, origins=scan_data.origins, sensor='paper')
+    reference = extract_planes(scan_data.points, origins=scan_data.origins, max_error_increment=0.0484,
+                               max_neighbor_distance=0.18, min_plane_points=4)
+    np.testing.assert_array_equal(paper.labels, reference.labels)
+
+
+def test_profiles_and_overrides():
+    assert sensor_profile('lidar') is PROFILES['lidar']
+    custom = SensorProfile(name='mine', noise=NoiseModel(constant=0.01), max_error_increment=9.0,
+                           surface_tolerance=0.02, min_plane_points=10)
+    assert sensor_profile(custom) is custom
+    with pytest.raises(ValueError, match="'lidar'"):
+        sensor_profile('sonar')
+    scan_data = _wall_behind_a_post(noise=0.01, seed=1)
+    lidar = extract_planes(scan_data.points, origins=scan_data.origins, sensor='lidar')
+    assert lidar.point_counts.min() >= PROFILES['lidar'].min_plane_points
+    small = extract_planes(scan_data.points, origins=scan_data.origins, sensor='lidar', min_plane_points=5)
+    assert small.point_counts.min() >= 5 and small.num_planes >= lidar.num_planes
+
+
+def test_lidar_profile_keeps_faces_whole_and_apart_on_a_noisy_scan_with_beam_biases():
+    scan_data = _wall_behind_a_post(noise=0.0, seed=3)
+    rng = np.random.default_rng(5)
+    ranges = np.linalg.norm(scan_data.points - scan_data.origins, axis=-1)
+    biased = ranges + rng.normal(0, 0.01, (ranges.shape[0], 1)) + rng.normal(0, 0.015, ranges.shape)
+    dirs = (scan_data.points - scan_data.origins) / ranges[..., None]
+    points = scan_data.origins + dirs * biased[..., None]
+    planes = extract_planes(points, origins=scan_data.origins, sensor='lidar', min_plane_points=10)
+    truth = scan_data.truth
+    for face in (0, 1):  # the floor and the wall behind the post: one plane each, mostly covered
+        labels = planes.labels[truth == face]
+        values, counts = np.unique(labels[labels > 0], return_counts=True)
+        assert counts.max() >= 0.8 * (truth == face).sum()
+    wall = np.bincount(planes.labels[truth == 1]).argmax()
+    panel = planes.labels[truth == 3]
+    assert (panel == wall).mean() < 0.2  # the panel 12 cm in front stays apart
+
+
+def test_a_bumpy_blob_is_not_reported_as_planes():
+    rows, cols = 30, 40
+    scan_data = cast_scan([plane([-1, 0, 0], -4.0)], rows=rows, cols=cols, position=(0, 0, 0), azimuth_fov_deg=40,
+                          elevation_fov_deg=30, noise=0.0, seed=0)
+    rng = np.random.default_rng(2)
+    points = scan_data.points.copy()
+    # the left half is a rough bush: 20 cm random relief along the rays
+    ranges = np.linalg.norm(points - scan_data.origins, axis=-1)
+    relief = np.where(np.arange(cols)[None, :] < cols // 2, rng.normal(0, 0.2, (rows, cols)), 0.0)
+    points = scan_data.origins + (points - scan_data.origins) * ((ranges + relief) / ranges)[..., None]
+    planes = extract_planes(points, origins=scan_data.origins, sensor='lidar', min_plane_points=10)
+    assert (planes.labels[:, : cols // 2] > 0).mean() < 0.25
+    assert (planes.labels[:, cols // 2 + 2:] > 0).mean() > 0.9
