@@ -210,7 +210,8 @@ def _load_npy(path: Path, scale: float | None, meta: dict[str, Any]):
         metadata = read_ouster_metadata(sensor_json)
         origins = ouster_ray_origins(metadata, array.shape[0], array.shape[1], source=str(sensor_json))
         meta.update(origins_source=f'{sensor_json} (Ouster beam origins)')
-    points = array.astype(np.float64)
+    with np.errstate(invalid='ignore', over='ignore'):  # e.g. float128 beyond float64: inf, then no return
+        points = array.astype(np.float64)
     del array
     if factor != 1.0:
         points *= factor

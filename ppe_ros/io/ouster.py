@@ -13,6 +13,7 @@ has the elevation ``beam_altitude_angles[i]`` (checked in test/test_io_files.py)
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -60,9 +61,15 @@ def _json_kind(value: Any) -> str:
 
 
 def _number(source: str, name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+    number = float('nan')
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float range
+            pass
+    if not math.isfinite(number):
         raise ScanFileError(f'{source}: {name} must be a finite number; found {_json_kind(value)}')
-    return float(value)
+    return number
 
 
 def _count(source: str, name: str, value: Any) -> int:
