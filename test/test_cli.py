@@ -203,7 +203,7 @@ def test_extract_on_a_full_disk_leaves_no_output_and_no_temporary_file(small_sca
     args = ['extract', str(path), '-o', str(tmp_path / 'p.npz'), '--png', str(tmp_path / 'p.png'), '-e', '0.01', '0.1']
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert 'No space left on device' in err and err.count('\n') == 1
+    assert f'cannot write {tmp_path}/p_e0.01.npz: No space left on device' in err and err.count('\n') == 1
     assert list(tmp_path.iterdir()) == []
     for name in ('p_e0.01.npz', 'p_e0.1.npz', 'p_e0.01.png', 'p_e0.1.png'):  # old outputs survive a --force run
         (tmp_path / name).write_bytes(b'old')
@@ -214,6 +214,16 @@ def test_extract_on_a_full_disk_leaves_no_output_and_no_temporary_file(small_sca
     assert main([*args, '--force', '--lmax', '0.3']) == 0
     assert np.load(tmp_path / 'p_e0.1.npz')['labels'].shape == (48, 64)
     assert sorted(p.name for p in tmp_path.iterdir()) == ['p_e0.01.npz', 'p_e0.01.png', 'p_e0.1.npz', 'p_e0.1.png']
+
+
+def test_extract_reports_a_missing_output_folder_before_running(small_scan, tmp_path, capsys, monkeypatch):
+    import ppe_ros.commands.extract as extract
+
+    monkeypatch.setattr(extract, 'extract_plane_hierarchy', None)  # would raise TypeError if it ran
+    path, _ = small_scan
+    assert main(['extract', str(path), '-o', str(tmp_path / 'p.npz'), '--png', str(tmp_path / 'no' / 'p.png')]) == 2
+    assert f'output folder {tmp_path / "no"} does not exist' in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_extract_huge_plane_count_is_an_argument_error(small_scan, tmp_path, capsys):

@@ -12,7 +12,12 @@ import numpy as np
 from ppe_ros.commands._options import add_ppe_options, add_scan_options, read_scan
 from ppe_ros.core.extraction import extract_plane_hierarchy
 from ppe_ros.core.planes import PlaneSet
-from ppe_ros.io.files import refuse_overwriting_inputs, write_file_atomically, write_files_atomically
+from ppe_ros.io.files import (
+    check_output_targets,
+    refuse_overwriting_inputs,
+    write_file_atomically,
+    write_files_atomically,
+)
 from ppe_ros.io.loading import scan_input_files
 
 #: Defaults of the command line (tuned on SynPEB by the reference: sqrt(e) = 0.22 m, lmax = 0.18 m).
@@ -106,10 +111,7 @@ def run(args: argparse.Namespace) -> int:
     plan = planned_outputs(output, png, _snapshot_requests(e_list, n_list))
     targets = [path for pair in plan for path in pair if path is not None]
     refuse_overwriting_inputs(targets, scan_input_files(args.scan, gt=args.gt))
-    if not args.force:
-        for target in targets:
-            if target.exists() or target.is_symlink():
-                raise FileExistsError(f'{target} exists (use --force to replace it)')
+    check_output_targets(targets, overwrite=args.force)
 
     scan = read_scan(args, args.scan)
     start = time.perf_counter()

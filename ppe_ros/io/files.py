@@ -48,6 +48,21 @@ def refuse_overwriting_inputs(outputs: Sequence[str | os.PathLike[str]],
                 raise ValueError(f'two outputs would be written to the same file: {other} and {out}')
 
 
+def check_output_targets(paths: Sequence[str | os.PathLike[str]], *, overwrite: bool = False) -> None:
+    """Raise before anything is written if an output cannot be created.
+
+    Raises:
+        FileNotFoundError: an output folder does not exist.
+        FileExistsError: an output exists and ``overwrite`` is False.
+    """
+    for target in map(Path, paths):
+        folder = target.parent
+        if not folder.is_dir():
+            raise FileNotFoundError(f'output folder {folder} does not exist (for {target.name})')
+        if not overwrite and (target.exists() or target.is_symlink()):
+            raise FileExistsError(f'{target} exists (use --force to replace it)')
+
+
 def _open_for_writing(path: Path) -> BinaryIO:
     """A new file opened for binary writing (fails if it exists; permissions from the umask)."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
@@ -67,22 +82,23 @@ def write_files_atomically(files: Sequence[tuple[str | os.PathLike[str], Writer]
 
     Raises:
         FileExistsError: a target exists and ``overwrite`` is False (nothing written).
+        FileNotFoundError: a target's folder does not exist (nothing written).
         OSError: writing failed (e.g. ENOSPC); every temporary file is removed, no target changed.
     """
     targets = [Path(path) for path, _ in files]
-    if not overwrite:
-        for target in targets:
-            if target.exists() or target.is_symlink():
-                raise FileExistsError(f'{target} exists (use --force to replace it)')
+    check_output_targets(targets, overwrite=overwrite)
     temporaries: list[Path] = []
     try:
         for target, (_, writer) in zip(targets, files, strict=True):
             temporary = target.with_name(f'.{target.name}.{secrets.token_hex(4)}.tmp')
-            with _open_for_writing(temporary) as stream:
-                temporaries.append(temporary)
-                writer(stream)
-                stream.flush()
-                os.fsync(stream.fileno())
+            try:
+                with _open_for_writing(temporary) as stream:
+                    temporaries.append(temporary)
+                    writer(stream)
+                    stream.flush()
+                    os.fsync(stream.fileno())
+            except OSError as exc:  # say which output (the stream's error names no file)
+                raise OSError(exc.errno, f'cannot write {target}: {exc.strerror or exc}') from None
         for temporary, target in zip(temporaries, targets, strict=True):
             os.replace(temporary, target)
     except BaseException:
