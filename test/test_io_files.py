@@ -593,6 +593,30 @@ def test_declared_sizes_are_checked_before_allocating(tmp_path: Path, name: str,
     assert _peak_allocation(load) < 4_000_000  # bytes: nothing of the declared size was allocated
 
 
+def test_every_truncation_of_a_png_is_a_scan_file_error(tmp_path: Path) -> None:
+    from PIL import Image
+
+    path = tmp_path / 'depth.png'
+    Image.fromarray(np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000).save(path)
+    content = path.read_bytes()
+    full = load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points
+    # the IDAT data end 8 bytes before 'IEND' (its CRC, IEND's length); the last 5 of them (zlib's Adler-32,
+    # the end of the last deflate block) are not needed for the pixels
+    image_data_end = content.index(b'IEND') - 8 - 5
+    for length in range(len(content)):
+        path.write_bytes(content[:length])
+        if length < image_data_end:
+            with pytest.raises(ScanFileError, match=rf'^{path}: '):
+                load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm')
+        else:  # only checksums or the end marker are missing: Pillow reads all pixels
+            try:
+                points = load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points
+            except ScanFileError as exc:
+                assert str(exc).startswith(f'{path}: ')
+            else:
+                np.testing.assert_array_equal(points, full)
+
+
 def test_labels_npy_with_a_huge_or_damaged_header_is_refused_before_reading(tmp_path: Path) -> None:
     points, _ = _grid()
     scan = tmp_path / 'scan.npy'

@@ -86,7 +86,7 @@ def read_depth_png(path: str | os.PathLike[str]) -> np.ndarray:
     file_size = file_path.stat().st_size
     with file_path.open('rb') as stream:
         head = stream.read(24)
-    if head[:8] == _PNG_SIGNATURE and head[12:16] == b'IHDR':  # Pillow's own bomb check would come first
+    if len(head) == 24 and head[:8] == _PNG_SIGNATURE and head[12:16] == b'IHDR':  # before Pillow's bomb check
         width, height = struct.unpack('>II', head[16:24])
         check_grid_size(file_path, height, width, 'depth image (PNG header)')
     try:
