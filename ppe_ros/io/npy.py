@@ -13,6 +13,7 @@ import os
 import tokenize
 from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -36,33 +37,49 @@ def read_npy(path: str | os.PathLike[str], check: Callable[[tuple[int, ...], np.
         ScanFileError: not a .npy file, damaged header, object dtype, truncated data, refused by ``check``.
     """
     file_path = Path(path)
-    file_size = file_path.stat().st_size
     with file_path.open('rb') as stream:
-        try:
-            version = np.lib.format.read_magic(stream)
-        except _HEADER_ERRORS as exc:
-            raise ScanFileError(f'{file_path}: not a readable {what} (no .npy header; empty or not a .npy '
-                                f'file): {_one_line(exc)}') from None
-        if version not in ((1, 0), (2, 0)):
-            raise ScanFileError(f'{file_path}: unsupported .npy format version {version[0]}.{version[1]}')
-        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        try:
-            shape, fortran_order, dtype = reader(stream)
-        except _HEADER_ERRORS as exc:
-            raise ScanFileError(f'{file_path}: not a readable {what}: damaged .npy header ({_one_line(exc)})') from None
-        if dtype.hasobject:
-            raise ScanFileError(f'{file_path}: the .npy array holds Python objects ({dtype}); expected numbers')
-        if check is not None:
-            check(shape, dtype)
-        count = math.prod(shape)
-        declared = count * dtype.itemsize
-        available = file_size - stream.tell()
-        if declared > available:
-            raise ScanFileError(f'{file_path}: truncated .npy data: the header declares shape {shape} of {dtype} '
-                                f'= {declared} bytes, the file holds {available} after the header')
-        data = np.fromfile(stream, dtype=dtype, count=count) if count else np.empty(0, dtype=dtype)
-    if data.size != count:
-        raise ScanFileError(f'{file_path}: truncated .npy data: read {data.size} of {count} values')
+        return read_npy_stream(stream, file_path.stat().st_size, str(file_path), check, what=what)
+
+
+def read_npy_stream(stream: BinaryIO, size: int, name: str,
+                    check: Callable[[tuple[int, ...], np.dtype], None] | None = None,
+                    *, what: str = '.npy array') -> np.ndarray:
+    """:func:`read_npy` from an open binary stream of ``size`` bytes (e.g. a member of an ``.npz``)
+    named ``name`` in the messages."""
+    try:
+        version = np.lib.format.read_magic(stream)
+    except _HEADER_ERRORS as exc:
+        raise ScanFileError(f'{name}: not a readable {what} (no .npy header; empty or not a .npy '
+                            f'file): {_one_line(exc)}') from None
+    if version not in ((1, 0), (2, 0)):
+        raise ScanFileError(f'{name}: unsupported .npy format version {version[0]}.{version[1]}')
+    reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    try:
+        shape, fortran_order, dtype = reader(stream)
+    except _HEADER_ERRORS as exc:
+        raise ScanFileError(f'{name}: not a readable {what}: damaged .npy header ({_one_line(exc)})') from None
+    if dtype.hasobject:
+        raise ScanFileError(f'{name}: the .npy array holds Python objects ({dtype}); expected numbers')
+    if check is not None:
+        check(shape, dtype)
+    count = math.prod(shape)
+    declared = count * dtype.itemsize
+    available = size - stream.tell()
+    if declared > available:
+        raise ScanFileError(f'{name}: truncated .npy data: the header declares shape {shape} of {dtype} '
+                            f'= {declared} bytes, the file holds {available} after the header')
+    buffer = bytearray(declared)
+    filled = 0
+    view = memoryview(buffer)
+    while filled < declared:
+        got = stream.readinto(view[filled:])
+        if not got:
+            break
+        filled += got
+    del view
+    if filled < declared:
+        raise ScanFileError(f'{name}: truncated .npy data: read {filled} of {declared} bytes')
+    data = np.frombuffer(buffer, dtype=dtype, count=count) if count else np.empty(0, dtype=dtype)
     return data.reshape(shape, order='F' if fortran_order else 'C')
 
 
