@@ -451,6 +451,15 @@ def test_depth_png_calibration_files_next_to_it(tmp_path: Path) -> None:
     # explicit arguments need no calibration file
     scan = load_scan(icl / 'frame.png', intrinsics=(500.0, 500.0, 2.0, 1.5), units='mm')
     np.testing.assert_allclose(scan.points[..., 2], 5.0)
+    (icl / 'other.K').unlink()
+    (icl / 'camera.K').write_text('0 0 3.195e+02\n0. -4.80e+02 2.395e+02\n0. 0. 1.')  # fx = 0
+    with pytest.raises(ScanFileError, match=rf'^{icl / "camera.K"}: unusable camera matrix: focal lengths must be'):
+        load_scan(icl / 'frame.png')
+    (icl / 'camera.K').unlink()
+    (icl / 'calib_params.xml').write_text('<opencv_storage><IR_intrinsic_params><data>nan 0 1 0 1 1 0 0 1</data>'
+                                          '</IR_intrinsic_params></opencv_storage>')
+    with pytest.raises(ScanFileError, match=r'calib_params\.xml: unusable camera matrix: intrinsics must be finite'):
+        load_scan(icl / 'frame.png')
 
 
 def test_backproject_depth_validates() -> None:

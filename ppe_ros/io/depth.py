@@ -135,7 +135,14 @@ def read_camera_matrix_file(path: str | os.PathLike[str]) -> PinholeIntrinsics:
     """Read a whitespace-separated 3x3 camera matrix (ICL-NUIM ``*.K``); ``|fy|`` is used."""
     file_path = Path(path)
     matrix = _floats(file_path.read_text(encoding='latin-1'), file_path, 9).reshape(3, 3)
-    return PinholeIntrinsics(fx=abs(matrix[0, 0]), fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
+    return _intrinsics(file_path, fx=abs(matrix[0, 0]), fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
+
+
+def _intrinsics(source: Path, **values: float) -> PinholeIntrinsics:
+    try:
+        return PinholeIntrinsics(**values)
+    except ValueError as exc:  # zero or non-finite entries in the file
+        raise ScanFileError(f'{source}: unusable camera matrix: {exc}') from None
 
 
 def read_opencv_intrinsics(path: str | os.PathLike[str], node: str = 'IR_intrinsic_params') -> PinholeIntrinsics:
@@ -149,7 +156,7 @@ def read_opencv_intrinsics(path: str | os.PathLike[str], node: str = 'IR_intrins
     if element is None or element.text is None:
         raise ScanFileError(f'{file_path}: no <{node}><data> camera matrix in the XML file')
     matrix = _floats(element.text, file_path, 9).reshape(3, 3)
-    return PinholeIntrinsics(fx=matrix[0, 0], fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
+    return _intrinsics(file_path, fx=matrix[0, 0], fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
 
 
 def find_depth_calibration(png_path: str | os.PathLike[str]) -> DepthCalibration | None:
