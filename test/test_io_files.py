@@ -730,8 +730,8 @@ def test_ouster_sidecar_with_null_or_wrong_fields_names_the_file(tmp_path: Path,
 class _FullDisk:
     """A binary stream that takes ``room`` bytes, then raises OSError(ENOSPC) like a full disk."""
 
-    def __init__(self, stream, room: int) -> None:
-        self.stream, self.room = stream, room
+    def __init__(self, stream, room: int, error: BaseException | None = None) -> None:
+        self.stream, self.room, self.error = stream, room, error
 
     def write(self, data) -> int:
         import errno
@@ -741,7 +741,7 @@ class _FullDisk:
         if len(data) > self.room:
             self.stream.write(data[:self.room])
             self.room = 0
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            raise self.error or OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         self.room -= len(data)
         return self.stream.write(data)
 
@@ -755,12 +755,12 @@ class _FullDisk:
         self.stream.close()
 
 
-def full_disk(monkeypatch: pytest.MonkeyPatch, room: int) -> None:
-    """Make every file written through ppe_ros.io.files hit a full disk after ``room`` bytes."""
+def full_disk(monkeypatch: pytest.MonkeyPatch, room: int, error: BaseException | None = None) -> None:
+    """Make every file written through ppe_ros.io.files hit a full disk (or ``error``) after ``room`` bytes."""
     import ppe_ros.io.files as files
 
     original = files._open_for_writing
-    monkeypatch.setattr(files, '_open_for_writing', lambda path: _FullDisk(original(path), room))
+    monkeypatch.setattr(files, '_open_for_writing', lambda path: _FullDisk(original(path), room, error))
 
 
 def test_save_pcd_on_a_full_disk_leaves_no_file_and_keeps_the_old_one(tmp_path: Path,
@@ -778,3 +778,13 @@ def test_save_pcd_on_a_full_disk_leaves_no_file_and_keeps_the_old_one(tmp_path: 
     monkeypatch.undo()
     save_pcd(target, points, labels=labels, overwrite=True)
     assert read_pcd(target).data.shape == (20, 30) and list(tmp_path.iterdir()) == [target]
+
+
+def test_ctrl_c_while_writing_leaves_no_temporary_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    points, labels = _grid(20, 30)
+    target = tmp_path / 'out.pcd'
+    target.write_bytes(b'old')
+    full_disk(monkeypatch, room=700, error=KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        save_pcd(target, points, labels=labels, overwrite=True)
+    assert target.read_bytes() == b'old' and list(tmp_path.iterdir()) == [target]
