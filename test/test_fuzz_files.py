@@ -224,14 +224,24 @@ def fuzz_cases(root: Path) -> list[tuple[str, str, Path, dict]]:
     return cases
 
 
+def _zero_rows_deflated(rows: int, row_bytes: int, rows_per_block: int = 400) -> bytes:
+    """A zlib stream of ``rows * row_bytes`` zero bytes, built in 0.4 s instead of 4 s: after a full flush
+    deflate starts afresh, so every block of ``rows_per_block`` zero rows compresses to the same bytes;
+    the Adler-32 of n zero bytes is (n mod 65521) << 16 | 1."""
+    compressor = zlib.compressobj(9)
+    chunk = bytes(row_bytes * rows_per_block)
+    first = compressor.compress(chunk) + compressor.flush(zlib.Z_FULL_FLUSH)
+    block = compressor.compress(chunk) + compressor.flush(zlib.Z_FULL_FLUSH)
+    end = compressor.flush()[:-4]
+    total = rows * row_bytes
+    return first + block * (rows // rows_per_block - 1) + end + (((total % 65521) << 16) | 1).to_bytes(4, 'big')
+
+
 def issue_bombs(root: Path) -> list[Path]:
-    """The issue's memory bombs, small files declaring gigabytes."""
+    """The issue's memory bombs, small files declaring gigabytes (the PNG is a valid 280 KB all-zero image)."""
     folder = root / 'bombs'
     folder.mkdir()
-    compressor = zlib.compressobj(9)
-    row = bytes(2 * 12000 + 1)
-    idat = b''.join(compressor.compress(row) for _ in range(12000)) + compressor.flush()
-    (folder / 'zeros_12000.png').write_bytes(_png_chunks(12000, 12000, idat))  # 280 KB, all zero
+    (folder / 'zeros_12000.png').write_bytes(_png_chunks(12000, 12000, _zero_rows_deflated(12000, 2 * 12000 + 1)))
     (folder / 'claims_1e10.png').write_bytes(_png_chunks(100000, 100000, zlib.compress(b'\0' * 16)))  # 69 bytes
     header = (b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 9000\nHEIGHT 10000\n'
               b'POINTS 90000000\nDATA binary_compressed\n')
