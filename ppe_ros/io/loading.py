@@ -22,6 +22,10 @@ the unit of one depth count (``'mm'`` = Kinect), unless the calibration file imp
 Ground truth: ``gt=`` a labels ``.npy`` file; otherwise ``<stem>_labels.npy`` next to the scan if it
 exists (ICL-NUIM's ``icl_nuim_0_labels.npy``); otherwise labels stored in the file itself.
 Points whose coordinates are not all finite, or exactly (0, 0, 0), are set to NaN (no return).
+
+Bad input: every reader checks the sizes a file declares against the file's size and against the
+limits of :mod:`ppe_ros.io.limits` (50 million points, 100000 rows or columns) before it allocates,
+and raises :class:`ScanFileError` naming the file (also for sidecars: labels, Ouster JSON, calibration).
 """
 
 from __future__ import annotations
@@ -211,7 +215,7 @@ def _load_npy(path: Path, scale: float | None, meta: dict[str, Any]):
         origins = ouster_ray_origins(metadata, array.shape[0], array.shape[1], source=str(sensor_json))
         meta.update(origins_source=f'{sensor_json} (Ouster beam origins)')
     with np.errstate(invalid='ignore', over='ignore'):  # e.g. float128 beyond float64: inf, then no return
-        points = array.astype(np.float64)
+        points = array.astype(np.float64, copy=False)  # the array read is ours: no second copy
     del array
     if factor != 1.0:
         points *= factor
@@ -307,7 +311,8 @@ def load_scan(
     Raises:
         FileNotFoundError: the scan or the labels file does not exist.
         ScanFileError: unknown format, malformed/truncated/corrupt data, unorganized cloud,
-            labels of the wrong shape, depth PNG without intrinsics or scale.
+            declared sizes beyond :mod:`ppe_ros.io.limits`, labels of the wrong shape, a damaged
+            Ouster JSON or calibration file, depth PNG without intrinsics or scale.
         ValueError: bad argument values (unknown units, non-positive focal lengths...).
     """
     file_path = Path(path)
