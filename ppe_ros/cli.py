@@ -34,14 +34,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def error_line(exc: BaseException) -> str:
+    """An exception as one line of text (white space runs, newlines included, become one space)."""
+    text = ' '.join(str(exc).split())
+    if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) not in text:
+        text = f'{exc.filename}: {text}'
+    return text or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``ppe`` console script; returns the process exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (OSError, ValueError) as exc:
-        print(f'ppe {args.command}: error: {exc}', file=sys.stderr)
+    except (OSError, ValueError) as exc:  # ScanFileError is a ValueError: bad input files and arguments
+        print(f'ppe {args.command}: error: {error_line(exc)}', file=sys.stderr)
+        return 2
+    except MemoryError as exc:
+        print(f'ppe {args.command}: error: out of memory ({error_line(exc)}); the input is too large for this '
+              f'machine', file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f'ppe {args.command}: interrupted', file=sys.stderr)

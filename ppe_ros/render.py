@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ppe_ros.io.files import write_file_atomically
 from ppe_ros.ros.pointcloud2 import label_colors
 
 
@@ -35,12 +36,19 @@ def save_segmentation_png(path: str | os.PathLike[str], labels: np.ndarray, *,
         labels: ``(H, W)`` predicted plane labels (0 = no plane, drawn black).
         ground_truth: optional ``(H, W)`` ground-truth labels; labels below ``gt_min_label`` are black.
         scale: integer upscaling of small grids (default: so that the picture is at least 400 px high).
+        overwrite: replace an existing file (else FileExistsError). Written to a temporary file in the same
+            folder and renamed into place: never left truncated.
     """
+    out = Path(path)
+    writer = segmentation_png_writer(labels, ground_truth=ground_truth, gt_min_label=gt_min_label, scale=scale)
+    return write_file_atomically(out, writer, overwrite=overwrite)
+
+
+def segmentation_png_writer(labels: np.ndarray, *, ground_truth: np.ndarray | None = None, gt_min_label: int = 1,
+                            scale: int | None = None):
+    """A writer (for :func:`ppe_ros.io.files.write_files_atomically`) of :func:`save_segmentation_png`'s PNG."""
     from PIL import Image
 
-    out = Path(path)
-    if out.exists() and not overwrite:
-        raise FileExistsError(f'{out} exists (use --force to replace it)')
     panels = []
     if ground_truth is not None:
         gt = np.asarray(ground_truth).astype(np.int64)
@@ -57,5 +65,5 @@ def save_segmentation_png(path: str | os.PathLike[str], labels: np.ndarray, *,
         scale = max(1, int(np.ceil(400 / max(picture.shape[0], 1))))
     if scale > 1:
         picture = np.repeat(np.repeat(picture, scale, axis=0), scale, axis=1)
-    Image.fromarray(picture).save(out)
-    return out
+    image = Image.fromarray(picture)
+    return lambda stream: image.save(stream, format='PNG')

@@ -115,3 +115,142 @@ def test_demo_writes_results_and_scores_them(tmp_path, capsys):
     scan = load_scan(out / 'scan.pcd')
     assert scan.labels is not None and scan.labels.max() >= 10
     assert summary['f'] > 0.2
+
+
+# --------------------------------------------------------------------------------------------
+# issue 17: inputs compared by device and inode, atomic all-or-nothing outputs, one-line errors
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('link', ['hard', 'symbolic'])
+@pytest.mark.parametrize('option', ['-o', '--png'])
+def test_extract_refuses_a_link_to_its_input(small_scan, tmp_path, capsys, link, option):
+    path, _ = small_scan
+    before = path.read_bytes()
+    alias = tmp_path / ('alias.pcd' if option == '-o' else 'alias.png')
+    (alias.hardlink_to if link == 'hard' else alias.symlink_to)(path)
+    args = ['-o', str(alias)] if option == '-o' else ['-o', str(tmp_path / 'p.npz'), '--png', str(alias)]
+    assert main(['extract', str(path), *args, '--force']) == 2
+    err = capsys.readouterr().err
+    assert 'refusing to overwrite the input' in err and err.count('\n') == 1
+    assert path.read_bytes() == before and not (tmp_path / 'p.npz').exists()
+
+
+def test_extract_refuses_a_link_to_its_labels_file(small_scan, tmp_path, capsys):
+    path, scan = small_scan
+    gt = tmp_path / 'gt.npy'
+    np.save(gt, scan.labels)
+    (tmp_path / 'out.png').hardlink_to(gt)
+    before = gt.read_bytes()
+    assert main(['extract', str(path), '--gt', str(gt), '-o', str(tmp_path / 'p.npz'), '--png',
+                 str(tmp_path / 'out.png'), '--force']) == 2
+    assert f'refusing to overwrite the input {gt}' in capsys.readouterr().err
+    assert gt.read_bytes() == before
+
+
+def test_eval_and_tune_refuse_a_link_to_an_input(tmp_path, capsys):
+    from ppe_ros.benchmark.dataset import make_dataset
+
+    make_dataset(tmp_path / 'ds', seed=0, sigmas=(0.02,), n_train=1, n_test=1, rows=8, cols=10, n_objects=0)
+    manifest = tmp_path / 'ds' / 'dataset.json'
+    before = manifest.read_bytes()
+    (tmp_path / 'report.md').hardlink_to(manifest)
+    assert main(['eval', str(tmp_path / 'ds'), '--methods', 'ppe', '--out', str(tmp_path / 'report.md'),
+                 '--quiet']) == 2
+    assert 'refusing to overwrite the input' in capsys.readouterr().err
+    scan = next((tmp_path / 'ds' / 'train').rglob('*.pcd'))
+    scan_before = scan.read_bytes()
+    (tmp_path / 'tuned.yaml').hardlink_to(scan)
+    assert main(['tune', str(tmp_path / 'ds'), '--noise', '20', '-o', str(tmp_path / 'tuned.yaml'), '--force',
+                 '--quiet']) == 2
+    assert 'refusing to overwrite the input' in capsys.readouterr().err
+    assert manifest.read_bytes() == before and scan.read_bytes() == scan_before
+
+
+def test_extract_checks_every_snapshot_before_writing_any(small_scan, tmp_path, capsys):
+    path, _ = small_scan
+    out = tmp_path / 'p.npz'
+    (tmp_path / 'p_e0.1.npz').write_bytes(b'keep me')  # the second snapshot exists
+    assert main(['extract', str(path), '-o', str(out), '-e', '0.01', '0.1']) == 2
+    assert 'p_e0.1.npz exists' in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['p_e0.1.npz']  # the first was not written either
+    assert (tmp_path / 'p_e0.1.npz').read_bytes() == b'keep me'
+
+
+@pytest.mark.parametrize('thresholds', [['-e', '0.01', '0.01'], ['-e', '0.01', '0.0100000001'], ['-n', '5', '5']])
+def test_extract_rejects_a_snapshot_asked_for_twice(small_scan, tmp_path, capsys, thresholds):
+    path, _ = small_scan
+    assert main(['extract', str(path), '-o', str(tmp_path / 'p.npz'), *thresholds, '--force']) == 2
+    err = capsys.readouterr().err
+    assert 'both give the snapshot p_' in err and 'give each threshold once' in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_extract_rejects_the_same_file_for_planes_and_picture(small_scan, tmp_path, capsys):
+    path, _ = small_scan
+    out = tmp_path / 'p.pcd'
+    assert main(['extract', str(path), '-o', str(out), '--png', str(out)]) == 2
+    assert 'two outputs would be written to the same file' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('room', [0, 100, 5000])
+def test_extract_on_a_full_disk_leaves_no_output_and_no_temporary_file(small_scan, tmp_path, capsys, monkeypatch,
+                                                                       room):
+    from test_io_files import full_disk
+
+    path, _ = small_scan
+    full_disk(monkeypatch, room)
+    args = ['extract', str(path), '-o', str(tmp_path / 'p.npz'), '--png', str(tmp_path / 'p.png'), '-e', '0.01', '0.1']
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f'cannot write {tmp_path}/p_e0.01.npz: No space left on device' in err and err.count('\n') == 1
+    assert list(tmp_path.iterdir()) == []
+    for name in ('p_e0.01.npz', 'p_e0.1.npz', 'p_e0.01.png', 'p_e0.1.png'):  # old outputs survive a --force run
+        (tmp_path / name).write_bytes(b'old')
+    assert main([*args, '--force']) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['p_e0.01.npz', 'p_e0.01.png', 'p_e0.1.npz', 'p_e0.1.png']
+    assert all(p.read_bytes() == b'old' for p in tmp_path.iterdir())
+    monkeypatch.undo()
+    assert main([*args, '--force', '--lmax', '0.3']) == 0
+    assert np.load(tmp_path / 'p_e0.1.npz')['labels'].shape == (48, 64)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['p_e0.01.npz', 'p_e0.01.png', 'p_e0.1.npz', 'p_e0.1.png']
+
+
+def test_extract_reports_a_missing_output_folder_before_running(small_scan, tmp_path, capsys, monkeypatch):
+    import ppe_ros.commands.extract as extract
+
+    monkeypatch.setattr(extract, 'extract_plane_hierarchy', None)  # would raise TypeError if it ran
+    path, _ = small_scan
+    assert main(['extract', str(path), '-o', str(tmp_path / 'p.npz'), '--png', str(tmp_path / 'no' / 'p.png')]) == 2
+    assert f'output folder {tmp_path / "no"} does not exist' in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_extract_huge_plane_count_is_an_argument_error(small_scan, tmp_path, capsys):
+    path, _ = small_scan
+    with pytest.raises(SystemExit) as stop:
+        main(['extract', str(path), '-o', str(tmp_path / 'p.npz'), '-n', str(10**30)])
+    assert stop.value.code == 2
+    assert 'must be 1 .. 50000000' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('content', [b'', b'\x93NUMPY\x01\x00\x10\x00{broken', b'\x93NUMPY'])
+def test_damaged_npy_is_one_line_and_exit_2(tmp_path, capsys, content):
+    path = tmp_path / 'scan.npy'
+    path.write_bytes(content)
+    assert main(['info', str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'ppe info: error: {path}: ') and err.count('\n') == 1
+
+
+def test_memory_error_is_one_line_and_exit_2(small_scan, capsys, monkeypatch):
+    import ppe_ros.commands.info as info
+
+    def exhausted(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(info, 'load_scan', exhausted)
+    path, _ = small_scan
+    assert main(['info', str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err == 'ppe info: error: out of memory (MemoryError); the input is too large for this machine\n'

@@ -25,6 +25,8 @@ SHARED_FILES: dict[str, tuple] = {
     'synpeb/pc_01.pcd': (500, 500, 1.0, 1.0, 60, {}, (0.5, 10.0)),
     'synpeb/pc_02.pcd': (500, 500, 1.0, 1.0, 30, {}, (0.1, 10.0)),
     'icl_nuim/icl_nuim_0.png': (480, 640, 0.99, 1.0, 17, {}, (0.5, 10.0)),
+    'icl_nuim/icl_nuim_1.png': (480, 640, 0.99, 1.0, 17, {}, (0.5, 10.0)),
+    'icl_nuim/icl_nuim_2.png': (480, 640, 0.99, 1.0, 17, {}, (0.5, 10.0)),
     'kinect/depth_0.png': (480, 640, 0.75, 0.95, None, {}, (0.4, 10.0)),
     'tls/andreashaus_scan000.pcd': (633, 513, 0.9, 0.99, None, {'units': 'cm'}, (0.5, 20.0)),
     'ouster/OS-0-128-U1_v2.3.0_1024x10_frame1491_xyz_m.npy': (128, 1024, 0.73, 0.92, None, {}, (0.2, 335.0)),
@@ -449,6 +451,15 @@ def test_depth_png_calibration_files_next_to_it(tmp_path: Path) -> None:
     # explicit arguments need no calibration file
     scan = load_scan(icl / 'frame.png', intrinsics=(500.0, 500.0, 2.0, 1.5), units='mm')
     np.testing.assert_allclose(scan.points[..., 2], 5.0)
+    (icl / 'other.K').unlink()
+    (icl / 'camera.K').write_text('0 0 3.195e+02\n0. -4.80e+02 2.395e+02\n0. 0. 1.')  # fx = 0
+    with pytest.raises(ScanFileError, match=rf'^{icl / "camera.K"}: unusable camera matrix: focal lengths must be'):
+        load_scan(icl / 'frame.png')
+    (icl / 'camera.K').unlink()
+    (icl / 'calib_params.xml').write_text('<opencv_storage><IR_intrinsic_params><data>nan 0 1 0 1 1 0 0 1</data>'
+                                          '</IR_intrinsic_params></opencv_storage>')
+    with pytest.raises(ScanFileError, match=r'calib_params\.xml: unusable camera matrix: intrinsics must be finite'):
+        load_scan(icl / 'frame.png')
 
 
 def test_backproject_depth_validates() -> None:
@@ -515,3 +526,265 @@ def test_info_with_gt_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[s
     cut.write_bytes(path.read_bytes()[:-10])
     assert main(['info', str(cut)]) == 2
     assert 'truncated DATA binary' in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# issue 17: declared sizes checked before allocating, damaged headers and sidecars, atomic writes
+# --------------------------------------------------------------------------------------------
+
+
+def _png_bytes(width: int, height: int, idat: bytes, bit_depth: int = 16) -> bytes:
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack('>I', len(data)) + kind + data + struct.pack('>I', zlib.crc32(kind + data))
+
+    ihdr = struct.pack('>IIBBBBB', width, height, bit_depth, 0, 0, 0, 0)
+    return b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', ihdr) + chunk(b'IDAT', idat) + chunk(b'IEND', b'')
+
+
+def _npy_with_header(shape: tuple, descr: str = '<f8', data: bytes = b'') -> bytes:
+    header = repr({'descr': descr, 'fortran_order': False, 'shape': shape}).encode('latin-1')
+    header += b' ' * (-(len(header) + 11) % 64) + b'\n'
+    return b'\x93NUMPY\x01\x00' + struct.pack('<H', len(header)) + header + data
+
+
+def _peak_allocation(function) -> int:
+    """Peak bytes allocated by numpy and Python while ``function()`` runs (tracemalloc)."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        function()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+@pytest.mark.parametrize(('name', 'content', 'message'), [
+    # a 280-byte-scale PNG claiming 12000 x 12000 (the issue's file was all zeros, 280 KB)
+    ('zeros.png', _png_bytes(12000, 12000, b'x\x9c' + bytes(100)),
+     r'zeros\.png: declares a 12000 x 12000 depth image .* = 144000000 points; at most 50000000 points'),
+    ('bomb.png', _png_bytes(100000, 100000, b'x\x9c' + bytes(10)),
+     r'bomb\.png: declares a 100000 x 100000 depth image'),
+    ('thin.png', _png_bytes(200000, 2, b'x\x9c' + bytes(10)), r'thin\.png: declares a 2 x 200000 depth image .* at '
+     r'most 100000 rows and columns'),
+    ('ratio.png', _png_bytes(5000, 5000, b'x\x9c' + bytes(10)), r'ratio\.png: corrupt PNG: a file of \d+ bytes cannot '
+     r'hold the declared 5000 x 5000 image .*deflate expands at most 1032-fold'),
+    ('huge.npy', _npy_with_header((1000000, 1000000, 3)),
+     r'huge\.npy: declares a 1000000 x 1000000 grid \(\.npy shape\) = 1000000000000 points; at most 50000000'),
+    ('short.npy', _npy_with_header((1000, 1000, 3), data=bytes(800)),
+     r'short\.npy: truncated \.npy data: the header declares shape \(1000, 1000, 3\) of float64 = 24000000 bytes, '
+     r'the file holds 800'),
+    ('gig.pcd', _header('x y z', '4 4 4', 'F F F', 10000, 9000, 'binary_compressed')
+     + struct.pack('<II', 20, 1080000000) + bytes(20),
+     r'gig\.pcd: PCD header declares 90000000 points .* at most 50000000 points per scan'),
+    ('lzf.pcd', _header('x y z', '4 4 4', 'F F F', 1000, 1000, 'binary_compressed') + struct.pack('<II', 100, 12000000)
+     + bytes(100), r'lzf\.pcd: corrupt DATA binary_compressed: 100 compressed bytes cannot expand to the declared '
+     r'12000000 raw bytes \(LZF expands at most 88-fold\)'),
+    ('wide.pcd', _header('x y z', '4 4 4', 'F F F', 200000, 2, 'binary'), r'wide\.pcd: PCD header declares a 2 × '
+     r'200000 grid; at most 100000 rows and columns'),
+    ('ascii.pcd', _header('x y z', '4 4 4', 'F F F', 5000, 5000, 'ascii') + b'1 2 3\n', r'ascii\.pcd: truncated DATA '
+     r'ascii: expected 75000000 values .* found only 6 bytes of text'),
+    ('count.pcd', _header('x y z', '4 4 4', 'F F F', 2, 2, 'binary').replace(b'COUNT 1 1 1', b'COUNT 1 1 2147483648'),
+     r'count\.pcd: PCD header COUNT declares 2147483650 values per point; at most 4096'),
+])
+def test_declared_sizes_are_checked_before_allocating(tmp_path: Path, name: str, content: bytes, message: str) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+
+    def load() -> None:
+        with pytest.raises(ScanFileError, match=message):
+            load_scan(path, intrinsics=(500.0, 500.0, 320.0, 240.0), units='mm') if name.endswith('.png') \
+                else load_scan(path)
+
+    assert _peak_allocation(load) < 4_000_000  # bytes: nothing of the declared size was allocated
+
+
+def test_every_truncation_of_a_png_is_a_scan_file_error(tmp_path: Path) -> None:
+    from PIL import Image
+
+    path = tmp_path / 'depth.png'
+    Image.fromarray(np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000).save(path)
+    content = path.read_bytes()
+    full = load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points
+    # the IDAT data end 8 bytes before 'IEND' (its CRC, IEND's length); the last 5 of them (zlib's Adler-32,
+    # the end of the last deflate block) are not needed for the pixels
+    image_data_end = content.index(b'IEND') - 8 - 5
+    for length in range(len(content)):
+        path.write_bytes(content[:length])
+        if length < image_data_end:
+            with pytest.raises(ScanFileError, match=rf'^{path}: '):
+                load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm')
+        else:  # only checksums or the end marker are missing: Pillow reads all pixels
+            try:
+                points = load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points
+            except ScanFileError as exc:
+                assert str(exc).startswith(f'{path}: ')
+            else:
+                np.testing.assert_array_equal(points, full)
+
+
+def test_labels_npy_with_a_huge_or_damaged_header_is_refused_before_reading(tmp_path: Path) -> None:
+    points, _ = _grid()
+    scan = tmp_path / 'scan.npy'
+    np.save(scan, points)
+    gt = tmp_path / 'gt.npy'
+    gt.write_bytes(_npy_with_header((1000000, 1000000), '<i8'))
+
+    def load() -> None:
+        with pytest.raises(ScanFileError, match=r'gt\.npy: ground-truth labels have shape \(1000000, 1000000\), '
+                                                r'the scan is \(3, 4\)'):
+            load_scan(scan, gt=gt)
+
+    assert _peak_allocation(load) < 4_000_000
+    gt.write_bytes(_npy_with_header((3, 4), '|O'))
+    with pytest.raises(ScanFileError, match='holds Python objects'):
+        load_scan(scan, gt=gt)
+
+
+@pytest.mark.parametrize('which', ['scan', 'gt', 'sidecar'])
+def test_empty_npy_files_are_a_scan_file_error(tmp_path: Path, which: str) -> None:
+    points, _ = _grid()
+    scan = tmp_path / 'scan.npy'
+    np.save(scan, points)
+    empty = {'scan': scan, 'gt': tmp_path / 'gt.npy', 'sidecar': tmp_path / 'scan_labels.npy'}[which]
+    empty.write_bytes(b'')
+    with pytest.raises(ScanFileError, match=rf'{empty.name}: not a readable .* \(no \.npy header; empty or not a '
+                                            rf'\.npy file\)'):
+        load_scan(scan, gt=empty if which == 'gt' else None)
+
+
+def test_every_flipped_byte_of_a_npy_header_is_a_scan_file_error(tmp_path: Path) -> None:
+    points, _ = _grid()
+    np.save(tmp_path / 'good.npy', points)
+    good = (tmp_path / 'good.npy').read_bytes()
+    header_end = good.index(b'\n') + 1
+    path = tmp_path / 'flipped.npy'
+    outcomes = set()
+    for index in range(header_end):
+        for mask in (0x01, 0x20, 0xFF):
+            damaged = bytearray(good)
+            damaged[index] ^= mask
+            path.write_bytes(bytes(damaged))
+            try:
+                scan = load_scan(path)
+            except ScanFileError as exc:
+                assert str(exc).startswith(f'{path}: ') and '\n' not in str(exc)
+                outcomes.add('error')
+            else:
+                assert scan.points.shape[2] == 3
+                outcomes.add('read')
+    assert 'error' in outcomes
+
+
+def _ouster_fixture(tmp_path: Path) -> tuple[Path, dict]:
+    points = np.random.default_rng(0).uniform(1.0, 5.0, size=(4, 8, 3))
+    np.save(tmp_path / 'os_frame1_xyz_m.npy', points)
+    metadata = {
+        'lidar_origin_to_beam_origin_mm': 15.8,
+        'lidar_to_sensor_transform': [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
+        'data_format': {'pixels_per_column': 4, 'columns_per_frame': 8, 'column_window': [0, 7],
+                        'pixel_shift_by_row': [0, 1, 2, 3]},
+    }
+    return tmp_path / 'os_frame1_xyz_m.npy', metadata
+
+
+def test_ouster_sidecar_is_read(tmp_path: Path) -> None:
+    scan_path, metadata = _ouster_fixture(tmp_path)
+    (tmp_path / 'os.json').write_text(json.dumps(metadata))
+    scan = load_scan(scan_path)
+    assert scan.origins.shape == (4, 8, 3)
+    np.testing.assert_allclose(np.linalg.norm(scan.origins[..., :2], axis=-1), 0.0158)
+
+
+@pytest.mark.parametrize(('edit', 'message'), [
+    (lambda m: m.update(data_format=None), 'data_format must be a JSON object; found null'),
+    (lambda m: m.update(data_format=[4, 8]), 'data_format must be a JSON object; found list'),
+    (lambda m: m.update(lidar_origin_to_beam_origin_mm=None), 'lidar_origin_to_beam_origin_mm must be a finite '
+     'number; found null'),
+    (lambda m: m.update(lidar_origin_to_beam_origin_mm='15'), 'lidar_origin_to_beam_origin_mm must be a finite number'),
+    (lambda m: m['data_format'].update(pixels_per_column=None), 'data_format.pixels_per_column must be a positive '
+     'integer; found null'),
+    (lambda m: m['data_format'].update(pixel_shift_by_row=[0, None, 2, 3]),
+     r'data_format.pixel_shift_by_row\[1\] must be a finite'),
+    (lambda m: m['data_format'].update(pixel_shift_by_row=[0, 1]),
+     r'data_format.pixel_shift_by_row must be 4 numbers \(one per row\); found 2 values'),
+    (lambda m: m.update(lidar_to_sensor_transform=list(range(15))), r'lidar_to_sensor_transform must be 16 numbers '
+     r'\(a row-major 4 x 4 matrix\); found 15 values'),
+    (lambda m: m.clear(), 'not Ouster sensor metadata'),
+])
+def test_ouster_sidecar_with_null_or_wrong_fields_names_the_file(tmp_path: Path, edit, message: str) -> None:
+    scan_path, metadata = _ouster_fixture(tmp_path)
+    edit(metadata)
+    sidecar = tmp_path / 'os.json'
+    sidecar.write_text(json.dumps(metadata))
+    with pytest.raises(ScanFileError, match=rf'^{sidecar}: {message}'):
+        load_scan(scan_path)
+    sidecar.write_text('[1, 2]')
+    with pytest.raises(ScanFileError, match=rf'^{sidecar}: not Ouster sensor metadata \(a JSON list'):
+        load_scan(scan_path)
+
+
+class _FullDisk:
+    """A binary stream that takes ``room`` bytes, then raises OSError(ENOSPC) like a full disk."""
+
+    def __init__(self, stream, room: int, error: BaseException | None = None) -> None:
+        self.stream, self.room, self.error = stream, room, error
+
+    def write(self, data) -> int:
+        import errno
+        import os
+
+        data = bytes(data)
+        if len(data) > self.room:
+            self.stream.write(data[:self.room])
+            self.room = 0
+            raise self.error or OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.room -= len(data)
+        return self.stream.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stream.close()
+
+
+def full_disk(monkeypatch: pytest.MonkeyPatch, room: int, error: BaseException | None = None) -> None:
+    """Make every file written through ppe_ros.io.files hit a full disk (or ``error``) after ``room`` bytes."""
+    import ppe_ros.io.files as files
+
+    original = files._open_for_writing
+    monkeypatch.setattr(files, '_open_for_writing', lambda path: _FullDisk(original(path), room, error))
+
+
+def test_save_pcd_on_a_full_disk_leaves_no_file_and_keeps_the_old_one(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    points, labels = _grid(20, 30)
+    full_disk(monkeypatch, room=500)
+    target = tmp_path / 'out.pcd'
+    with pytest.raises(OSError, match='No space left'):
+        save_pcd(target, points, labels=labels)
+    assert list(tmp_path.iterdir()) == []  # neither the target nor a temporary file
+    target.write_bytes(b'old')
+    with pytest.raises(OSError, match='No space left'):
+        save_pcd(target, points, labels=labels, overwrite=True)
+    assert target.read_bytes() == b'old' and list(tmp_path.iterdir()) == [target]
+    monkeypatch.undo()
+    save_pcd(target, points, labels=labels, overwrite=True)
+    assert read_pcd(target).data.shape == (20, 30) and list(tmp_path.iterdir()) == [target]
+
+
+def test_ctrl_c_while_writing_leaves_no_temporary_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    points, labels = _grid(20, 30)
+    target = tmp_path / 'out.pcd'
+    target.write_bytes(b'old')
+    full_disk(monkeypatch, room=700, error=KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        save_pcd(target, points, labels=labels, overwrite=True)
+    assert target.read_bytes() == b'old' and list(tmp_path.iterdir()) == [target]

@@ -111,3 +111,35 @@ def test_errors(scene, tmp_path, capsys):
     assert 'no ground truth' in capsys.readouterr().err
     assert main(['score', str(path), str(tmp_path / 'missing.npz')]) == 2
     assert 'not found' in capsys.readouterr().err
+
+
+def _npy_header(shape: tuple, descr: str = '<i8') -> bytes:
+    import struct
+
+    header = repr({'descr': descr, 'fortran_order': False, 'shape': shape}).encode('latin-1')
+    header += b' ' * (-(len(header) + 11) % 64) + b'\n'
+    return b'\x93NUMPY\x01\x00' + struct.pack('<H', len(header)) + header
+
+
+def test_damaged_or_huge_predictions_are_one_line_errors(scene, tmp_path, capsys):
+    import zipfile
+
+    _, path = scene
+    empty = tmp_path / 'empty.npy'
+    empty.write_bytes(b'')
+    huge = tmp_path / 'huge.npz'
+    with zipfile.ZipFile(huge, 'w') as archive:  # 80 bytes declaring 8 TB of labels
+        archive.writestr('labels.npy', _npy_header((1000000, 1000000)))
+    good = _write_prediction(tmp_path / 'good.npz', np.zeros((4, 4), int))
+    cut = tmp_path / 'cut.npz'
+    cut.write_bytes(good.read_bytes()[:-30])
+    corrupt = tmp_path / 'corrupt.npz'
+    np.savez_compressed(corrupt, labels=np.arange(10000).reshape(100, 100))
+    raw = bytearray(corrupt.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    corrupt.write_bytes(bytes(raw))
+    for bad, message in ((empty, 'no .npy header'), (huge, 'at most 50000000 points'), (cut, 'not a readable .npz'),
+                         (corrupt, 'not a readable .npz')):
+        assert main(['score', str(path), str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f'ppe score: error: {bad}') and message in err and err.count('\n') == 1, err

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ppe_ros.io import UNIT_SCALES, load_scan
+from ppe_ros.io.limits import MAX_SCAN_POINTS
 from ppe_ros.io.loading import Scan
 
 
@@ -40,6 +41,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def plane_count(text: str) -> int:
+    """argparse type: an integer 1 .. :data:`~ppe_ros.io.limits.MAX_SCAN_POINTS` (no scan has more planes)."""
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f'not an integer: {text!r}') from exc
+    if not 1 <= value <= MAX_SCAN_POINTS:
+        raise argparse.ArgumentTypeError(f'must be 1 .. {MAX_SCAN_POINTS} (the most points a scan may have): {text!r}')
+    return value
+
+
 def non_negative_float(text: str) -> float:
     """argparse type: a finite float >= 0."""
     try:
@@ -62,7 +74,7 @@ def add_ppe_options(parser: argparse.ArgumentParser) -> None:
         '--lmax', '--max-neighbor-distance', dest='max_neighbor_distance', type=positive_float, default=None,
         help='largest distance in m between neighbouring endpoints that may be joined (default 0.18; inf = none)',
     )
-    parser.add_argument('-n', '--max-planes', type=int, nargs='+', default=None, metavar='N',
+    parser.add_argument('-n', '--max-planes', type=plane_count, nargs='+', default=None, metavar='N',
                         help='plane-count snapshots J <= N (atomic rays count as planes)')
     parser.add_argument('--min-plane-points', type=int, default=4,
                         help='planes with fewer rays are reported as no plane (default 4)')

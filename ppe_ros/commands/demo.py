@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ppe_ros.commands.extract import DEFAULT_MAX_ERROR_INCREMENT, DEFAULT_MAX_NEIGHBOR_DISTANCE, write_planes
+from ppe_ros.io.files import write_files_atomically
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -64,9 +65,11 @@ def run(args: argparse.Namespace) -> int:
         f'RMSE = {score.rmse * 1000:.1f} mm; over {score.n_over}, under {score.n_under}, '
         f'missed {score.n_missed}, spurious {score.n_noise}',
     ]
-    (out / 'summary.txt').write_text('\n'.join(lines) + '\n')
-    (out / 'summary.json').write_text(json.dumps({'planes': planes.num_planes, 'seconds': wall,
-                                                  **score.to_dict()}, indent=2, default=str) + '\n')
+    summary_text = ('\n'.join(lines) + '\n').encode()
+    summary_json = (json.dumps({'planes': planes.num_planes, 'seconds': wall, **score.to_dict()}, indent=2,
+                               default=str) + '\n').encode()
+    write_files_atomically([(out / 'summary.txt', lambda stream: stream.write(summary_text)),
+                            (out / 'summary.json', lambda stream: stream.write(summary_json))], overwrite=True)
     print('\n'.join(lines))
     print(f'\nresults in {out}/: segmentation.png (ground truth left, PPE right), planes.npz, scan.pcd, summary.txt')
     return 0

@@ -8,7 +8,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from ppe_ros.benchmark.dataset import read_manifest
+from ppe_ros.benchmark.dataset import MANIFEST_NAME, iter_scans, read_manifest
 from ppe_ros.benchmark.methods import (
     ERROR_GRID,
     PPE_DEFAULT_MAX_ERROR_INCREMENT,
@@ -17,6 +17,8 @@ from ppe_ros.benchmark.methods import (
     method_names,
 )
 from ppe_ros.commands._options import non_negative_float, positive_float
+from ppe_ros.io.files import refuse_overwriting_inputs, write_file_atomically
+from ppe_ros.io.loading import scan_input_files
 
 DEFAULT_METHODS = ('ppe', 'msac', 'open3d', 'open3d-patches', 'polylidar')
 DEFAULT_OUT = Path('docs') / 'benchmarks.md'
@@ -207,9 +209,16 @@ def run(args: argparse.Namespace) -> int:
     for path in (out, plot, *([Path(args.raw)] if args.raw else [])):
         if not path.parent.is_dir():
             raise FileNotFoundError(f'output folder {path.parent} does not exist')
-    inputs = {Path(p).resolve() for p in args.extra}
-    if any(Path(p).resolve() in inputs for p in (out, plot)):
-        raise ValueError('refusing to overwrite an input scan with an output')
+    # outputs must not be inputs, compared by device and inode (a hard or symbolic link is the input)
+    inputs = [path for scan in args.extra for path in scan_input_files(scan)]
+    inputs += [Path(path) for _, path in map(split_params_argument, args.params)]
+    inputs += [Path(args.dataset) / MANIFEST_NAME]
+    inputs += [entry.path for entry in iter_scans(args.dataset, split=args.split, noise_mm=args.noise,
+                                                  max_scans=args.max_scans)]
+    raw = [Path(args.raw)] if args.raw else []
+    refuse_overwriting_inputs([out, plot, *raw], inputs)
+    if args.reuse:  # --raw may be the --reuse file (an interrupted run resumes), the report may not
+        refuse_overwriting_inputs([out, plot], [args.reuse])
     previous = load_previous_results(args.reuse) if args.reuse else None
     manifest = read_manifest(args.dataset)
     lmax, error, levels = ppe_parameters(args)
@@ -288,7 +297,8 @@ def run(args: argparse.Namespace) -> int:
     text = markdown_report(evaluation, command=canonical_command(args),
                            dataset_note=dataset_note(args.dataset, manifest, args.split), extra_groups=extra_groups,
                            plot_name=plot_name, notes=notes)
-    out.write_text(text + kept_after_report(out))
+    report = (text + kept_after_report(out)).encode('utf-8')
+    write_file_atomically(out, lambda stream: stream.write(report), overwrite=True)
     print(f'\nwrote {out}' + (f' and {plot}' if plot_name else ''))
     if args.raw:
         save_raw(evaluation)

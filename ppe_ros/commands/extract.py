@@ -12,6 +12,13 @@ import numpy as np
 from ppe_ros.commands._options import add_ppe_options, add_scan_options, read_scan
 from ppe_ros.core.extraction import extract_plane_hierarchy
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.io.files import (
+    check_output_targets,
+    refuse_overwriting_inputs,
+    write_file_atomically,
+    write_files_atomically,
+)
+from ppe_ros.io.loading import scan_input_files
 
 #: Defaults of the command line (tuned on SynPEB by the reference: sqrt(e) = 0.22 m, lmax = 0.18 m).
 DEFAULT_MAX_ERROR_INCREMENT = 0.0484
@@ -25,7 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help='extract planes from a scan file',
         description='Run Probabilistic Plane Extraction on an organized scan (PCD, NPY, 16-bit depth PNG) and '
         'write the planes: OUT.npz (labels and per-plane arrays, as PlaneSet.to_npz_dict) or OUT.pcd '
-        '(the cloud with a label field). With several -e/-n values one file is written per snapshot.',
+        '(the cloud with a label field). With several -e/-n values one file is written per snapshot (each value '
+        'once). Every output is written to a temporary file and renamed into place when all are complete; an '
+        'output that is an input (also through a hard or symbolic link) is refused.',
     )
     parser.add_argument('scan', help='scan file: .pcd, .npy (H x W x 3, metres) or .png (16-bit depth)')
     parser.add_argument('-o', '--output', required=True, help='output file: .npz or .pcd')
@@ -43,31 +52,52 @@ def snapshot_path(output: Path, tag: str | None) -> Path:
     return output if tag is None else output.with_name(f'{output.stem}_{tag}{output.suffix}')
 
 
-def write_planes(path: Path, planes: PlaneSet, points: np.ndarray, *, meta: dict, force: bool) -> Path:
-    """Write one snapshot as .npz or .pcd; refuses to replace a file unless ``force``."""
-    from ppe_ros.io import save_pcd
+def planes_writer(path: Path, planes: PlaneSet, points: np.ndarray, *, meta: dict):
+    """A writer (for :func:`ppe_ros.io.files.write_files_atomically`) of one snapshot as .npz or .pcd."""
+    from ppe_ros.io.pcd import encode_pcd
 
-    if path.exists() and not force:
-        raise FileExistsError(f'{path} exists (use --force to replace it)')
     if path.suffix == '.npz':
         arrays = planes.to_npz_dict()
         arrays['meta'] = np.array(json.dumps(meta))
-        with path.open('wb') as handle:
-            np.savez(handle, **arrays)
-    else:
-        save_pcd(path, points, labels=planes.labels, overwrite=force)
-    return path
+        return lambda stream: np.savez(stream, **arrays)
+    content = encode_pcd(points, labels=planes.labels)
+    return lambda stream: stream.write(content)
+
+
+def write_planes(path: Path, planes: PlaneSet, points: np.ndarray, *, meta: dict, force: bool) -> Path:
+    """Write one snapshot as .npz or .pcd, atomically; refuses to replace a file unless ``force``."""
+    return write_file_atomically(path, planes_writer(path, planes, points, meta=meta), overwrite=force)
+
+
+def _snapshot_requests(e_list: list[float] | None, n_list: list[int] | None) -> list[tuple[str, str]]:
+    """``(flag, tag)`` per requested snapshot, e.g. ``('-e 0.01', 'e0.01')``, in command-line order."""
+    requests = [(f'-e {e:g}', f'e{e:g}') for e in e_list or []]
+    return requests + [(f'-n {n}', f'n{n}') for n in n_list or []]
+
+
+def planned_outputs(output: Path, png: Path | None, requests: list[tuple[str, str]]) -> list[tuple[Path, Path | None]]:
+    """The (planes file, picture) of every snapshot.
+
+    Raises:
+        ValueError: two snapshots would write the same file (a threshold given twice, or two values
+            that print alike): each snapshot must be asked for once.
+    """
+    several = len(requests) > 1
+    seen: dict[str, str] = {}
+    for flag, tag in requests:
+        if tag in seen:
+            raise ValueError(f'{seen[tag]} and {flag} both give the snapshot {snapshot_path(output, tag).name}; '
+                             f'give each threshold once')
+        seen[tag] = flag
+    return [(snapshot_path(output, tag if several else None),
+             snapshot_path(png, tag if several else None) if png is not None else None) for _, tag in requests]
 
 
 def run(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if output.suffix not in OUTPUT_SUFFIXES:
         raise ValueError(f'output must end in .npz or .pcd; got {output.name!r}')
-    scan_path = Path(args.scan).resolve()
-    outputs = [output] + ([Path(args.png)] if args.png else [])
-    for out in outputs:
-        if out.resolve() == scan_path:
-            raise ValueError(f'refusing to overwrite the input scan {scan_path}')
+    png = Path(args.png) if args.png else None
     if args.min_plane_points < 1:
         raise ValueError(f'--min-plane-points must be >= 1; got {args.min_plane_points}')
     e_list = args.max_error_increment
@@ -77,6 +107,11 @@ def run(args: argparse.Namespace) -> int:
     if e_list is None and n_list is None:
         e_list = [DEFAULT_MAX_ERROR_INCREMENT]
     lmax = DEFAULT_MAX_NEIGHBOR_DISTANCE if args.max_neighbor_distance is None else args.max_neighbor_distance
+    # every output is checked (inputs by device and inode, collisions, existing files) before anything runs
+    plan = planned_outputs(output, png, _snapshot_requests(e_list, n_list))
+    targets = [path for pair in plan for path in pair if path is not None]
+    refuse_overwriting_inputs(targets, scan_input_files(args.scan, gt=args.gt))
+    check_output_targets(targets, overwrite=args.force)
 
     scan = read_scan(args, args.scan)
     start = time.perf_counter()
@@ -84,32 +119,31 @@ def run(args: argparse.Namespace) -> int:
         scan.points, origins=scan.origins, max_neighbor_distance=lmax,
         max_error_increment=max(e_list) if e_list else None, max_planes=min(n_list) if n_list else None,
     )
-    snapshots: list[tuple[str, PlaneSet]] = []
+    snapshots: list[PlaneSet] = []
     for e in e_list or []:
-        snapshots.append((f'e{e:g}', hierarchy.cut(max_error_increment=e, min_plane_points=args.min_plane_points)))
+        snapshots.append(hierarchy.cut(max_error_increment=e, min_plane_points=args.min_plane_points))
     for n in n_list or []:
-        snapshots.append((f'n{n}', hierarchy.cut(max_planes=n, min_plane_points=args.min_plane_points)))
+        snapshots.append(hierarchy.cut(max_planes=n, min_plane_points=args.min_plane_points))
     seconds = time.perf_counter() - start
-    several = len(snapshots) > 1
     summary = {'scan': str(args.scan), 'grid': list(scan.shape), 'valid_fraction': scan.valid_fraction,
                'max_neighbor_distance': lmax, 'seconds': seconds, 'snapshots': []}
-    for tag, planes in snapshots:
+    files = []
+    for planes, (path, png_path) in zip(snapshots, plan, strict=True):
         meta = {'scan': str(args.scan), 'max_neighbor_distance': lmax,
                 'max_error_increment': planes.max_error_increment, 'max_planes': planes.max_planes,
                 'seconds': seconds}
-        path = write_planes(snapshot_path(output, tag if several else None), planes, scan.points, meta=meta,
-                            force=args.force)
+        files.append((path, planes_writer(path, planes, scan.points, meta=meta)))
         entry = {'file': str(path), 'planes': planes.num_planes, 'actions': planes.actions,
                  'max_error_increment': planes.max_error_increment, 'max_planes': planes.max_planes,
                  'labelled_fraction': float((planes.labels > 0).mean())}
-        if args.png:
-            from ppe_ros.render import save_segmentation_png
+        if png_path is not None:
+            from ppe_ros.render import segmentation_png_writer
 
-            png = save_segmentation_png(snapshot_path(Path(args.png), tag if several else None), planes.labels,
-                                        ground_truth=scan.labels, gt_min_label=scan.meta.get('min_plane_label', 1),
-                                        overwrite=args.force)
-            entry['png'] = str(png)
+            files.append((png_path, segmentation_png_writer(
+                planes.labels, ground_truth=scan.labels, gt_min_label=scan.meta.get('min_plane_label', 1))))
+            entry['png'] = str(png_path)
         summary['snapshots'].append(entry)
+    write_files_atomically(files, overwrite=args.force)  # all complete, or none changed
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -6,11 +6,14 @@ import argparse
 import json
 import math
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from ppe_ros.commands._options import add_scan_options, read_scan
+from ppe_ros.io.limits import check_grid_size
+from ppe_ros.io.npy import read_npy, read_npy_stream
 
 SUMMARY_KEYS = ('f', 'k', 'k_all_rays', 'rmse', 'n_gt', 'n_pred', 'n_correct', 'n_over', 'n_under', 'n_missed',
                 'n_noise', 'n_rmse_dropped', 'consistent', 'threshold')
@@ -35,30 +38,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _check_prediction(name: str, shape: tuple[int, ...], dtype: np.dtype) -> None:
+    if len(shape) != 2:
+        raise ValueError(f'{name}: labels must be a 2-D (H, W) image; got shape {shape}')
+    if not np.issubdtype(dtype, np.integer):
+        raise ValueError(f'{name}: labels must be integers; got dtype {dtype}')
+    check_grid_size(name, shape[0], shape[1], 'labels image')
+
+
 def read_prediction(path: str | Path) -> np.ndarray:
     """The ``labels`` array of an npz (``ppe extract`` output) or a labels .npy.
 
+    The array's header is checked (2-D integers, size within :mod:`ppe_ros.io.limits`, data present)
+    before the array is read.
+
     Raises:
-        FileNotFoundError, ValueError: missing file, no labels array, not an integer image.
+        FileNotFoundError, ValueError: missing file, no labels array, not an integer image, damaged file.
     """
     file = Path(path)
     if not file.is_file():
         raise FileNotFoundError(f'prediction file not found: {file}')
+    if not zipfile.is_zipfile(file):
+        labels = read_npy(file, lambda shape, dtype: _check_prediction(str(file), shape, dtype),
+                          what='.npz/.npy labels file')
+        return labels.astype(np.int64)
     try:
-        data = np.load(file, allow_pickle=False)
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
-        raise ValueError(f'{file}: not a readable .npz/.npy file: {exc}') from None
-    if isinstance(data, np.lib.npyio.NpzFile):
-        with data:
-            if 'labels' not in data.files:
-                raise ValueError(f'{file}: no "labels" array (has: {", ".join(data.files) or "nothing"})')
-            labels = data['labels']
-    else:
-        labels = data
-    if labels.ndim != 2:
-        raise ValueError(f'{file}: labels must be a 2-D (H, W) image; got shape {labels.shape}')
-    if not np.issubdtype(labels.dtype, np.integer):
-        raise ValueError(f'{file}: labels must be integers; got dtype {labels.dtype}')
+        with zipfile.ZipFile(file) as archive:
+            names = [name.removesuffix('.npy') for name in archive.namelist()]
+            if 'labels' not in names:
+                raise ValueError(f'{file}: no "labels" array (has: {", ".join(names) or "nothing"})')
+            member = archive.getinfo('labels.npy')
+            with archive.open(member) as stream:
+                labels = read_npy_stream(stream, member.file_size, f'{file} (labels)',
+                                         lambda shape, dtype: _check_prediction(f'{file} (labels)', shape, dtype))
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, zlib.error) as exc:
+        raise ValueError(f'{file}: not a readable .npz file: {" ".join(str(exc).split())}') from None
     return labels.astype(np.int64)
 
 

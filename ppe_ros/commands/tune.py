@@ -9,9 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ppe_ros.benchmark.dataset import MANIFEST_NAME, iter_scans
 from ppe_ros.benchmark.methods import ERROR_GRID
-from ppe_ros.benchmark.tuning import COARSE_LMAX_GRID, FULL_LMAX_GRID, tune_ppe, write_params_yaml
+from ppe_ros.benchmark.tuning import COARSE_LMAX_GRID, FULL_LMAX_GRID, params_yaml, tune_ppe
 from ppe_ros.commands._options import positive_float
+from ppe_ros.io.files import refuse_overwriting_inputs, write_file_atomically
 
 DEFAULT_NOISE_MM = 14.1
 DEFAULT_OUT = 'ppe_tuned.yaml'
@@ -48,10 +50,14 @@ def run(args: argparse.Namespace) -> int:
     from ppe_ros.benchmark.runner import dataset_scans
 
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise FileExistsError(f'{out} exists (use --force to replace it)')
     if args.max_scans is not None and args.max_scans < 1:
         raise ValueError(f'--max-scans must be >= 1; got {args.max_scans}')
+    dataset_files = [Path(args.dataset) / MANIFEST_NAME]
+    dataset_files += [entry.path for entry in iter_scans(args.dataset, split=args.split, noise_mm=[args.noise],
+                                                         max_scans=args.max_scans)]
+    refuse_overwriting_inputs([out], dataset_files)
+    if (out.exists() or out.is_symlink()) and not args.force:
+        raise FileExistsError(f'{out} exists (use --force to replace it)')
     lmax_grid = tuple(args.lmax) if args.lmax else (FULL_LMAX_GRID if args.grid == 'full' else COARSE_LMAX_GRID)
     error_grid = tuple(v * v for v in args.sqrt_e) if args.sqrt_e else ERROR_GRID
     scans = dataset_scans(args.dataset, split=args.split, noise_mm=[args.noise], max_scans=args.max_scans)
@@ -90,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         f'Use: ros2 run ppe_ros extractor --ros-args --params-file {out.name}   or   ppe eval DATASET --params '
         f'{out.name}',
     ]
-    write_params_yaml(out, best_lmax, best_e, comments=comments, overwrite=args.force)
+    text = params_yaml(best_lmax, best_e, comments=comments).encode('utf-8')
+    write_file_atomically(out, lambda stream: stream.write(text), overwrite=args.force)
     print(f'wrote {out}')
     return 0

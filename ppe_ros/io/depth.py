@@ -19,13 +19,18 @@ Pillow reads the PNG (imported when a PNG is read, so the rest of ``ppe_ros.io``
 from __future__ import annotations
 
 import os
+import struct
 import xml.etree.ElementTree as ElementTree
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ppe_ros.io.errors import ScanFileError
+from ppe_ros.io.limits import DEFLATE_MAX_EXPANSION, check_grid_size
+
+_PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
 
 #: Metres per depth count of ICL-NUIM PNG frames.
 ICL_NUIM_DEPTH_SCALE = 1.0 / 5000.0
@@ -70,24 +75,43 @@ def read_depth_png(path: str | os.PathLike[str]) -> np.ndarray:
 
     Raises:
         FileNotFoundError: no such file.
-        ScanFileError: not a readable PNG, or not a 16-bit single-channel image.
+        ScanFileError: not a readable PNG, not a 16-bit single-channel image, or a declared size beyond
+            :mod:`ppe_ros.io.limits` or beyond what the file can hold (checked before decoding).
     """
     from PIL import Image, UnidentifiedImageError
 
     file_path = Path(path)
     if not file_path.is_file():
         raise FileNotFoundError(f'depth image not found: {file_path}')
+    file_size = file_path.stat().st_size
+    with file_path.open('rb') as stream:
+        head = stream.read(24)
+    if len(head) == 24 and head[:8] == _PNG_SIGNATURE and head[12:16] == b'IHDR':  # before Pillow's bomb check
+        width, height = struct.unpack('>II', head[16:24])
+        check_grid_size(file_path, height, width, 'depth image (PNG header)')
     try:
-        with Image.open(file_path) as image:
-            image.load()
+        with Image.open(file_path) as image:  # reads the header only
             mode = image.mode
             if mode not in ('I;16', 'I;16B', 'I;16L', 'I'):
                 raise ScanFileError(
                     f'{file_path}: expected a 16-bit single-channel depth PNG, found image mode {mode!r}'
                 )
+            width, height = image.size
+            check_grid_size(file_path, height, width, 'depth image')
+            raw_bytes = height * (width * (4 if mode == 'I' else 2) + 1)  # + one filter byte per row
+            if raw_bytes > DEFLATE_MAX_EXPANSION * file_size:
+                raise ScanFileError(
+                    f'{file_path}: corrupt PNG: a file of {file_size} bytes cannot hold the declared {width} x '
+                    f'{height} image ({raw_bytes} bytes; deflate expands at most {DEFLATE_MAX_EXPANSION}-fold)'
+                )
+            image.load()
             depth = np.array(image)
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise ScanFileError(f'{file_path}: cannot read the PNG (corrupt or truncated?): {exc}') from None
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, SyntaxError, ValueError, TypeError,
+            IndexError, struct.error, zlib.error, EOFError) as exc:
+        if isinstance(exc, ScanFileError):
+            raise
+        text = ' '.join(str(exc).split()) or type(exc).__name__
+        raise ScanFileError(f'{file_path}: cannot read the PNG (corrupt or truncated?): {text}') from None
     if depth.ndim != 2:
         raise ScanFileError(f'{file_path}: expected a single-channel depth image, found shape {depth.shape}')
     if depth.dtype != np.uint16:
@@ -111,7 +135,14 @@ def read_camera_matrix_file(path: str | os.PathLike[str]) -> PinholeIntrinsics:
     """Read a whitespace-separated 3x3 camera matrix (ICL-NUIM ``*.K``); ``|fy|`` is used."""
     file_path = Path(path)
     matrix = _floats(file_path.read_text(encoding='latin-1'), file_path, 9).reshape(3, 3)
-    return PinholeIntrinsics(fx=abs(matrix[0, 0]), fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
+    return _intrinsics(file_path, fx=abs(matrix[0, 0]), fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
+
+
+def _intrinsics(source: Path, **values: float) -> PinholeIntrinsics:
+    try:
+        return PinholeIntrinsics(**values)
+    except ValueError as exc:  # zero or non-finite entries in the file
+        raise ScanFileError(f'{source}: unusable camera matrix: {exc}') from None
 
 
 def read_opencv_intrinsics(path: str | os.PathLike[str], node: str = 'IR_intrinsic_params') -> PinholeIntrinsics:
@@ -125,7 +156,7 @@ def read_opencv_intrinsics(path: str | os.PathLike[str], node: str = 'IR_intrins
     if element is None or element.text is None:
         raise ScanFileError(f'{file_path}: no <{node}><data> camera matrix in the XML file')
     matrix = _floats(element.text, file_path, 9).reshape(3, 3)
-    return PinholeIntrinsics(fx=matrix[0, 0], fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
+    return _intrinsics(file_path, fx=matrix[0, 0], fy=abs(matrix[1, 1]), cx=matrix[0, 2], cy=matrix[1, 2])
 
 
 def find_depth_calibration(png_path: str | os.PathLike[str]) -> DepthCalibration | None:

@@ -22,6 +22,10 @@ the unit of one depth count (``'mm'`` = Kinect), unless the calibration file imp
 Ground truth: ``gt=`` a labels ``.npy`` file; otherwise ``<stem>_labels.npy`` next to the scan if it
 exists (ICL-NUIM's ``icl_nuim_0_labels.npy``); otherwise labels stored in the file itself.
 Points whose coordinates are not all finite, or exactly (0, 0, 0), are set to NaN (no return).
+
+Bad input: every reader checks the sizes a file declares against the file's size and against the
+limits of :mod:`ppe_ros.io.limits` (50 million points, 100000 rows or columns) before it allocates,
+and raises :class:`ScanFileError` naming the file (also for sidecars: labels, Ouster JSON, calibration).
 """
 
 from __future__ import annotations
@@ -41,6 +45,8 @@ from ppe_ros.io.depth import (
     read_depth_png,
 )
 from ppe_ros.io.errors import ScanFileError
+from ppe_ros.io.limits import check_grid_size
+from ppe_ros.io.npy import read_npy
 from ppe_ros.io.ouster import find_ouster_metadata, ouster_ray_origins, read_ouster_metadata
 from ppe_ros.io.pcd import read_pcd
 
@@ -104,8 +110,8 @@ def _unit_scale(units: str | None) -> float | None:
 
 
 def _clean_points(points: np.ndarray) -> np.ndarray:
-    """float64 copy where every non-finite or exactly-zero point is all NaN."""
-    cloud = np.array(points, dtype=np.float64)
+    """float64 array (in place if ``points`` is float64) where every non-finite or exactly-zero point is all NaN."""
+    cloud = np.asarray(points, dtype=np.float64)
     with np.errstate(invalid='ignore'):
         invalid = ~np.isfinite(cloud).all(axis=2) | (cloud == 0.0).all(axis=2)
     cloud[invalid] = np.nan
@@ -128,10 +134,14 @@ def _as_labels(values: np.ndarray, source: str, shape: tuple[int, int]) -> np.nd
 def _load_labels_file(path: Path, shape: tuple[int, int]) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f'ground-truth labels file not found: {path}')
-    try:
-        values = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        raise ScanFileError(f'{path}: not a readable .npy labels array: {exc}') from None
+
+    def check(declared: tuple[int, ...], dtype: np.dtype) -> None:
+        if declared != shape:
+            raise ScanFileError(f'{path}: ground-truth labels have shape {declared}, the scan is {shape}')
+        if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):
+            raise ScanFileError(f'{path}: ground-truth labels must be integers; found dtype {dtype}')
+
+    values = read_npy(path, check, what='ground-truth labels .npy (H x W integers)')
     return _as_labels(values, str(path), shape)
 
 
@@ -183,18 +193,19 @@ def _load_pcd(path: Path, scale: float | None, intensity_labels: bool | None, me
     return points, origins, labels
 
 
-def _load_npy(path: Path, scale: float | None, meta: dict[str, Any]):
-    try:
-        array = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        raise ScanFileError(f'{path}: not a readable .npy array (corrupt or truncated?): {exc}') from None
-    if not isinstance(array, np.ndarray) or array.ndim != 3 or array.shape[2] != 3:
-        shape = getattr(array, 'shape', None)
+def _check_npy_scan(path: Path, shape: tuple[int, ...], dtype: np.dtype) -> None:
+    if len(shape) != 3 or shape[2] != 3:
         raise ScanFileError(f'{path}: expected an organized (H, W, 3) array of x, y, z; found shape {shape}')
-    if not np.issubdtype(array.dtype, np.floating):
-        raise ScanFileError(f'{path}: expected float32 or float64 coordinates; found dtype {array.dtype}')
-    if array.shape[0] < 2 or array.shape[1] < 1:
-        raise ScanFileError(f'{path}: the cloud is not organized: shape {array.shape} (needs H >= 2 rows)')
+    if not np.issubdtype(dtype, np.floating):
+        raise ScanFileError(f'{path}: expected float32 or float64 coordinates; found dtype {dtype}')
+    if shape[0] < 2 or shape[1] < 1:
+        raise ScanFileError(f'{path}: the cloud is not organized: shape {shape} (needs H >= 2 rows)')
+    check_grid_size(path, shape[0], shape[1], 'grid (.npy shape)')
+
+
+def _load_npy(path: Path, scale: float | None, meta: dict[str, Any]):
+    array = read_npy(path, lambda shape, dtype: _check_npy_scan(path, shape, dtype),
+                     what='.npy scan (an H x W x 3 float array)')
     meta.update(dtype=str(array.dtype))
     factor = 1.0 if scale is None else scale
     origins = None
@@ -203,7 +214,12 @@ def _load_npy(path: Path, scale: float | None, meta: dict[str, Any]):
         metadata = read_ouster_metadata(sensor_json)
         origins = ouster_ray_origins(metadata, array.shape[0], array.shape[1], source=str(sensor_json))
         meta.update(origins_source=f'{sensor_json} (Ouster beam origins)')
-    return array.astype(np.float64) * factor, origins, None
+    with np.errstate(invalid='ignore', over='ignore'):  # e.g. float128 beyond float64: inf, then no return
+        points = array.astype(np.float64, copy=False)  # the array read is ours: no second copy
+    del array
+    if factor != 1.0:
+        points *= factor
+    return points, origins, None
 
 
 def _load_depth_png(
@@ -250,6 +266,26 @@ def _load_depth_png(
     return backproject_depth(depth, camera, metres_per_count), None, None
 
 
+def scan_input_files(path: str | os.PathLike[str], *, gt: str | os.PathLike[str] | None = None) -> list[Path]:
+    """Every existing file :func:`load_scan` reads for ``path``: the scan, the labels (``gt`` or the
+    ``<stem>_labels.npy`` sidecar), the Ouster JSON of a ``.npy``, the calibration files next to a ``.png``.
+
+    Used to refuse outputs that would overwrite an input (compare with :func:`ppe_ros.io.files.same_file`).
+    """
+    file_path = Path(path)
+    files = [file_path]
+    if gt is not None:
+        files.append(Path(gt))
+    else:
+        files.append(file_path.with_name(f'{file_path.stem}_labels.npy'))
+    fmt = FORMATS.get(file_path.suffix.lower())
+    if fmt == 'npy' and file_path.parent.is_dir():
+        files.append(find_ouster_metadata(file_path))
+    elif fmt == 'depth_png' and file_path.parent.is_dir():
+        files += [file_path.parent / 'calib_params.xml', *sorted(file_path.parent.glob('*.K'))]
+    return [f for f in files if f is not None and f.exists()]
+
+
 def load_scan(
     path: str | os.PathLike[str],
     *,
@@ -275,7 +311,8 @@ def load_scan(
     Raises:
         FileNotFoundError: the scan or the labels file does not exist.
         ScanFileError: unknown format, malformed/truncated/corrupt data, unorganized cloud,
-            labels of the wrong shape, depth PNG without intrinsics or scale.
+            declared sizes beyond :mod:`ppe_ros.io.limits`, labels of the wrong shape, a damaged
+            Ouster JSON or calibration file, depth PNG without intrinsics or scale.
         ValueError: bad argument values (unknown units, non-positive focal lengths...).
     """
     file_path = Path(path)
@@ -300,7 +337,7 @@ def load_scan(
     else:
         points, origins, labels = _load_depth_png(file_path, scale, intrinsics, depth_scale, meta)
     points = _clean_points(points)
-    shape = points.shape[:2]
+    shape = (int(points.shape[0]), int(points.shape[1]))
 
     sidecar = file_path.with_name(f'{file_path.stem}_labels.npy')
     if gt is not None:

@@ -25,6 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from ppe_ros.io.errors import ScanFileError
+from ppe_ros.io.files import write_file_atomically
+from ppe_ros.io.limits import (
+    LZF_MAX_EXPANSION,
+    MAX_ASCII_BYTES_PER_VALUE,
+    MAX_GRID_DIMENSION,
+    MAX_PCD_VALUES_PER_POINT,
+    MAX_SCAN_POINTS,
+)
 from ppe_ros.io.lzf import lzf_compress, lzf_decompress
 
 ENCODINGS = ('ascii', 'binary', 'binary_compressed')
@@ -209,18 +217,51 @@ def parse_pcd_header(raw: bytes, path: Path | str = '<bytes>') -> PcdHeader:
     )
 
 
+def _check_limits(path: Path | str, header: PcdHeader) -> int:
+    """Refuse declared sizes beyond :mod:`ppe_ros.io.limits`; returns the bytes per point."""
+    values_per_point = sum(header.counts)
+    if values_per_point > MAX_PCD_VALUES_PER_POINT:
+        raise _error(path, f'PCD header COUNT declares {values_per_point} values per point; at most '
+                           f'{MAX_PCD_VALUES_PER_POINT} are supported (corrupt header?)')
+    if header.points > MAX_SCAN_POINTS:
+        raise _error(path, f'PCD header declares {header.points} points (WIDTH {header.width} × HEIGHT '
+                           f'{header.height}); at most {MAX_SCAN_POINTS} points per scan are supported')
+    if header.height > 1 and max(header.width, header.height) > MAX_GRID_DIMENSION:
+        raise _error(path, f'PCD header declares a {header.height} × {header.width} grid; at most '
+                           f'{MAX_GRID_DIMENSION} rows and columns are supported')
+    return sum(size * count for size, count in zip(header.sizes, header.counts, strict=True))
+
+
+def _ascii_chunks(body: bytes, chunk_bytes: int = 1 << 23):
+    """``body`` in pieces of about ``chunk_bytes`` that end at white space (no value is split)."""
+    position = 0
+    while position < len(body):
+        end = min(position + chunk_bytes, len(body))
+        while end < len(body) and not body[end:end + 1].isspace():
+            end += 1
+        yield body[position:end]
+        position = end
+
+
 def _read_ascii(path: Path | str, header: PcdHeader, body: bytes, dtype: np.dtype) -> np.ndarray:
     values_per_point = sum(header.counts)
-    tokens = body.split()
     expected = header.points * values_per_point
-    if len(tokens) != expected:
-        what = 'truncated' if len(tokens) < expected else 'corrupt'
-        raise _error(path, f'{what} DATA ascii: expected {expected} values (POINTS {header.points} × '
-                           f'{values_per_point} per point), found {len(tokens)}')
-    try:
-        numbers = np.array(tokens, dtype=np.float64).reshape(header.points, values_per_point)
-    except ValueError as exc:
-        raise _error(path, f'corrupt DATA ascii: a value is not a number ({exc})') from None
+    numbers = np.empty(expected, dtype=np.float64)
+    found = 0
+    for chunk in _ascii_chunks(body):  # in pieces: a list of all tokens would need ~50 bytes per value
+        tokens = chunk.split()
+        if found + len(tokens) > expected:
+            raise _error(path, f'corrupt DATA ascii: expected {expected} values (POINTS {header.points} × '
+                               f'{values_per_point} per point), found more')
+        try:
+            numbers[found:found + len(tokens)] = np.array(tokens, dtype=np.float64)
+        except ValueError as exc:
+            raise _error(path, f'corrupt DATA ascii: a value is not a number ({exc})') from None
+        found += len(tokens)
+    if found != expected:
+        raise _error(path, f'truncated DATA ascii: expected {expected} values (POINTS {header.points} × '
+                           f'{values_per_point} per point), found {found}')
+    numbers = numbers.reshape(header.points, values_per_point)
     out = np.zeros(header.points, dtype=dtype)
     column = 0
     for name, count in zip(dtype.names, header.counts, strict=True):
@@ -229,44 +270,76 @@ def _read_ascii(path: Path | str, header: PcdHeader, body: bytes, dtype: np.dtyp
         if np.issubdtype(target.dtype, np.integer):
             if not np.all(np.isfinite(block)):
                 raise _error(path, f'corrupt DATA ascii: integer field {name!r} holds a non-finite value')
-        out[name] = block[:, 0] if count == 1 else block
+        with np.errstate(invalid='ignore', over='ignore'):
+            out[name] = block[:, 0] if count == 1 else block
         column += count
     return out
 
 
-def _read_binary(path: Path | str, header: PcdHeader, body: bytes, dtype: np.dtype) -> np.ndarray:
-    expected = header.points * dtype.itemsize
-    if len(body) < expected:
-        raise _error(path, f'truncated DATA binary: expected {expected} bytes (POINTS {header.points} × '
-                           f'{dtype.itemsize} bytes per point), found {len(body)}')
-    return np.frombuffer(body, dtype=dtype, count=header.points).copy()
+def _read_exactly(stream, size: int) -> bytearray:
+    buffer = bytearray(size)
+    view = memoryview(buffer)
+    filled = 0
+    while filled < size:
+        got = stream.readinto(view[filled:])
+        if not got:
+            break
+        filled += got
+    del view
+    if filled < size:
+        del buffer[filled:]
+    return buffer
 
 
-def _read_binary_compressed(path: Path | str, header: PcdHeader, body: bytes, dtype: np.dtype) -> np.ndarray:
-    if len(body) < 8:
-        raise _error(path, f'truncated DATA binary_compressed: expected an 8-byte size prefix, '
-                           f'found {len(body)} bytes')
-    compressed_size, raw_size = struct.unpack('<II', body[:8])
-    expected_raw = header.points * dtype.itemsize
-    if raw_size != expected_raw:
-        raise _error(path, f'corrupt DATA binary_compressed: the size prefix says {raw_size} raw bytes, '
-                           f'the header needs {expected_raw} (POINTS {header.points} × {dtype.itemsize})')
-    available = len(body) - 8
-    if available < compressed_size:
-        raise _error(path, f'truncated DATA binary_compressed: expected {compressed_size} compressed bytes, '
-                           f'found {available}')
+def _read_body(path: Path, header: PcdHeader, dtype: np.dtype, bytes_per_point: int) -> np.ndarray:
+    """Check the declared data size against the file size, then read and decode the point data."""
+    available = path.stat().st_size - header.data_offset
+    with path.open('rb') as stream:
+        stream.seek(header.data_offset)
+        if header.encoding == 'binary':
+            expected = header.points * bytes_per_point
+            if available < expected:
+                raise _error(path, f'truncated DATA binary: expected {expected} bytes (POINTS {header.points} × '
+                                   f'{bytes_per_point} bytes per point), found {available}')
+            body = _read_exactly(stream, expected)
+            return np.frombuffer(body, dtype=dtype, count=header.points)
+        if header.encoding == 'ascii':
+            values = header.points * sum(header.counts)
+            if available < 2 * values - 1:  # each value takes a character and a separator
+                raise _error(path, f'truncated DATA ascii: expected {values} values (POINTS {header.points} × '
+                                   f'{sum(header.counts)} per point), found only {available} bytes of text')
+            if available > values * MAX_ASCII_BYTES_PER_VALUE + (1 << 16):
+                raise _error(path, f'corrupt DATA ascii: {available} bytes of text for {values} values '
+                                   f'(POINTS {header.points}); a value takes at most {MAX_ASCII_BYTES_PER_VALUE}')
+            return _read_ascii(path, header, bytes(_read_exactly(stream, available)), dtype)
+        if available < 8:
+            raise _error(path, f'truncated DATA binary_compressed: expected an 8-byte size prefix, '
+                               f'found {available} bytes')
+        compressed_size, raw_size = struct.unpack('<II', _read_exactly(stream, 8))
+        expected_raw = header.points * bytes_per_point
+        if raw_size != expected_raw:
+            raise _error(path, f'corrupt DATA binary_compressed: the size prefix says {raw_size} raw bytes, '
+                               f'the header needs {expected_raw} (POINTS {header.points} × {bytes_per_point})')
+        if available - 8 < compressed_size:
+            raise _error(path, f'truncated DATA binary_compressed: expected {compressed_size} compressed bytes, '
+                               f'found {available - 8}')
+        if raw_size > LZF_MAX_EXPANSION * compressed_size + 264:
+            raise _error(path, f'corrupt DATA binary_compressed: {compressed_size} compressed bytes cannot expand to '
+                               f'the declared {raw_size} raw bytes (LZF expands at most {LZF_MAX_EXPANSION}-fold)')
+        block = np.frombuffer(_read_exactly(stream, compressed_size), dtype=np.uint8)
     try:
-        raw = lzf_decompress(np.frombuffer(body, np.uint8, count=compressed_size, offset=8), raw_size)
+        raw = lzf_decompress(block, raw_size)
     except ValueError as exc:
         raise _error(path, str(exc)) from None
+    del block
     out = np.empty(header.points, dtype=dtype)
     start = 0
     for name in dtype.names:
         field_dtype = dtype.fields[name][0]
         nbytes = header.points * field_dtype.itemsize
         base = field_dtype.base
-        block = raw[start:start + nbytes].view(base)
-        out[name] = block.reshape((header.points, *field_dtype.shape))
+        values = raw[start:start + nbytes].view(base)
+        out[name] = values.reshape((header.points, *field_dtype.shape))
         start += nbytes
     return out
 
@@ -274,26 +347,29 @@ def _read_binary_compressed(path: Path | str, header: PcdHeader, body: bytes, dt
 def read_pcd(path: str | os.PathLike[str]) -> PcdCloud:
     """Read a PCD v0.7 file (ascii, binary or binary_compressed) without changing any value.
 
+    The declared sizes are checked against the file size and :mod:`ppe_ros.io.limits` before the
+    point data are read or allocated.
+
     Returns:
         :class:`PcdCloud` whose ``data`` is a structured array of shape ``(HEIGHT, WIDTH)``.
 
     Raises:
         FileNotFoundError: no such file.
-        ScanFileError: malformed header, truncated or corrupt data (says expected vs found).
+        ScanFileError: malformed header, truncated or corrupt data, sizes beyond the limits (says
+            expected vs found).
     """
     file_path = Path(path)
     if not file_path.is_file():
         raise FileNotFoundError(f'PCD file not found: {file_path}')
-    raw = file_path.read_bytes()
-    header = parse_pcd_header(raw, file_path)
-    dtype = header.dtype()
-    body = raw[header.data_offset:]
-    if header.encoding == 'ascii':
-        data = _read_ascii(file_path, header, body, dtype)
-    elif header.encoding == 'binary':
-        data = _read_binary(file_path, header, body, dtype)
-    else:
-        data = _read_binary_compressed(file_path, header, body, dtype)
+    with file_path.open('rb') as stream:
+        head = stream.read(_MAX_HEADER_BYTES)
+    header = parse_pcd_header(head, file_path)
+    bytes_per_point = _check_limits(file_path, header)
+    try:
+        dtype = header.dtype()
+    except (ValueError, TypeError) as exc:
+        raise _error(file_path, f'PCD header fields cannot be represented: {exc}') from None
+    data = _read_body(file_path, header, dtype, bytes_per_point)
     return PcdCloud(header=header, data=data.reshape(header.height, header.width))
 
 
@@ -316,8 +392,7 @@ def _pcd_type(name: str, dtype: np.dtype) -> tuple[str, int]:
     return _NUMPY_TO_PCD[key]
 
 
-def save_pcd(
-    path: str | os.PathLike[str],
+def encode_pcd(
     points: np.ndarray,
     *,
     labels: np.ndarray | None = None,
@@ -325,31 +400,8 @@ def save_pcd(
     binary: bool = True,
     compressed: bool = False,
     viewpoint: tuple[float, ...] | None = None,
-    overwrite: bool = False,
-) -> Path:
-    """Write an organized cloud as a PCD v0.7 file.
-
-    Fields: ``x y z`` float32 (the coordinates as given, normally metres; NaN = no return), then
-    ``label`` uint32 if ``labels`` is given, then each of ``extra_fields`` (e.g. ``intensity``) with
-    its own dtype, in the given order.
-
-    Args:
-        path: output file; an existing file is refused unless ``overwrite=True``.
-        points: ``(H, W, 3)`` organized cloud.
-        labels: ``(H, W)`` non-negative integer labels, stored as field ``label`` (uint32).
-        extra_fields: name -> ``(H, W)`` array of int, uint or float values.
-        binary: ``DATA binary`` (default) or, if False, ``DATA ascii``.
-        compressed: ``DATA binary_compressed`` (LZF, field by field); needs ``binary=True``.
-        viewpoint: ``(tx, ty, tz, qw, qx, qy, qz)``, default the identity pose.
-        overwrite: allow replacing an existing file.
-
-    Returns:
-        The path written.
-
-    Raises:
-        FileExistsError: the file exists and ``overwrite`` is False.
-        ValueError: wrong shapes, labels out of the uint32 range, unsupported dtypes.
-    """
+) -> bytes:
+    """The bytes of the PCD v0.7 file that :func:`save_pcd` writes (same arguments, same checks)."""
     cloud = np.asarray(points)
     if cloud.ndim != 3 or cloud.shape[2] != 3:
         raise ValueError(f'points must be an organized (H, W, 3) array; got shape {cloud.shape}')
@@ -427,11 +479,52 @@ def save_pcd(
         lines = [' '.join(fmt % value for fmt, value in zip(formats, row, strict=True)) for row in table]
         body = ('\n'.join(lines) + '\n').encode('ascii')
 
+    return header + body
+
+
+def save_pcd(
+    path: str | os.PathLike[str],
+    points: np.ndarray,
+    *,
+    labels: np.ndarray | None = None,
+    extra_fields: Mapping[str, np.ndarray] | None = None,
+    binary: bool = True,
+    compressed: bool = False,
+    viewpoint: tuple[float, ...] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write an organized cloud as a PCD v0.7 file.
+
+    Fields: ``x y z`` float32 (the coordinates as given, normally metres; NaN = no return), then
+    ``label`` uint32 if ``labels`` is given, then each of ``extra_fields`` (e.g. ``intensity``) with
+    its own dtype, in the given order.
+
+    Args:
+        path: output file; an existing file is refused unless ``overwrite=True``. Written to a
+            temporary file in the same folder and renamed into place: never left truncated.
+        points: ``(H, W, 3)`` organized cloud.
+        labels: ``(H, W)`` non-negative integer labels, stored as field ``label`` (uint32).
+        extra_fields: name -> ``(H, W)`` array of int, uint or float values.
+        binary: ``DATA binary`` (default) or, if False, ``DATA ascii``.
+        compressed: ``DATA binary_compressed`` (LZF, field by field); needs ``binary=True``.
+        viewpoint: ``(tx, ty, tz, qw, qx, qy, qz)``, default the identity pose.
+        overwrite: allow replacing an existing file.
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: the file exists and ``overwrite`` is False.
+        ValueError: wrong shapes, labels out of the uint32 range, unsupported dtypes.
+    """
+    content = encode_pcd(points, labels=labels, extra_fields=extra_fields, binary=binary, compressed=compressed,
+                         viewpoint=viewpoint)
     out_path = Path(path)
+
+    def write(stream) -> None:
+        stream.write(content)
+
     try:
-        with open(out_path, 'wb' if overwrite else 'xb') as stream:
-            stream.write(header)
-            stream.write(body)
+        return write_file_atomically(out_path, write, overwrite=overwrite)
     except FileExistsError:
         raise FileExistsError(f'{out_path} exists; refusing to overwrite it (pass overwrite=True)') from None
-    return out_path
