@@ -22,6 +22,7 @@ from ppe_ros.benchmark.real import (
     match_planes,
     motion_difference,
     plane_point_counts,
+    registration_covariance,
     rigid_fit_from_planes,
     share_in_large_planes,
     summarize_matches,
@@ -182,6 +183,22 @@ def test_mahalanobis_squared_is_calibrated_for_its_own_covariance():
     assert math.isnan(mahalanobis_squared(np.ones(3), np.full((3, 3), np.nan)))
 
 
+def test_registration_covariance_matches_sampled_small_motions():
+    normal, offset = np.array([0.0, 0.6, 0.8]), 8.0
+    sigma_t, sigma_r = 0.01, math.radians(0.05)
+    rng = np.random.default_rng(1)
+    deltas = []
+    for _ in range(4000):
+        w, u = rng.normal(0, sigma_r, 3), rng.normal(0, sigma_t, 3)
+        moved_n, moved_d = transform_planes(normal[None], np.array([offset]),
+                                            _rotation(w, math.degrees(np.linalg.norm(w))), u)
+        deltas.append(moved_d[0] * moved_n[0] - offset * normal)
+    sampled = np.cov(np.array(deltas).T)
+    predicted = registration_covariance(normal, offset, sigma_t, sigma_r)
+    np.testing.assert_allclose(sampled, predicted, atol=0.06 * np.abs(predicted).max())
+    assert predicted[0, 0] == pytest.approx((offset * sigma_r) ** 2)  # x is in the plane: rotation only
+
+
 def test_range_image_projector_maps_every_point_to_its_own_pixel():
     points, _ = _spherical_scene([0, 0, 0])
     projector = RangeImageProjector(points)
@@ -238,10 +255,14 @@ def test_match_planes_mahalanobis_uses_both_covariances():
     shifted = planes.offsets + 0.01  # B's planes 1 cm further than A's
     cov = np.tile(np.eye(3) * 1e-4, (planes.num_planes, 1, 1))  # sigma 1 cm per axis in each sweep
     matches = match_planes(planes.labels, points, planes.normals, planes.offsets, cov, planes.labels, projector,
-                           planes.normals, shifted, cov, np.eye(3), np.zeros(3), min_points=100)
+                           planes.normals, shifted, cov, np.eye(3), np.zeros(3), min_points=100,
+                           registration_sigma=(0.01, math.radians(0.1)))
+    assert len(matches) == 2
     for m in matches:
         assert m.mahalanobis2 == pytest.approx(0.01 ** 2 / 2e-4)  # delta 1 cm along n, variance 2 (1 cm)^2
         assert m.sigma_d_predicted == pytest.approx(math.sqrt(2e-4))
+        # the registration adds (1 cm)^2 along n (its rotation part moves c across n only)
+        assert m.mahalanobis2_with_registration == pytest.approx(0.01 ** 2 / 3e-4)
 
 
 def test_summary_medians_count_unmatched_planes_as_iou_zero():

@@ -372,6 +372,20 @@ def closest_point_jacobian(closest_point: np.ndarray, rotation: np.ndarray, tran
     return du @ rotation
 
 
+def registration_covariance(normal: np.ndarray, offset: float, sigma_translation: float,
+                            sigma_rotation: float) -> np.ndarray:
+    """``(3, 3)`` covariance that a registration error adds to a plane's closest point ``c = d n`` in B's frame.
+
+    A small extra motion (rotation vector ``w`` about B's origin, translation ``u``) moves the plane to
+    ``n + w x n`` and ``d + n . u``, so ``dc = n n^T u - d [n]x w``. With isotropic independent errors of
+    ``sigma_translation`` (m) and ``sigma_rotation`` (rad) per axis:
+    ``C = sigma_t^2 n n^T + d^2 sigma_r^2 [n]x [n]x^T``.
+    """
+    n = np.asarray(normal, float)
+    cross = np.array([[0.0, -n[2], n[1]], [n[2], 0.0, -n[0]], [-n[1], n[0], 0.0]])
+    return sigma_translation ** 2 * np.outer(n, n) + (offset * sigma_rotation) ** 2 * cross @ cross.T
+
+
 def mahalanobis_squared(delta: np.ndarray, covariance: np.ndarray) -> float:
     """``delta^T C^-1 delta`` (NaN when C is not positive definite or not finite)."""
     cov = np.asarray(covariance, float)
@@ -473,6 +487,8 @@ class PlaneMatch:
             ``J cov_A J^T + cov_B`` (J: :func:`closest_point_jacobian`); NaN without covariances.
         sigma_d_predicted: ``sqrt(n_B^T (J cov_A J^T + cov_B) n_B)`` (m), the predicted spread of the offset.
         found: ``angle_deg < 2``, ``offset_diff < 0.05`` and ``iou >= 0.7`` (the issue's targets).
+        mahalanobis2_with_registration: the same with :func:`registration_covariance` added (NaN without an
+            estimate of the registration error).
     """
 
     label_a: int
@@ -485,6 +501,7 @@ class PlaneMatch:
     mahalanobis2: float
     sigma_d_predicted: float
     found: bool
+    mahalanobis2_with_registration: float = math.nan
 
 
 #: Thresholds of a plane "found again" in the next sweep.
@@ -496,13 +513,16 @@ MIN_MATCH_IOU = 0.7
 def match_planes(labels_a: np.ndarray, points_a: np.ndarray, normals_a: np.ndarray, offsets_a: np.ndarray,
                  covariances_a: np.ndarray | None, labels_b: np.ndarray, projector_b: RangeImageProjector,
                  normals_b: np.ndarray, offsets_b: np.ndarray, covariances_b: np.ndarray | None,
-                 rotation: np.ndarray, translation: np.ndarray, *, min_points: int = 1000) -> list[PlaneMatch]:
+                 rotation: np.ndarray, translation: np.ndarray, *, min_points: int = 1000,
+                 registration_sigma: tuple[float, float] | None = None) -> list[PlaneMatch]:
     """Match every plane of A with at least ``min_points`` pixels to a plane of B after the motion ``(R, t)``.
 
     Plane arrays are indexed by label - 1 (PlaneSet layout: label j is row j - 1). A's plane points are moved
     into B's frame and projected into B's range image; P is the set of distinct valid B pixels hit; the match
     is the B label (> 0) that holds most of P. Parts of A's plane that B does not see (no return, outside
     the grid) do not count against it; parts of B's plane that A's plane does not reach do.
+    ``registration_sigma`` = (m, rad) per axis: an estimate of the registration error, added to the
+    covariance by :func:`registration_covariance` for :attr:`PlaneMatch.mahalanobis2_with_registration`.
     """
     lab_a = np.asarray(labels_a)
     lab_b = np.asarray(labels_b).ravel()
@@ -534,16 +554,20 @@ def match_planes(labels_a: np.ndarray, points_a: np.ndarray, normals_a: np.ndarr
             n_a, d_a = -n_a, -d_a
         angle = math.degrees(math.acos(min(1.0, abs(float(n_a @ n_b)))))
         offset_diff = abs(d_a - d_b)
-        md2 = sigma_d = math.nan
+        md2 = sigma_d = md2_registered = math.nan
         if covariances_a is not None and covariances_b is not None:
             jac = closest_point_jacobian(offsets_a[label - 1] * np.asarray(normals_a[label - 1], float), rotation,
                                          translation)
             cov = jac @ covariances_a[label - 1] @ jac.T + covariances_b[best - 1]
-            md2 = mahalanobis_squared(d_a * n_a - d_b * n_b, cov)
+            delta = d_a * n_a - d_b * n_b
+            md2 = mahalanobis_squared(delta, cov)
             sigma_d = math.sqrt(max(float(n_b @ cov @ n_b), 0.0)) if np.all(np.isfinite(cov)) else math.nan
+            if registration_sigma is not None:
+                md2_registered = mahalanobis_squared(delta, cov + registration_covariance(n_b, d_b,
+                                                                                          *registration_sigma))
         found = angle < MAX_MATCH_ANGLE_DEG and offset_diff < MAX_MATCH_OFFSET and iou >= MIN_MATCH_IOU
         matches.append(PlaneMatch(int(label), best, int(count), len(pixels), float(iou), angle, offset_diff, md2,
-                                  sigma_d, bool(found)))
+                                  sigma_d, bool(found), md2_registered))
     return matches
 
 
@@ -559,6 +583,7 @@ class RepeatabilitySummary:
         median_sigma_d_predicted, median_offset_diff: median predicted offset spread and observed ``|d'_A - d_B|``
             (m) over the pairs.
         median_angle_deg: median normal angle over the pairs.
+        median_mahalanobis2_with_registration: the median with the registration error estimate added.
     """
 
     planes: int
@@ -570,6 +595,7 @@ class RepeatabilitySummary:
     median_sigma_d_predicted: float
     median_offset_diff: float
     median_angle_deg: float
+    median_mahalanobis2_with_registration: float = math.nan
 
 
 def _median(values) -> float:
@@ -591,6 +617,7 @@ def summarize_matches(matches: list[PlaneMatch]) -> RepeatabilitySummary:
         median_sigma_d_predicted=_median([m.sigma_d_predicted for m in paired]),
         median_offset_diff=_median([m.offset_diff for m in paired]),
         median_angle_deg=_median([m.angle_deg for m in paired]),
+        median_mahalanobis2_with_registration=_median([m.mahalanobis2_with_registration for m in paired]),
     )
 
 
