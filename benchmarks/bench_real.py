@@ -65,6 +65,26 @@ RANSAC_ITERATIONS = 1000
 RANSAC_MIN_INLIERS = 500
 RANSAC_MAX_PLANES = 100
 
+#: Settings passed to the PEAC driver (PEAC's ini names; mm and degrees): its own Kinect and TLS settings
+#: (plane_fitter_pcd.ini = its built-in defaults, plane_fitter_pcd.tls.ini) and, for the Ouster sweeps, its
+#: defaults with 4x4 windows, min support 100 and constant 30/40 mm tolerances (no depth-dependent term).
+PEAC_KINECT = {'stdTol_merge': 8, 'stdTol_init': 5, 'depthSigma': 1.6e-6, 'z_near': 500, 'z_far': 4000,
+               'angleDegree_near': 15, 'angleDegree_far': 90, 'similarityDegreeTh_merge': 60,
+               'similarityDegreeTh_refine': 30, 'depthAlpha': 0.04, 'depthChangeTol': 0.02, 'initType': 0,
+               'minSupport': 3000, 'windowWidth': 10, 'windowHeight': 10, 'doRefine': 1}
+PEAC_TLS = {'stdTol_merge': 6, 'stdTol_init': 3, 'depthSigma': 0, 'z_near': 500, 'z_far': 4000,
+            'angleDegree_near': 15, 'angleDegree_far': 45, 'similarityDegreeTh_merge': 45,
+            'similarityDegreeTh_refine': 15, 'depthAlpha': 0.004, 'depthChangeTol': 30, 'initType': 1,
+            'minSupport': 200, 'windowWidth': 10, 'windowHeight': 10, 'doRefine': 1}
+PEAC_OUSTER = {**PEAC_KINECT, 'depthSigma': 0, 'windowWidth': 4, 'windowHeight': 4, 'minSupport': 100,
+               'stdTol_init': 30, 'stdTol_merge': 40}
+
+
+def peac_settings(spec) -> dict:
+    if spec.kind == 'depth_camera':
+        return PEAC_KINECT
+    return PEAC_OUSTER if spec.name.startswith('OS-') else PEAC_TLS
+
 
 class BenchmarkError(Exception):
     """Bad input of the benchmark: one line for the user, exit code 2."""
@@ -131,8 +151,8 @@ def run_ransac(o3d, points, kind):
     return parts, time.perf_counter() - start
 
 
-def run_peac(binary, points):
-    """PEAC through an external driver: ``$PEAC_BIN IN.bin OUT.bin`` (see NOTES-bench-real.md for the format)."""
+def run_peac(binary, points, settings):
+    """PEAC through an external driver: ``$PEAC_BIN IN.bin OUT.bin key=value...`` (format: NOTES-bench-real.md)."""
     height, width = points.shape[:2]
     with tempfile.TemporaryDirectory() as tmp:
         inp, out = Path(tmp) / 'cloud.bin', Path(tmp) / 'labels.bin'
@@ -140,7 +160,8 @@ def run_peac(binary, points):
             np.array([height, width], '<i4').tofile(handle)
             np.ascontiguousarray(points, dtype='<f8').tofile(handle)
         start = time.perf_counter()
-        result = subprocess.run([binary, str(inp), str(out)], capture_output=True, text=True, timeout=600)
+        options = [f'{key}={value:g}' for key, value in settings.items()]
+        result = subprocess.run([binary, str(inp), str(out), *options], capture_output=True, text=True, timeout=600)
         seconds = time.perf_counter() - start
         if result.returncode != 0 or not out.is_file():
             raise RuntimeError(f'PEAC driver failed ({result.returncode}): {result.stderr.strip()[-300:]}')
@@ -409,8 +430,10 @@ def run(args) -> int:
                         labels, seconds = run_ransac(handles[method], scan.points, spec.kind)
                         label = f"Open3D RANSAC loop ({RANSAC_DISTANCE[spec.kind] * 100:g} cm) + connected parts"
                     else:
-                        labels, seconds = run_peac(handles[method], scan.points)
-                        label = 'PEAC'
+                        settings = peac_settings(spec)
+                        labels, seconds = run_peac(handles[method], scan.points, settings)
+                        label = (f"PEAC ({settings['windowWidth']}x{settings['windowHeight']} windows, min support "
+                                 f"{settings['minSupport']})")
                     planes = None
             except Exception as exc:  # a failing method must not lose the other rows
                 results.append({'scan': spec.name, 'split': spec.split, 'method': method,
