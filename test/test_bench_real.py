@@ -281,3 +281,31 @@ def test_every_real_scan_has_a_split():
     assert set(SCAN_SPLIT.values()) == {'training', 'reported'}
     assert [s.name for s in REAL_SCANS if s.split == 'training'] == [
         'OS-0-128 1491', 'OS-2-128 1259', 'OS-2-32 5424', 'OS-1-32 638', 'ICL-NUIM 0']
+
+
+def _bench_real_module():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_real.py'
+    spec = importlib.util.spec_from_file_location('bench_real', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_real_ppe_settings_and_bad_arguments(capsys):
+    bench = _bench_real_module()
+    kwargs, _ = bench.ppe_settings('none', False, 'lidar')
+    assert kwargs == {'max_error_increment': 0.01, 'max_neighbor_distance': math.inf, 'min_plane_points': 20}
+    kwargs, _ = bench.ppe_settings('none', True, 'depth_camera')
+    assert kwargs == {'max_error_increment': 0.0484, 'max_neighbor_distance': 0.18, 'min_plane_points': 20}
+    assert bench.ppe_settings('auto', False, 'depth_camera')[0] == {'sensor': 'depth_camera', 'min_plane_points': 20}
+    assert bench.ppe_settings('lidar', False, 'depth_camera')[0]['sensor'] == 'lidar'
+    assert bench.main(['--methods', 'ppe,nosuch']) == 2
+    assert 'nosuch' in capsys.readouterr().err
+    assert bench.main(['--paper', '--sensor', 'lidar']) == 2
+    assert bench.main(['--scans', 'no-such-scan', '--data', '/nonexistent']) == 2
+    if not bench.has_sensor_argument():
+        assert bench.main(['--sensor', 'auto']) == 2
+        assert 'no sensor argument' in capsys.readouterr().err
