@@ -449,7 +449,11 @@ def run(args) -> int:
 
                 height, width = labels.shape
                 scale = max(1, min(math.ceil(400 / height), max(1, 4096 // width)))
-                save_segmentation_png(png_path(args.png_dir, spec.name, method), labels,
+                tag = method
+                if method == 'ppe':
+                    tag = 'ppe_paper' if args.paper else 'ppe_node'
+                    tag = f"ppe_{kwargs['sensor']}" if 'sensor' in kwargs else tag
+                save_segmentation_png(png_path(args.png_dir, spec.name, tag), labels,
                                       ground_truth=scan.labels if spec.labelled else None,
                                       gt_min_label=int(scan.meta.get('min_plane_label', 1)), scale=scale)
             if keep_sequence and spec.name in sequence_names:
