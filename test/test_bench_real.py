@@ -1,0 +1,311 @@
+"""Metrics of the real-data benchmark (ppe_ros.benchmark.real) on small synthetic cases with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ppe_ros.benchmark.real import (
+    CHI2_3_MEDIAN,
+    REAL_SCANS,
+    SCAN_SPLIT,
+    PlaneMatch,
+    RangeImageProjector,
+    closest_point_jacobian,
+    connected_parts,
+    count_planes,
+    fit_ground_plane,
+    ground_cover,
+    mahalanobis_squared,
+    match_planes,
+    motion_difference,
+    plane_point_counts,
+    registration_covariance,
+    rigid_fit_from_planes,
+    share_in_large_planes,
+    summarize_matches,
+    transform_planes,
+)
+
+
+def _rotation(axis, angle_deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = math.radians(angle_deg)
+    return np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+
+
+def _labels_with_sizes(sizes, shape=(50, 60)):
+    flat = np.zeros(shape[0] * shape[1], np.int64)
+    start = 0
+    for label, size in enumerate(sizes, start=1):
+        flat[start:start + size] = label
+        start += size
+    return flat.reshape(shape)
+
+
+def test_plane_counts_and_large_share():
+    labels = _labels_with_sizes([1200, 300, 25, 19, 5])
+    assert plane_point_counts(labels).tolist() == [1200, 300, 25, 19, 5]
+    assert count_planes(labels, 20) == 3
+    assert count_planes(labels, 100) == 2
+    valid = np.ones(labels.shape, bool)
+    valid.ravel()[2000:] = False  # 2000 valid pixels, the 1200-pixel plane among them
+    assert share_in_large_planes(labels, valid, 1000) == pytest.approx(1200 / 2000)
+    assert share_in_large_planes(labels, valid, 1201) == 0.0
+    assert math.isnan(share_in_large_planes(labels, np.zeros(labels.shape, bool)))
+
+
+def _spherical_scene(origin, rows=48, cols=360, max_range=40.0, wall=6.0):
+    """Ray-cast a wall x = ``wall`` and the ground z = -1.5 (world frame) from ``origin``; labels 1 = wall, 2 = ground.
+
+    Returns points in the sensor frame (world minus origin), labels, and the beam elevations/azimuths used.
+    Column j looks at azimuth -2 pi j / cols (decreasing, as a destaggered Ouster image).
+    """
+    elevation = np.radians(np.linspace(15.0, -25.0, rows))
+    azimuth = -2 * np.pi * np.arange(cols) / cols
+    el, az = np.meshgrid(elevation, azimuth, indexing='ij')
+    v = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+    o = np.asarray(origin, float)
+    planes = [(np.array([1.0, 0, 0]), wall), (np.array([0, 0, 1.0]), -1.5)]
+    best = np.full((rows, cols), np.inf)
+    labels = np.zeros((rows, cols), np.int64)
+    for label, (n, d) in enumerate(planes, start=1):
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t = (d - n @ o) / (v @ n)
+        hit = (t > 0) & (t < max_range) & (t < best)
+        best[hit] = t[hit]
+        labels[hit] = label
+    points = np.where(np.isfinite(best)[..., None], v * best[..., None], np.nan)
+    return points, labels
+
+
+def test_ground_plane_recovers_the_floor_and_nothing_else():
+    points, labels = _spherical_scene([0, 0, 0], wall=1.2)
+    ground = fit_ground_plane(points, max_horizontal_distance=25.0, inlier_distance=0.10)
+    np.testing.assert_allclose(ground.normal, [0, 0, 1], atol=1e-3)  # the wall's foot (< 10 cm) pulls a little
+    assert ground.offset == pytest.approx(-1.5, abs=2e-3)
+    horizontal = np.hypot(points[..., 0], points[..., 1])
+    with np.errstate(invalid='ignore'):
+        near_plane = np.abs(points @ ground.normal - ground.offset) <= 0.1
+    assert np.array_equal(ground.mask, near_plane & (horizontal <= 25.0))
+    assert np.all(ground.mask[(labels == 2) & (horizontal <= 25.0)])
+    # the wall (more points than the ground within 25 m, but vertical) is never chosen
+    assert np.count_nonzero(labels == 1) > ground.num_points
+    assert np.count_nonzero(ground.mask & (labels == 1)) < 0.02 * ground.num_points
+
+
+def test_ground_cover_counts_the_fewest_planes():
+    ground = np.zeros((10, 10), bool)
+    ground[:5] = True  # 50 ground pixels
+    labels = np.zeros((10, 10), np.int64)
+    labels[0:2] = 1  # 20 ground pixels
+    labels[2, :] = 2  # 10
+    labels[3, :] = 3  # 10
+    labels[4, :5] = 4  # 5
+    labels[5:] = 1  # plane 1 also holds 50 non-ground pixels: they do not count
+    cover = ground_cover(labels, ground, 0.8)
+    assert cover.ground_points == 50
+    assert cover.largest_share == pytest.approx(0.4)
+    assert cover.planes_for_share == 3  # 20 + 10 + 10 = 40 = 80 %
+    assert cover.covered_share == pytest.approx(0.9)
+    assert cover.planes_touching == 4
+    assert ground_cover(labels, ground, 0.95).planes_for_share is None
+    assert ground_cover(labels, ground, 0.4).planes_for_share == 1
+
+
+def test_connected_parts_splits_by_4_neighbours_and_drops_small_parts():
+    labels = np.zeros((8, 10), np.int64)
+    labels[0:3, 0:3] = 1  # 9 pixels
+    labels[5:8, 5:10] = 1  # 15 pixels, same label, not connected
+    labels[3, 3] = 1  # touches the first block only diagonally: its own 1-pixel part
+    labels[0:2, 6:10] = 2  # 8 pixels
+    parts = connected_parts(labels, min_points=2)
+    sizes = plane_point_counts(parts)
+    assert sizes.tolist() == [15, 9, 8]  # numbered by decreasing size; the diagonal pixel is dropped
+    assert parts[3, 3] == 0
+    assert np.all(parts[5:8, 5:10] == 1) and np.all(parts[0:3, 0:3] == 2) and np.all(parts[0:2, 6:10] == 3)
+    assert count_planes(connected_parts(labels, min_points=9), 1) == 2
+
+
+def test_rigid_fit_from_planes_recovers_a_known_motion():
+    rng = np.random.default_rng(3)
+    rotation = _rotation([0.3, -0.2, 1.0], 7.0)
+    translation = np.array([0.23, -0.05, 0.02])
+    normals = rng.normal(size=(5, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offsets = rng.uniform(2, 10, 5)
+    normals_b, offsets_b = transform_planes(normals, offsets, rotation, translation)
+    fit_r, fit_t = rigid_fit_from_planes(normals, offsets, normals_b, offsets_b)
+    np.testing.assert_allclose(fit_r, rotation, atol=1e-12)
+    np.testing.assert_allclose(fit_t, translation, atol=1e-12)
+    angle, dist = motion_difference(rotation, translation, fit_r, fit_t)
+    assert angle < 1e-6 and dist < 1e-9
+    with pytest.raises(ValueError, match='span'):
+        parallel = np.tile([0.0, 0.0, 1.0], (4, 1))
+        rigid_fit_from_planes(parallel, offsets[:4], parallel, offsets[:4] + 1)
+
+
+def test_transformed_plane_contains_the_transformed_points():
+    rotation, translation = _rotation([1, 2, 3], 20.0), np.array([0.5, -1.0, 2.0])
+    normal, offset = np.array([[0.0, 0.6, 0.8]]), np.array([3.0])
+    point_on_plane = np.array([1.0, 0.0, 3.75])
+    moved_n, moved_d = transform_planes(normal, offset, rotation, translation)
+    assert moved_n[0] @ (rotation @ point_on_plane + translation) == pytest.approx(moved_d[0])
+
+
+def test_closest_point_jacobian_matches_finite_differences():
+    rotation, translation = _rotation([0, 1, 1], 12.0), np.array([0.3, -0.2, 0.1])
+
+    def moved_closest_point(c):
+        d = np.linalg.norm(c)
+        n, off = transform_planes((c / d)[None], np.array([d]), rotation, translation)
+        return off[0] * n[0]
+
+    c = np.array([1.0, -2.0, 3.0])
+    step = 1e-6
+    numeric = np.stack([(moved_closest_point(c + step * e) - moved_closest_point(c - step * e)) / (2 * step)
+                        for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(closest_point_jacobian(c, rotation, translation), numeric, atol=1e-7)
+
+
+def test_mahalanobis_squared_is_calibrated_for_its_own_covariance():
+    cov = np.array([[4e-4, 1e-4, 0], [1e-4, 2e-4, 0], [0, 0, 1e-4]])
+    assert mahalanobis_squared(np.array([0, 0, 0.02]), cov) == pytest.approx(4.0)
+    rng = np.random.default_rng(0)
+    samples = rng.multivariate_normal(np.zeros(3), cov, size=20000)
+    median = np.median([mahalanobis_squared(s, cov) for s in samples])
+    assert median == pytest.approx(CHI2_3_MEDIAN, rel=0.03)
+    assert np.median([mahalanobis_squared(s, cov / 25) for s in samples]) > 20 * CHI2_3_MEDIAN  # overconfident
+    assert math.isnan(mahalanobis_squared(np.ones(3), -np.eye(3)))
+    assert math.isnan(mahalanobis_squared(np.ones(3), np.full((3, 3), np.nan)))
+
+
+def test_registration_covariance_matches_sampled_small_motions():
+    normal, offset = np.array([0.0, 0.6, 0.8]), 8.0
+    sigma_t, sigma_r = 0.01, math.radians(0.05)
+    rng = np.random.default_rng(1)
+    deltas = []
+    for _ in range(4000):
+        w, u = rng.normal(0, sigma_r, 3), rng.normal(0, sigma_t, 3)
+        moved_n, moved_d = transform_planes(normal[None], np.array([offset]),
+                                            _rotation(w, math.degrees(np.linalg.norm(w))), u)
+        deltas.append(moved_d[0] * moved_n[0] - offset * normal)
+    sampled = np.cov(np.array(deltas).T)
+    predicted = registration_covariance(normal, offset, sigma_t, sigma_r)
+    np.testing.assert_allclose(sampled, predicted, atol=0.06 * np.abs(predicted).max())
+    assert predicted[0, 0] == pytest.approx((offset * sigma_r) ** 2)  # x is in the plane: rotation only
+
+
+def test_range_image_projector_maps_every_point_to_its_own_pixel():
+    points, _ = _spherical_scene([0, 0, 0])
+    projector = RangeImageProjector(points)
+    valid = np.isfinite(points).all(axis=2).ravel()
+    pixels = projector.project(points.reshape(-1, 3)[valid])
+    assert np.array_equal(pixels, np.flatnonzero(valid))
+    # a point straight up, outside the beams' elevations, lands nowhere
+    assert projector.project(np.array([[0.0, 0.0, 5.0]]))[0] == -1
+
+
+def _planes_of(points, labels):
+    from ppe_ros.core.fitting import fit_labeled_planes
+
+    return fit_labeled_planes(points, labels, min_plane_points=20).planes
+
+
+def test_match_planes_finds_the_same_planes_after_a_known_motion():
+    motion = np.array([0.25, 0.1, 0.0])
+    points_a, labels_a = _spherical_scene([0, 0, 0])
+    points_b, labels_b = _spherical_scene(motion)  # sensor B sits at `motion` in A's (world) frame
+    planes_a, planes_b = _planes_of(points_a, labels_a), _planes_of(points_b, labels_b)
+    projector = RangeImageProjector(points_b)
+    args = (planes_a.labels, points_a, planes_a.normals, planes_a.offsets, None, planes_b.labels, projector,
+            planes_b.normals, planes_b.offsets, None)
+    matches = match_planes(*args, np.eye(3), -motion, min_points=100)
+    assert len(matches) == 2
+    for m in matches:
+        assert m.found, m
+        assert m.iou > 0.9
+        assert m.angle_deg < 1e-6 and m.offset_diff < 1e-6
+    # without the motion the wall is 25 cm off: not found again
+    unmoved = match_planes(*args, np.eye(3), np.zeros(3), min_points=100)
+    wall = [m for m in unmoved if m.label_b > 0 and abs(planes_b.normals[m.label_b - 1][0]) > 0.9]
+    assert wall and not wall[0].found and wall[0].offset_diff == pytest.approx(0.25, abs=1e-6)
+    # B split into halves: the wall is matched to one half with IoU about 0.5 and is not found again
+    split = planes_b.labels.copy()
+    split[:, : split.shape[1] // 2][split[:, : split.shape[1] // 2] > 0] += 10
+    halves = _planes_of(points_b, split)
+    matches = match_planes(planes_a.labels, points_a, planes_a.normals, planes_a.offsets, None, halves.labels,
+                           projector, halves.normals, halves.offsets, None, np.eye(3), -motion, min_points=100)
+    assert all(not m.found and 0.3 < m.iou < 0.7 for m in matches)
+    assert summarize_matches(matches).found_share == 0.0
+    # A split into halves, B whole: each half lies inside B's plane, but B's plane is twice as large
+    halves_a = _planes_of(points_a, np.where(labels_a > 0, labels_a + 10 * (np.arange(labels_a.shape[1]) < 180), 0))
+    matches = match_planes(halves_a.labels, points_a, halves_a.normals, halves_a.offsets, None, planes_b.labels,
+                           projector, planes_b.normals, planes_b.offsets, None, np.eye(3), -motion, min_points=100)
+    assert len(matches) == 4 and all(not m.found and 0.3 < m.iou < 0.7 for m in matches)
+
+
+def test_match_planes_mahalanobis_uses_both_covariances():
+    points, labels = _spherical_scene([0, 0, 0])
+    planes = _planes_of(points, labels)
+    projector = RangeImageProjector(points)
+    shifted = planes.offsets + 0.01  # B's planes 1 cm further than A's
+    cov = np.tile(np.eye(3) * 1e-4, (planes.num_planes, 1, 1))  # sigma 1 cm per axis in each sweep
+    matches = match_planes(planes.labels, points, planes.normals, planes.offsets, cov, planes.labels, projector,
+                           planes.normals, shifted, cov, np.eye(3), np.zeros(3), min_points=100,
+                           registration_sigma=(0.01, math.radians(0.1)))
+    assert len(matches) == 2
+    for m in matches:
+        assert m.mahalanobis2 == pytest.approx(0.01 ** 2 / 2e-4)  # delta 1 cm along n, variance 2 (1 cm)^2
+        assert m.sigma_d_predicted == pytest.approx(math.sqrt(2e-4))
+        # the registration adds (1 cm)^2 along n (its rotation part moves c across n only)
+        assert m.mahalanobis2_with_registration == pytest.approx(0.01 ** 2 / 3e-4)
+
+
+def test_summary_medians_count_unmatched_planes_as_iou_zero():
+    def match(iou, found, label_b=1, md2=1.0):
+        return PlaneMatch(1, label_b, 1000, 1000, iou, 0.1, 0.01, md2, 0.01, found)
+
+    summary = summarize_matches([match(0.9, True), match(0.8, True, md2=5.0), match(0.0, False, label_b=0,
+                                                                                      md2=math.nan)])
+    assert summary.planes == 3 and summary.found == 2 and summary.found_share == pytest.approx(2 / 3)
+    assert summary.median_iou == pytest.approx(0.8)
+    assert summary.pairs == 2 and summary.median_mahalanobis2 == pytest.approx(3.0)
+
+
+def test_every_real_scan_has_a_split():
+    assert {scan.name for scan in REAL_SCANS} == set(SCAN_SPLIT)
+    assert set(SCAN_SPLIT.values()) == {'training', 'reported'}
+    assert [s.name for s in REAL_SCANS if s.split == 'training'] == [
+        'OS-0-128 1491', 'OS-2-128 1259', 'OS-2-32 5424', 'OS-1-32 638', 'ICL-NUIM 0']
+
+
+def _bench_real_module():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_real.py'
+    spec = importlib.util.spec_from_file_location('bench_real', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_real_ppe_settings_and_bad_arguments(capsys):
+    bench = _bench_real_module()
+    kwargs, _ = bench.ppe_settings('none', False, 'lidar')
+    assert kwargs == {'max_error_increment': 0.01, 'max_neighbor_distance': math.inf, 'min_plane_points': 20}
+    kwargs, _ = bench.ppe_settings('none', True, 'depth_camera')
+    assert kwargs == {'max_error_increment': 0.0484, 'max_neighbor_distance': 0.18, 'min_plane_points': 20}
+    assert bench.ppe_settings('auto', False, 'depth_camera')[0] == {'sensor': 'depth_camera', 'min_plane_points': 20}
+    assert bench.ppe_settings('lidar', False, 'depth_camera')[0]['sensor'] == 'lidar'
+    assert bench.main(['--methods', 'ppe,nosuch']) == 2
+    assert 'nosuch' in capsys.readouterr().err
+    assert bench.main(['--paper', '--sensor', 'lidar']) == 2
+    assert bench.main(['--scans', 'no-such-scan', '--data', '/nonexistent']) == 2
+    if not bench.has_sensor_argument():
+        assert bench.main(['--sensor', 'auto']) == 2
+        assert 'no sensor argument' in capsys.readouterr().err
