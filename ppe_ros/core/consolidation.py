@@ -13,9 +13,11 @@ pieces A and B are the same surface when
   to (by more than 2 tau plus 2 sigma of that ray), over at most ``max_gap`` pixels; and
 * the orthogonal least-squares plane U of their union lies within tau RMS of each piece's own
   plane over that piece's points:
-  ``dev(P, U)^2 = mean_P dist_U(p)^2 - mean_P dist_P(p)^2 <= tau^2 + lambda^2 mean_P sigma_k^2`` for
-  P = A and P = B (lambda, ``noise_factor``, lets the tolerance grow with the sensor's noise, as a
-  depth camera's systematic errors grow with depth; 0 for a constant tau); and
+  ``dev(P, U)^2 = mean_P dist_U(p)^2 - s_P^2 <= t_P^2 = tau^2 + lambda^2 s_P^2`` for P = A and P = B,
+  where ``s_P^2 = mean_P dist_P(p)^2`` is the piece's own scatter about its plane (lambda,
+  ``noise_factor``: a deviation between two pieces' planes that is small against the scatter of
+  their points is not significant; the tolerance grows with the noise the data show, as a depth
+  camera's does with depth; 0 for a constant tau); and
 * the two pieces' own planes meet: along U's normal, at the midpoint of the pieces' means, they are
   at most ``min(t_A, t_B)`` apart (``t_P`` the tolerance above). Without it a step between two
   side-by-side pieces (a kerb beside the road) would pass, the union's plane tilting to split it.
@@ -148,15 +150,16 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
-    and step^2 / min(t_A, t_B)^2, with t_P^2 = tau^2 + lambda^2 mean_P sigma^2.
+    and step^2 / min(t_A, t_B)^2, with t_P^2 = tau^2 + lambda^2 s_P^2 (s_P^2: P's mean squared distance
+    from its own plane).
 
     U is the union's LS plane; step is the distance between the planes of A and B along U's normal
     at the midpoint of their means. m_*: moments; plane_*: their _plane_of rows.
     """
     mean_u, sc = _scatter(m_a + m_b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
-    allowed_a = tau2 + noise_factor2 * m_a[10] / m_a[0]
-    allowed_b = tau2 + noise_factor2 * m_b[10] / m_b[0]
+    allowed_a = tau2 + noise_factor2 * plane_a[9]
+    allowed_b = tau2 + noise_factor2 * plane_b[9]
     cost = max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
                _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b)
     x0 = 0.5 * (plane_a[0] + plane_b[0])
@@ -386,8 +389,8 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
             pixels are left as they are.
         sigmas: ``(H*W,)`` range noise of each ray (m); NaN for invalid rays.
         surface_tolerance: tau (m), > 0.
-        noise_factor: lambda: a piece may deviate by sqrt(tau^2 + lambda^2 mean sigma_k^2) (its rays'
-            range noise; a depth camera's systematic errors grow with depth as its noise does).
+        noise_factor: lambda: a piece may deviate by sqrt(tau^2 + lambda^2 s^2), s its RMS distance from
+            its own plane (the noise the data show; a depth camera's grows with depth).
         connected_only: consider only pieces that touch in the grid.
         max_gap: the largest occluded gap (pixels) between two pieces of a surface.
 
@@ -424,3 +427,81 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
     roots = _consolidate_kernel(moments, np.ascontiguousarray(pairs), tau * tau, factor * factor)
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances):
+    """Grow every surface into 4-neighbouring rays without one that lie on its plane (breadth first,
+    in pixel order); ids is updated in place. A ray k lies on surface P when its distance from P's
+    plane is at most tolerances[P] + 2 sigma_k |n . v_k|."""
+    n = len(ids)
+    queue = np.empty(n, np.int64)
+    head = 0
+    tail = 0
+    for k in range(n):
+        if ids[k] >= 0:
+            queue[tail] = k
+            tail += 1
+    while head < tail:
+        k = queue[head]
+        head += 1
+        p = ids[k]
+        i = k // width
+        j = k - i * width
+        for side in range(4):
+            if side == 0:
+                if j == 0:
+                    continue
+                q = k - 1
+            elif side == 1:
+                if j + 1 == width:
+                    continue
+                q = k + 1
+            elif side == 2:
+                if i == 0:
+                    continue
+                q = k - width
+            else:
+                if i + 1 == height:
+                    continue
+                q = k + width
+            if ids[q] >= 0 or not valid[q]:
+                continue
+            along = (normals[p, 0] * directions[q, 0] + normals[p, 1] * directions[q, 1]
+                     + normals[p, 2] * directions[q, 2])
+            distance = (normals[p, 0] * (endpoints[q, 0] - means[p, 0]) + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
+                        + normals[p, 2] * (endpoints[q, 2] - means[p, 2]))
+            if abs(distance) <= tolerances[p] + 2.0 * sigmas[q] * abs(along):
+                ids[q] = p
+                queue[tail] = q
+                tail += 1
+
+
+def absorb_rays(scan: RayScan, surface_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
+                noise_factor: float = 0.0, min_points: int = 1) -> np.ndarray:
+    """Give rays without a surface (and surfaces of fewer than ``min_points`` rays) to a neighbouring
+    surface whose plane they lie on (see :func:`_absorb_kernel`; tolerance sqrt(tau^2 + lambda^2 s_P^2)).
+
+    Returns the new ``(H*W,)`` surface ids (-1: none).
+    """
+    ids = np.ascontiguousarray(surface_ids, dtype=np.int64).copy()
+    if ids.size == 0 or ids.max() < 0:
+        return ids
+    uniq, dense = np.unique(ids, return_inverse=True)
+    dense = dense.reshape(-1) - (1 if uniq[0] < 0 else 0)
+    labels = uniq[uniq >= 0]
+    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
+    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
+    moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
+    small = moments[:, 0] < max(int(min_points), 3)
+    dense = np.where((dense >= 0) & ~small[np.maximum(dense, 0)], dense, -1)
+    normals, means = _piece_planes(np.where(small[:, None], np.ones(11), moments))
+    own = np.empty(len(labels))
+    row = np.empty(13)
+    for g in range(len(labels)):  # the pieces' scatter about their planes
+        _plane_of(moments[g] if not small[g] else np.ones(11), row)
+        own[g] = row[9]
+    tolerances = np.sqrt(float(surface_tolerance) ** 2 + float(noise_factor) ** 2 * own)
+    _absorb_kernel(dense, scan.endpoints, scan.directions, ray_sigmas, scan.valid, scan.height, scan.width, normals,
+                   means, tolerances)
+    return np.where(dense >= 0, labels[np.maximum(dense, 0)], -1)

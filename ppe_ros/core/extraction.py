@@ -36,7 +36,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-from ppe_ros.core.consolidation import consolidate_pieces
+from ppe_ros.core.consolidation import absorb_rays, consolidate_pieces
 from ppe_ros.core.fitting import (
     _fit,
     _fit4,
@@ -2407,8 +2407,11 @@ def _surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile | Non
         scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
+        noise_factor = 0.0 if profile is None else profile.noise_factor
         ids = consolidate_pieces(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only=connected_only,
-                                 noise_factor=0.0 if profile is None else profile.noise_factor)
+                                 noise_factor=noise_factor)
+        ids = absorb_rays(unit_scan, ids, ray_sigmas, surface_tolerance, noise_factor=noise_factor,
+                          min_points=min_plane_points)
     planes, _ = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
                                   actions=steps, **cut)
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
