@@ -674,3 +674,177 @@ def test_three_ouster_sweeps_match_ppe_extract(tmp_path, shared_data):
     with np.load(tmp_path / 'planes.npz') as planes:
         assert same_partition(labels_of(labeled[0]), planes['labels'])
         assert json.loads(str(planes['meta']))['max_neighbor_distance'] == 0.18
+
+
+# --------------------------------------------------------------------------------------------
+# issue 17: hard links, cut and compressed bags, sqlite3 recovery, messages
+# --------------------------------------------------------------------------------------------
+
+
+def _one_line_error(err: str, code: int) -> str:
+    """The error of a run that wrote nothing (2) or stopped at damage (1): no traceback, one line."""
+    assert 'Traceback' not in err
+    lines = [line for line in err.splitlines() if line.startswith('process_bag: error: ')]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture(scope='module')
+def distinct_frames():
+    """Twenty frames of different scans (compress poorly, like real clouds) and what the node gives."""
+    scans = [plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=100 + i).points for i in range(20)]
+    messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, p))) for i, p in enumerate(scans)]
+    frames = [process_cloud(cloud(JAZZY, i, p), ExtractorParams(), TYPES) for i, p in enumerate(scans)]
+    return messages, frames
+
+
+def _cut(file: Path, size: int) -> None:
+    with file.open('r+b') as handle:
+        handle.truncate(size)
+
+
+@pytest.mark.parametrize('layout', ['bare file', 'file in a directory bag'])
+def test_a_hard_link_to_the_input_is_not_replaced(tmp_path, ros2_messages, capsys, layout):
+    source = write_rosbag2(tmp_path / 'bags' / 'in', ros2_messages)
+    storage = next(source.glob('*.mcap'))
+    if layout == 'bare file':
+        source = tmp_path / 'scans.mcap'
+        os.link(storage, source)
+        storage = source
+    link = tmp_path / 'link.mcap'
+    os.link(storage, link)
+    before = storage.read_bytes()
+    assert run_cli([source, link, '--force']) == 2
+    assert 'refusing to write' in capsys.readouterr().err
+    assert link.is_file() and os.path.samefile(link, storage)
+    assert storage.read_bytes() == before
+
+
+@pytest.mark.parametrize('size', [0, 5, 8, 12])
+def test_an_mcap_cut_to_its_magic_is_damaged_not_a_traceback(tmp_path, mcap_bag, capsys, size):
+    source = tmp_path / 'cut.mcap'
+    source.write_bytes(next(mcap_bag.glob('*.mcap')).read_bytes()[:size])
+    assert run_cli([source, tmp_path / 'out']) == 2
+    line = _one_line_error(capsys.readouterr().err, 2)
+    assert ('is empty' if size == 0 else 'is damaged') in line
+    assert not (tmp_path / 'out').exists()
+
+
+def _file_compressed_bag(path: Path, messages) -> Path:
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
+    writer.open()
+    connection = writer.add_connection(TOPIC, POINTCLOUD2, typestore=JAZZY)
+    for timestamp, raw in messages:
+        writer.write(connection, timestamp, raw)
+    writer.close()
+    return path
+
+
+@pytest.mark.parametrize('fraction', [0.0, 0.2, 0.5, 0.9, 0.999])
+def test_a_cut_zstd_compressed_bag_keeps_what_decompresses(tmp_path, distinct_frames, capsys, fraction):
+    messages, frames = distinct_frames
+    source = _file_compressed_bag(tmp_path / 'in', messages)
+    storage = next(source.glob('*.mcap.zstd'))
+    _cut(storage, int(storage.stat().st_size * fraction))
+    code = run_cli([source, tmp_path / 'out'])
+    line = _one_line_error(capsys.readouterr().err, code)
+    assert 'zstd stream is cut short' in line
+    if code == 2:
+        assert fraction < 0.9 and 'nothing' in line
+        assert not (tmp_path / 'out').exists()
+    else:
+        assert code == 1 and fraction >= 0.9
+        assert _check_partial(tmp_path / 'out', frames, 1, len(frames)) >= 1
+
+
+@pytest.mark.parametrize('where', [0.0, 0.00003, 0.9999])
+def test_a_corrupt_zstd_compressed_bag_is_one_line(tmp_path, distinct_frames, capsys, where):
+    """A flipped byte the zstd decoder notices (frame header, last block): damaged, never a traceback."""
+    messages, frames = distinct_frames
+    source = _file_compressed_bag(tmp_path / 'in', messages)
+    storage = next(source.glob('*.mcap.zstd'))
+    content = bytearray(storage.read_bytes())
+    content[int(len(content) * where)] ^= 0x5A
+    storage.write_bytes(bytes(content))
+    code = run_cli([source, tmp_path / 'out'])
+    line = _one_line_error(capsys.readouterr().err, code)
+    assert 'its zstd stream is corrupt' in line
+    if where < 0.5:
+        assert code == 2 and not (tmp_path / 'out').exists()
+    else:  # the blocks before the damaged one are kept
+        assert code == 1
+        assert _check_partial(tmp_path / 'out', frames, 1, len(frames)) >= 1
+
+
+@pytest.mark.parametrize('fraction', [0.35, 0.5, 0.8, 0.95])
+def test_a_cut_sqlite3_bag_keeps_its_complete_messages(tmp_path, distinct_frames, capsys, fraction):
+    messages, frames = distinct_frames
+    source = write_rosbag2(tmp_path / 'in', messages, storage='sqlite3', chatter=False)
+    database = next(source.glob('*.db3'))
+    _cut(database, int(database.stat().st_size * fraction))
+    assert run_cli([source, tmp_path / 'out']) == 1
+    line = _one_line_error(capsys.readouterr().err, 1)
+    recovered = int(re.search(r'read page by page: (\d+) complete messages? recovered', line).group(1))
+    # the cut loses at most the messages of the last leaf page and those the cut goes through
+    assert int(len(frames) * fraction) - 5 <= recovered < len(frames)
+    assert _check_partial(tmp_path / 'out', frames, recovered, recovered + 1) == recovered
+
+
+@pytest.mark.parametrize('fraction', [0.01, 0.05])
+def test_a_sqlite3_bag_cut_before_its_topics_is_damaged(tmp_path, distinct_frames, capsys, fraction):
+    source = write_rosbag2(tmp_path / 'in', distinct_frames[0], storage='sqlite3', chatter=False)
+    database = next(source.glob('*.db3'))
+    _cut(database, int(database.stat().st_size * fraction))
+    assert run_cli([source, tmp_path / 'out']) == 2
+    assert 'nothing' in _one_line_error(capsys.readouterr().err, 2)
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('kind', ['mcap', 'ros1'])
+def test_a_bag_cut_before_its_first_frame_is_damaged(tmp_path, distinct_frames, capsys, kind):
+    messages = distinct_frames[0]
+    if kind == 'mcap':
+        source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
+        storage = next(source.glob('*.mcap'))
+        first = len(messages[0][1])
+    else:
+        ros1 = [(t, serialized(NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
+                                                                   seed=100 + i).points)))
+                for i, (t, _) in enumerate(messages[:4])]
+        source = storage = write_ros1(tmp_path / 'in.bag', ros1, chunk_bytes=10_000)
+        first = len(ros1[0][1])
+    _cut(storage, first // 2)
+    assert run_cli([source, tmp_path / 'out']) == 2
+    line = _one_line_error(capsys.readouterr().err, 2)
+    assert 'is damaged before its first complete' in line
+    assert 'its topics: none' not in line
+    assert not (tmp_path / 'out').exists()
+
+
+def test_a_ros1_bag_cut_to_8_bytes_is_damaged_not_not_a_bag(tmp_path, scans, capsys):
+    messages = [(bag_time(i), serialized(NOETIC, cloud(NOETIC, i, scans[i]))) for i in range(3)]
+    source = write_ros1(tmp_path / 'in.bag', messages)
+    _cut(source, 8)
+    assert run_cli([source, tmp_path / 'out']) == 2
+    line = _one_line_error(capsys.readouterr().err, 2)
+    assert 'is damaged: it is cut to 8 bytes, inside the file signature of a ROS 1 bag' in line
+    assert 'not a bag' not in line
+
+
+@pytest.mark.parametrize('kind', ['mcap', 'ros1'])
+def test_a_chunk_cut_short_gives_its_complete_frames(tmp_path, distinct_frames, capsys, kind):
+    """Small clouds share one chunk (MCAP: 1 MiB; ROS 1: here 30 kB): a cut keeps the frames before it."""
+    messages, frames = distinct_frames
+    if kind == 'mcap':
+        source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
+        storage = next(source.glob('*.mcap'))
+    else:
+        ros1 = [(t, serialized(NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
+                                                                   seed=100 + i).points)))
+                for i, (t, _) in enumerate(messages)]
+        source = storage = write_ros1(tmp_path / 'in.bag', ros1, chunk_bytes=30_000)
+    _cut(storage, int(storage.stat().st_size * 0.5))
+    assert run_cli([source, tmp_path / 'out']) == 1
+    _one_line_error(capsys.readouterr().err, 1)
+    assert _check_partial(tmp_path / 'out', frames, len(frames) // 2 - 3, len(frames) // 2 + 1) > 0
