@@ -848,3 +848,72 @@ def test_a_chunk_cut_short_gives_its_complete_frames(tmp_path, distinct_frames, 
     assert run_cli([source, tmp_path / 'out']) == 1
     _one_line_error(capsys.readouterr().err, 1)
     assert _check_partial(tmp_path / 'out', frames, len(frames) // 2 - 3, len(frames) // 2 + 1) > 0
+
+
+@pytest.mark.parametrize(('signum', 'code'), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, monkeypatch, capsys, signum, code):
+    """The second signal's KeyboardInterrupt raised where numba returns to Python comes out as
+    ``SystemError: CPUDispatcher(...) returned a result with an exception set`` (its cause the
+    KeyboardInterrupt): the frame is dropped, not counted as failed."""
+    messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, scans[i % 3]))) for i in range(6)]
+    frames = [process_cloud(cloud(JAZZY, i, scans[i % 3]), ExtractorParams(), TYPES) for i in range(6)]
+    source = write_rosbag2(tmp_path / 'in', messages)
+    original = bag_module.process_cloud
+    calls = []
+
+    def interrupted_in_the_kernel(msg, params, types, *, outputs=None):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signum)
+            try:
+                os.kill(os.getpid(), signum)  # the handler raises here, as where numba boxes a result
+            except KeyboardInterrupt as exc:
+                raise SystemError('CPUDispatcher(<function _seed_errors>) returned a result with an exception '
+                                  'set') from exc
+        return original(msg, params, types, outputs=outputs)
+
+    monkeypatch.setattr(bag_module, 'process_cloud', interrupted_in_the_kernel)
+    assert run_cli([source, tmp_path / 'out']) == code
+    err = capsys.readouterr().err
+    assert 'SystemError' not in err and '(failed)' not in err
+    assert f'interrupted ({signal.Signals(signum).name}) after 2 frames; 1 frame in flight dropped' in err
+    assert _check_partial(tmp_path / 'out', frames, 1, 2) == 1
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_repeated_signals_during_inline_frames(tmp_path, signum):
+    """The real thing: signals every 20 ms into ``process_bag --jobs 1`` on 64 x 512 clouds (each frame
+    runs several numba kernels, so a second signal lands between two of them)."""
+    clouds = [plane_scan(3, rows=64, cols=512, radial_sigma=0.005, seed=i).points for i in range(6)]
+    messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, p))) for i, p in enumerate(clouds)]
+    source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
+    script = 'import sys; from ppe_ros.ros.bag import main; sys.exit(main())'
+    process = subprocess.Popen([sys.executable, '-c', script, str(source), str(tmp_path / 'out'), '--progress'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    seen = bytearray()
+
+    def read_stderr():
+        while chunk := process.stderr.read1(4096):
+            seen.extend(chunk)
+
+    reader = threading.Thread(target=read_stderr)
+    reader.start()
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None and not re.search(rb'[1-9]/6', bytes(seen)):
+        time.sleep(0.01)
+    stop_at = time.monotonic() + 0.6
+    while time.monotonic() < stop_at and process.poll() is None and b'stopped:' not in seen:
+        process.send_signal(signum)
+        time.sleep(0.02)
+    try:
+        returncode = process.wait(timeout=120)
+    finally:
+        process.kill()
+        reader.join()
+    err = seen.decode(errors='replace')
+    assert returncode == 128 + signum, err[-2000:]
+    assert 'SystemError' not in err and '(failed)' not in err and 'Traceback' not in err, err[-2000:]
+    out = read_bag(tmp_path / 'out')
+    written = [t for t, _ in out[OUTPUTS['labeled_points']]]
+    assert 1 <= len(written) < 6
+    assert written == [bag_time(i) for i in range(len(written))]

@@ -1092,9 +1092,27 @@ class FrameProcessor:
         except FrameSkipped as exc:
             result = FrameResult(exc.kind, exc.reason, copy=result.copy)
         except Exception as exc:  # like the node: one bad frame never stops the run
+            if _caused_by_interrupt(exc):  # Ctrl-C inside a numba kernel: a SystemError from it
+                raise KeyboardInterrupt from None
             result = FrameResult('failed', f'processing failed: {type(exc).__name__}: {exc}', copy=result.copy)
         result.seconds = time.perf_counter() - start
         return result
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` wraps a KeyboardInterrupt (a signal handler that raised inside native code).
+
+    A second Ctrl-C while a numba kernel returns surfaces as ``SystemError: CPUDispatcher(...)
+    returned a result with an exception set`` whose cause is the KeyboardInterrupt.
+    """
+    seen = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 _WORKER_PROCESSOR: FrameProcessor | None = None
@@ -1131,11 +1149,15 @@ class _InlineExecutor:
         future: Future = Future()
         self._stops.abortable = True  # a second Ctrl-C may abandon this frame
         try:
-            future.set_result(self._processor.process(raw, encoding, convert_copy))
+            result = self._processor.process(raw, encoding, convert_copy)
         except KeyboardInterrupt:
-            future.cancel()
+            result = None
         finally:
             self._stops.abortable = False
+        if result is None or (self._stops.drop and result.skip_kind == 'failed'):
+            future.cancel()  # dropped by the second Ctrl-C (a failure it caused is no failure)
+        else:
+            future.set_result(result)
         return future
 
     def shutdown(self, *, abandon: bool) -> None:
@@ -1469,12 +1491,19 @@ def process_bag(options: BagOptions, *, log: Callable[[str], None] | None = None
             output = OutputBag(output_path, options.storage, options.force)
         except (OSError, WriterError) as exc:
             raise BagError(f'cannot create the output next to {output_path}: {exc}') from None
+        stops = _StopRequests()  # also while the output is closed and moved: never left half-written
+        stops.install()
         try:
-            _run(bag, output, report, options, warn)
+            _run(bag, output, report, options, warn, stops)
         except (OSError, WriterError) as exc:  # e.g. disk full: keep what was written
             report.output_error = f'writing the output failed: {type(exc).__name__}: {exc}'
         finally:
-            _finish_output(output, report, options)
+            try:
+                _finish_output(output, report, options)
+            finally:
+                stops.restore()
+                if stops.first_signal is not None:
+                    report.interrupted_by = stops.first_signal
     report.wall_seconds = time.perf_counter() - start
     return report
 
@@ -1496,7 +1525,7 @@ def _log_plan(report: BagReport, bag: InputBag, log: Callable[[str], None], warn
 
 
 def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOptions,
-         warn: Callable[[str], None]) -> None:
+         warn: Callable[[str], None], stops: _StopRequests) -> None:
     """Read, process (inline or in workers) and write in input order until done, damaged or stopped."""
     from rosbags.typesys import Stores, get_typestore
     from tqdm import tqdm
@@ -1519,7 +1548,6 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
     }, default=str))
 
     convert_copy = options.copy_input and bag.encoding == 'ros1'
-    stops = _StopRequests()
     numba_threads = default_numba_threads(options.params, options.jobs)
     expected = [t.expected for t in report.topics.values()]
     total = None if any(count is None for count in expected) else sum(expected)
@@ -1530,7 +1558,6 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
     executor: _InlineExecutor | _PoolExecutor | None = None
     stream = bag.messages(list(report.topics))
     abandon = False
-    stops.install()
     try:
         if options.jobs == 1:
             _set_numba_threads(numba_threads)
@@ -1591,9 +1618,6 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
         if executor is not None:
             executor.shutdown(abandon=abandon or bool(pending))
         bar.close()
-        stops.restore()
-        if stops.first_signal is not None:
-            report.interrupted_by = stops.first_signal
 
 
 def _wait(future: Future, stops: _StopRequests, report: BagReport) -> FrameResult | None:
@@ -1768,14 +1792,53 @@ def options_from_args(args: argparse.Namespace) -> BagOptions:
 
 def run(args: argparse.Namespace, prog: str = 'process_bag') -> int:
     """Run from parsed arguments; print the plan, warnings, summary and errors; return the exit code."""
+    signals = _CommandSignals()
+    signals.install()
+    try:
+        return _run_command(args, prog, signals)
+    finally:
+        signals.restore()
+
+
+class _CommandSignals:
+    """SIGINT / SIGTERM outside :func:`process_bag`'s own handling: before it (opening and scanning
+    the input) they stop the command; after it (the bag is closed, the summary is printed) they
+    are ignored, so that a repeated Ctrl-C never ends in a traceback."""
+
+    def __init__(self) -> None:
+        self.done = False
+        self.signum: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._handle)
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is None:
+            self.signum = signum
+        if not self.done:
+            raise KeyboardInterrupt
+
+
+def _run_command(args: argparse.Namespace, prog: str, signals: _CommandSignals) -> int:
     try:
         report = process_bag(options_from_args(args))
     except BagError as exc:
+        signals.done = True
         print(f'{prog}: error: {exc}', file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:  # before processing started
+        signals.done = True
         print(f'{prog}: interrupted', file=sys.stderr)
-        return 128 + signal.SIGINT
+        return 128 + (signals.signum or signal.SIGINT)
+    signals.done = True
     print(format_report(report))
     problems = report_problems(report)
     label = 'error' if report.interrupted_by is None else 'stopped'
