@@ -917,3 +917,18 @@ def test_repeated_signals_during_inline_frames(tmp_path, signum):
     written = [t for t, _ in out[OUTPUTS['labeled_points']]]
     assert 1 <= len(written) < 6
     assert written == [bag_time(i) for i in range(len(written))]
+
+
+def test_an_unknown_key_in_the_params_file_is_a_warning_like_the_node(tmp_path, mcap_bag, scans, capsys):
+    params_file = tmp_path / 'params.yaml'
+    params_file.write_text('extractor:\n  ros__parameters:\n    min_plane_points: 40\n    max_eror_increment: 0.1\n'
+                           '    use_sim_time: false\n')
+    assert run_cli([mcap_bag, tmp_path / 'out', '--params', params_file]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if 'unknown' in line]
+    assert len(warnings) == 1
+    assert f"warning: params file {params_file}: ignoring unknown parameter(s) ['max_eror_increment']" in warnings[0]
+    params = ExtractorParams(min_plane_points=40)
+    frames = [process_cloud(cloud(JAZZY, i, points), params, TYPES) for i, points in enumerate(scans)]
+    check_outputs(read_bag(tmp_path / 'out'), frames, [0, 1, 2])
+    metadata = (tmp_path / 'out' / 'metadata.yaml').read_text()
+    assert 'max_eror_increment' not in metadata and 'min_plane_points' in metadata

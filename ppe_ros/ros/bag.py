@@ -76,7 +76,14 @@ from rosbags.rosbag2.storage_mcap import McapReader, Statistics, read_sized
 from rosbags.typesys.msg import normalize_msgtype
 
 from ppe_ros.ros.messages import MessageTypes, rosbags_message_types
-from ppe_ros.ros.processing import ExtractorParams, FrameSkipped, OutputSelection, process_cloud
+from ppe_ros.ros.processing import (
+    PARAM_SPEC_BY_NAME,
+    ROS_BUILTIN_PARAMETERS,
+    ExtractorParams,
+    FrameSkipped,
+    OutputSelection,
+    process_cloud,
+)
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
@@ -1363,6 +1370,7 @@ class BagOptions:
     storage: str = DEFAULT_STORAGE
     force: bool = False
     progress: bool | None = None
+    params_warnings: tuple[str, ...] = ()
 
 
 @dataclass
@@ -1472,6 +1480,8 @@ def process_bag(options: BagOptions, *, log: Callable[[str], None] | None = None
         raise BagError(f'no such file or directory: {input_path}')
     check_paths(input_path, output_path, options.force)
 
+    for text in options.params_warnings:
+        warn(f'warning: {text}')
     report = BagReport(options)
     bag = open_input_bag(input_path)
     with contextlib.closing(bag):
@@ -1779,15 +1789,47 @@ def options_from_args(args: argparse.Namespace) -> BagOptions:
     """
     params = ExtractorParams()
     source = 'defaults'
+    warnings: list[str] = []
     if args.params is not None:
         try:
-            params = ExtractorParams.from_yaml(args.params, node_name='extractor')
+            params, unknown = read_params_file(args.params)
         except ValueError as exc:
             raise BagError(str(exc)) from None
         source = str(args.params)
+        if unknown:  # like the node: a warning, not an error
+            warnings.append(f'params file {args.params}: ignoring unknown parameter(s) {unknown} (a typo in the '
+                            f'params file?); known: {sorted(PARAM_SPEC_BY_NAME)}')
     return BagOptions(input=Path(args.input), output=Path(args.output), topics=tuple(args.topics or ()),
                       params=params, params_source=source, copy_input=args.copy_input, jobs=args.jobs,
-                      storage=args.storage, force=args.force, progress=args.progress)
+                      storage=args.storage, force=args.force, progress=args.progress,
+                      params_warnings=tuple(warnings))
+
+
+def _unknown_parameter_names(names: Any) -> list[str]:
+    """Names the extractor does not have (ROS's own ones excepted), as the node reports them."""
+    return sorted(str(name) for name in names
+                  if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
+                  and not str(name).startswith('qos_overrides'))
+
+
+def read_params_file(path: str | os.PathLike[str]) -> tuple[ExtractorParams, list[str]]:
+    """The node's params file as :class:`ExtractorParams`, and the unknown names it ignored.
+
+    The node warns about unknown parameters and goes on; so does ``process_bag``. Every other
+    problem (unreadable file, no section, invalid value) raises ValueError.
+    """
+    unknown: list[str] = []
+
+    class _IgnoringUnknown(ExtractorParams):  # from_yaml builds through cls.from_mapping
+        @classmethod
+        def from_mapping(cls, values: Any, *, source: str = 'parameters') -> ExtractorParams:
+            if isinstance(values, dict):
+                unknown.extend(_unknown_parameter_names(values))
+                values = {name: value for name, value in values.items() if str(name) not in unknown}
+            return ExtractorParams.from_mapping(values, source=source)
+
+    params = _IgnoringUnknown.from_yaml(path, node_name='extractor')
+    return params, unknown
 
 
 def run(args: argparse.Namespace, prog: str = 'process_bag') -> int:
