@@ -119,6 +119,7 @@ EXIT_USAGE = 2
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 SQLITE_MAGIC = b'SQLite format 3\x00'
 ROS1_MAGIC = b'#ROSBAG V'
+ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 
 
 class BagError(Exception):
@@ -225,11 +226,31 @@ class InputBag:
         if not streams:
             return
         stream = streams[0] if len(streams) == 1 else heapq.merge(*streams, key=lambda item: item[1])
+        decompress = self.encoding == 'cdr'
         for conn, timestamp, raw in stream:
+            if decompress and bytes(raw[:4]) == ZSTD_MAGIC:
+                raw = _zstd_message(raw)
             yield conn.topic, int(timestamp), raw
 
     def close(self) -> None:
         self._stack.close()
+
+
+def _zstd_message(raw: bytes) -> bytes:
+    """A zstd-compressed message (``compression_mode: message``) read without its metadata.yaml, decompressed.
+
+    Storage files read directly (a salvaged bag) do not say that their messages are compressed;
+    a CDR message never starts with the zstd magic, so these are told apart. A message that does
+    not decompress is returned as it is (it is then skipped as undecodable, with the reason).
+    """
+    try:
+        from compression import zstd  # type: ignore[import-not-found]
+    except ImportError:
+        from backports import zstd  # type: ignore[no-redef]
+    try:
+        return zstd.decompress(raw)
+    except Exception:
+        return raw
 
 
 def describe_read_error(exc: BaseException) -> str:
@@ -972,12 +993,12 @@ def _open_ros1(path: Path, stack: contextlib.ExitStack) -> InputBag:
     try:
         reader = _open_reader(Ros1Reader(path), stack)
         return InputBag(path, 'ROS 1 bag', 'ros1', [reader], stack)
-    except (Ros1ReaderError, OSError) as exc:
+    except Exception as exc:  # any error of a damaged index (e.g. UnicodeDecodeError): scan the chunks
         problem = describe_read_error(exc)
     salvage = SalvageRos1Reader(path)
     try:
         _open_reader(salvage, stack)
-    except (Ros1ReaderError, OSError, ValueError, KeyError) as exc:
+    except Exception as exc:
         raise BagError(f'cannot read ROS 1 bag {path} (damaged or cut short before its first record?): {problem}; '
                        f'{describe_read_error(exc)}') from None
     where = f'; the scan stops at: {salvage.scan_error}' if salvage.scan_error else ''
