@@ -399,7 +399,7 @@ class SalvageMcapReader(McapReader):
 
 
 @dataclass(frozen=True)
-class _Ros1Connection:
+class _SalvagedConnection:
     id: int
     topic: str
     msgtype: str
@@ -416,7 +416,7 @@ class SalvageRos1Reader:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.connections: list[_Ros1Connection] = []
+        self.connections: list[_SalvagedConnection] = []
         self.scan_error: str | None = None
         self._bio: Any = None
         self._data_start = 0
@@ -440,7 +440,7 @@ class SalvageRos1Reader:
                     counts[conn_id] += 1
         except Exception as exc:
             self.scan_error = describe_read_error(exc)
-        self.connections = [_Ros1Connection(conn_id, topic, msgtype, counts[conn_id])
+        self.connections = [_SalvagedConnection(conn_id, topic, msgtype, counts[conn_id])
                             for conn_id, (topic, msgtype) in sorted(topics.items())]
 
     def close(self) -> None:
@@ -448,7 +448,7 @@ class SalvageRos1Reader:
             self._bio.close()
             self._bio = None
 
-    def messages(self, connections: Sequence[_Ros1Connection]) -> Iterator[tuple[_Ros1Connection, int, bytes]]:
+    def messages(self, connections: Sequence[_SalvagedConnection]) -> Iterator[tuple[_SalvagedConnection, int, bytes]]:
         wanted = {conn.id: conn for conn in connections}
         for kind, conn_id, payload in self._records():
             if kind == 'message' and conn_id in wanted:
@@ -673,7 +673,7 @@ class SalvageSqliteReader:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.connections: list[_Ros1Connection] = []
+        self.connections: list[_SalvagedConnection] = []
         self.scan_error: str | None = None
         self.lost = 0
         self._file: _SqliteFile | None = None
@@ -700,9 +700,13 @@ class SalvageSqliteReader:
         except (ValueError, IndexError, OSError) as exc:
             self.close()
             raise Ros2ReaderError(f'{self.path.name} is damaged: {exc}') from None
-        self._scan(set(topics), skip={1, roots['topics']})
+        try:
+            self._scan(set(topics), skip={1, roots['topics']})
+        except OSError as exc:
+            self.close()
+            raise Ros2ReaderError(f'cannot read {self.path.name}: {exc.strerror or exc}') from None
         counts = Counter(topic for _, _, topic, _, _ in self._rows)
-        self.connections = [_Ros1Connection(topic_id, name, msgtype, counts[topic_id])
+        self.connections = [_SalvagedConnection(topic_id, name, msgtype, counts[topic_id])
                             for topic_id, (name, msgtype) in sorted(topics.items())]
 
     def _scan(self, topics: set[int], skip: set[int]) -> None:
@@ -779,7 +783,7 @@ class SalvageSqliteReader:
             self._handle.close()
             self._handle = None
 
-    def messages(self, connections: Sequence[_Ros1Connection]) -> Iterator[tuple[_Ros1Connection, int, bytes]]:
+    def messages(self, connections: Sequence[_SalvagedConnection]) -> Iterator[tuple[_SalvagedConnection, int, bytes]]:
         database = self._file
         assert database is not None
         wanted = {conn.id: conn for conn in connections}
@@ -880,8 +884,7 @@ def _open_rosbag2_directory(path: Path, stack: contextlib.ExitStack) -> InputBag
             notes = [] if _is_unfinished_mcap(exc) else [
                 f'cannot use {path}: {describe_read_error(exc)}; reading its storage files directly']
             return _open_rosbag2_files(files, path, stack, notes=notes)
-        storage = 'mcap' if (files or compressed) and (files or compressed)[0].name.endswith(
-            ('.mcap', '.mcap.zstd')) else 'sqlite3'
+        storage = 'mcap' if any(f.name.endswith(('.mcap', '.mcap.zstd')) for f in files or compressed) else 'sqlite3'
         return InputBag(path, f'rosbag2 ({storage})', 'cdr', [reader], stack)
     if compressed:
         files, damage = _decompress_as_far_as_possible(compressed, stack)
@@ -1796,7 +1799,8 @@ def build_parser(prog: str = 'process_bag') -> argparse.ArgumentParser:
         'and write its outputs (labelled cloud, markers, plane table) to a new rosbag2.',
         epilog=f'Outputs of /ns/points: /ns/{OUTPUT_SUFFIXES["labeled_points"]}, /ns/{OUTPUT_SUFFIXES["markers"]}, '
         f'/ns/{OUTPUT_SUFFIXES["plane_table"]}. Exit codes: 0 done, 1 damaged input or stopped on an error '
-        '(OUT holds the frames before it), 2 bad arguments or input, 130 interrupted (Ctrl-C).',
+        '(OUT holds the frames before it), 2 bad arguments or unusable input, 130 (143) interrupted by Ctrl-C '
+        '(SIGTERM).',
     )
     add_arguments(parser)
     return parser
