@@ -674,3 +674,261 @@ def test_three_ouster_sweeps_match_ppe_extract(tmp_path, shared_data):
     with np.load(tmp_path / 'planes.npz') as planes:
         assert same_partition(labels_of(labeled[0]), planes['labels'])
         assert json.loads(str(planes['meta']))['max_neighbor_distance'] == 0.18
+
+
+# --------------------------------------------------------------------------------------------
+# issue 17: hard links, cut and compressed bags, sqlite3 recovery, messages
+# --------------------------------------------------------------------------------------------
+
+
+def _one_line_error(err: str, code: int) -> str:
+    """The error of a run that wrote nothing (2) or stopped at damage (1): no traceback, one line."""
+    assert 'Traceback' not in err
+    lines = [line for line in err.splitlines() if line.startswith('process_bag: error: ')]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture(scope='module')
+def distinct_frames():
+    """Twenty frames of different scans (compress poorly, like real clouds) and what the node gives."""
+    scans = [plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=100 + i).points for i in range(20)]
+    messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, p))) for i, p in enumerate(scans)]
+    frames = [process_cloud(cloud(JAZZY, i, p), ExtractorParams(), TYPES) for i, p in enumerate(scans)]
+    return messages, frames
+
+
+def _cut(file: Path, size: int) -> None:
+    with file.open('r+b') as handle:
+        handle.truncate(size)
+
+
+@pytest.mark.parametrize('layout', ['bare file', 'file in a directory bag'])
+def test_a_hard_link_to_the_input_is_not_replaced(tmp_path, ros2_messages, capsys, layout):
+    source = write_rosbag2(tmp_path / 'bags' / 'in', ros2_messages)
+    storage = next(source.glob('*.mcap'))
+    if layout == 'bare file':
+        source = tmp_path / 'scans.mcap'
+        os.link(storage, source)
+        storage = source
+    link = tmp_path / 'link.mcap'
+    os.link(storage, link)
+    before = storage.read_bytes()
+    assert run_cli([source, link, '--force']) == 2
+    assert 'refusing to write' in capsys.readouterr().err
+    assert link.is_file() and os.path.samefile(link, storage)
+    assert storage.read_bytes() == before
+
+
+@pytest.mark.parametrize('size', [0, 5, 8, 12])
+def test_an_mcap_cut_to_its_magic_is_damaged_not_a_traceback(tmp_path, mcap_bag, capsys, size):
+    source = tmp_path / 'cut.mcap'
+    source.write_bytes(next(mcap_bag.glob('*.mcap')).read_bytes()[:size])
+    assert run_cli([source, tmp_path / 'out']) == 2
+    line = _one_line_error(capsys.readouterr().err, 2)
+    assert ('is empty' if size == 0 else 'is damaged') in line
+    assert not (tmp_path / 'out').exists()
+
+
+def _file_compressed_bag(path: Path, messages) -> Path:
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
+    writer.open()
+    connection = writer.add_connection(TOPIC, POINTCLOUD2, typestore=JAZZY)
+    for timestamp, raw in messages:
+        writer.write(connection, timestamp, raw)
+    writer.close()
+    return path
+
+
+@pytest.mark.parametrize('fraction', [0.0, 0.2, 0.5, 0.9, 0.999])
+def test_a_cut_zstd_compressed_bag_keeps_what_decompresses(tmp_path, distinct_frames, capsys, fraction):
+    messages, frames = distinct_frames
+    source = _file_compressed_bag(tmp_path / 'in', messages)
+    storage = next(source.glob('*.mcap.zstd'))
+    _cut(storage, int(storage.stat().st_size * fraction))
+    code = run_cli([source, tmp_path / 'out'])
+    line = _one_line_error(capsys.readouterr().err, code)
+    assert 'zstd stream is cut short' in line
+    if code == 2:
+        assert fraction < 0.9 and 'nothing' in line
+        assert not (tmp_path / 'out').exists()
+    else:
+        assert code == 1 and fraction >= 0.9
+        assert _check_partial(tmp_path / 'out', frames, 1, len(frames)) >= 1
+
+
+@pytest.mark.parametrize('where', [0.0, 0.00003, 0.9999])
+def test_a_corrupt_zstd_compressed_bag_is_one_line(tmp_path, distinct_frames, capsys, where):
+    """A flipped byte the zstd decoder notices (frame header, last block): damaged, never a traceback."""
+    messages, frames = distinct_frames
+    source = _file_compressed_bag(tmp_path / 'in', messages)
+    storage = next(source.glob('*.mcap.zstd'))
+    content = bytearray(storage.read_bytes())
+    content[int(len(content) * where)] ^= 0x5A
+    storage.write_bytes(bytes(content))
+    code = run_cli([source, tmp_path / 'out'])
+    line = _one_line_error(capsys.readouterr().err, code)
+    assert 'its zstd stream is corrupt' in line
+    if where < 0.5:
+        assert code == 2 and not (tmp_path / 'out').exists()
+    else:  # the blocks before the damaged one are kept
+        assert code == 1
+        assert _check_partial(tmp_path / 'out', frames, 1, len(frames)) >= 1
+
+
+@pytest.mark.parametrize('fraction', [0.35, 0.5, 0.8, 0.95])
+def test_a_cut_sqlite3_bag_keeps_its_complete_messages(tmp_path, distinct_frames, capsys, fraction):
+    messages, frames = distinct_frames
+    source = write_rosbag2(tmp_path / 'in', messages, storage='sqlite3', chatter=False)
+    database = next(source.glob('*.db3'))
+    _cut(database, int(database.stat().st_size * fraction))
+    assert run_cli([source, tmp_path / 'out']) == 1
+    line = _one_line_error(capsys.readouterr().err, 1)
+    recovered = int(re.search(r'read page by page: (\d+) complete messages? recovered', line).group(1))
+    # the cut loses at most the messages of the last leaf page and those the cut goes through
+    assert int(len(frames) * fraction) - 5 <= recovered < len(frames)
+    assert _check_partial(tmp_path / 'out', frames, recovered, recovered + 1) == recovered
+
+
+@pytest.mark.parametrize('fraction', [0.01, 0.05])
+def test_a_sqlite3_bag_cut_before_its_topics_is_damaged(tmp_path, distinct_frames, capsys, fraction):
+    source = write_rosbag2(tmp_path / 'in', distinct_frames[0], storage='sqlite3', chatter=False)
+    database = next(source.glob('*.db3'))
+    _cut(database, int(database.stat().st_size * fraction))
+    assert run_cli([source, tmp_path / 'out']) == 2
+    assert 'nothing' in _one_line_error(capsys.readouterr().err, 2)
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('kind', ['mcap', 'ros1'])
+def test_a_bag_cut_before_its_first_frame_is_damaged(tmp_path, distinct_frames, capsys, kind):
+    messages = distinct_frames[0]
+    if kind == 'mcap':
+        source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
+        storage = next(source.glob('*.mcap'))
+        first = len(messages[0][1])
+    else:
+        ros1 = [(t, serialized(NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
+                                                                   seed=100 + i).points)))
+                for i, (t, _) in enumerate(messages[:4])]
+        source = storage = write_ros1(tmp_path / 'in.bag', ros1, chunk_bytes=10_000)
+        first = len(ros1[0][1])
+    _cut(storage, first // 2)
+    assert run_cli([source, tmp_path / 'out']) == 2
+    line = _one_line_error(capsys.readouterr().err, 2)
+    assert 'is damaged before its first complete' in line
+    assert 'its topics: none' not in line
+    assert not (tmp_path / 'out').exists()
+
+
+def test_a_ros1_bag_cut_to_8_bytes_is_damaged_not_not_a_bag(tmp_path, scans, capsys):
+    messages = [(bag_time(i), serialized(NOETIC, cloud(NOETIC, i, scans[i]))) for i in range(3)]
+    source = write_ros1(tmp_path / 'in.bag', messages)
+    _cut(source, 8)
+    assert run_cli([source, tmp_path / 'out']) == 2
+    line = _one_line_error(capsys.readouterr().err, 2)
+    assert 'is damaged: it is cut to 8 bytes, inside the file signature of a ROS 1 bag' in line
+    assert 'not a bag' not in line
+
+
+@pytest.mark.parametrize('kind', ['mcap', 'ros1'])
+def test_a_chunk_cut_short_gives_its_complete_frames(tmp_path, distinct_frames, capsys, kind):
+    """Small clouds share one chunk (MCAP: 1 MiB; ROS 1: here 30 kB): a cut keeps the frames before it."""
+    messages, frames = distinct_frames
+    if kind == 'mcap':
+        source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
+        storage = next(source.glob('*.mcap'))
+    else:
+        ros1 = [(t, serialized(NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
+                                                                   seed=100 + i).points)))
+                for i, (t, _) in enumerate(messages)]
+        source = storage = write_ros1(tmp_path / 'in.bag', ros1, chunk_bytes=30_000)
+    _cut(storage, int(storage.stat().st_size * 0.5))
+    assert run_cli([source, tmp_path / 'out']) == 1
+    _one_line_error(capsys.readouterr().err, 1)
+    assert _check_partial(tmp_path / 'out', frames, len(frames) // 2 - 3, len(frames) // 2 + 1) > 0
+
+
+@pytest.mark.parametrize(('signum', 'code'), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, monkeypatch, capsys, signum, code):
+    """The second signal's KeyboardInterrupt raised where numba returns to Python comes out as
+    ``SystemError: CPUDispatcher(...) returned a result with an exception set`` (its cause the
+    KeyboardInterrupt): the frame is dropped, not counted as failed."""
+    messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, scans[i % 3]))) for i in range(6)]
+    frames = [process_cloud(cloud(JAZZY, i, scans[i % 3]), ExtractorParams(), TYPES) for i in range(6)]
+    source = write_rosbag2(tmp_path / 'in', messages)
+    original = bag_module.process_cloud
+    calls = []
+
+    def interrupted_in_the_kernel(msg, params, types, *, outputs=None):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signum)
+            try:
+                os.kill(os.getpid(), signum)  # the handler raises here, as where numba boxes a result
+            except KeyboardInterrupt as exc:
+                raise SystemError('CPUDispatcher(<function _seed_errors>) returned a result with an exception '
+                                  'set') from exc
+        return original(msg, params, types, outputs=outputs)
+
+    monkeypatch.setattr(bag_module, 'process_cloud', interrupted_in_the_kernel)
+    assert run_cli([source, tmp_path / 'out']) == code
+    err = capsys.readouterr().err
+    assert 'SystemError' not in err and '(failed)' not in err
+    assert f'interrupted ({signal.Signals(signum).name}) after 2 frames; 1 frame in flight dropped' in err
+    assert _check_partial(tmp_path / 'out', frames, 1, 2) == 1
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_repeated_signals_during_inline_frames(tmp_path, signum):
+    """The real thing: signals every 20 ms into ``process_bag --jobs 1`` on 64 x 512 clouds (each frame
+    runs several numba kernels, so a second signal lands between two of them)."""
+    clouds = [plane_scan(3, rows=64, cols=512, radial_sigma=0.005, seed=i).points for i in range(6)]
+    messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, p))) for i, p in enumerate(clouds)]
+    source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
+    script = 'import sys; from ppe_ros.ros.bag import main; sys.exit(main())'
+    process = subprocess.Popen([sys.executable, '-c', script, str(source), str(tmp_path / 'out'), '--progress'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    seen = bytearray()
+
+    def read_stderr():
+        while chunk := process.stderr.read1(4096):
+            seen.extend(chunk)
+
+    reader = threading.Thread(target=read_stderr)
+    reader.start()
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None and not re.search(rb'[1-9]/6', bytes(seen)):
+        time.sleep(0.01)
+    stop_at = time.monotonic() + 0.6
+    while time.monotonic() < stop_at and process.poll() is None and b'stopped:' not in seen:
+        process.send_signal(signum)
+        time.sleep(0.02)
+    try:
+        returncode = process.wait(timeout=120)
+    finally:
+        process.kill()
+        reader.join()
+    err = seen.decode(errors='replace')
+    assert returncode == 128 + signum, err[-2000:]
+    assert 'SystemError' not in err and '(failed)' not in err and 'Traceback' not in err, err[-2000:]
+    out = read_bag(tmp_path / 'out')
+    written = [t for t, _ in out[OUTPUTS['labeled_points']]]
+    assert 1 <= len(written) < 6
+    assert written == [bag_time(i) for i in range(len(written))]
+
+
+def test_an_unknown_key_in_the_params_file_is_a_warning_like_the_node(tmp_path, mcap_bag, scans, capsys):
+    params_file = tmp_path / 'params.yaml'
+    params_file.write_text('extractor:\n  ros__parameters:\n    min_plane_points: 40\n    max_eror_increment: 0.1\n'
+                           '    use_sim_time: false\n')
+    assert run_cli([mcap_bag, tmp_path / 'out', '--params', params_file]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if 'unknown' in line]
+    assert len(warnings) == 1
+    assert f"warning: params file {params_file}: ignoring unknown parameter(s) ['max_eror_increment']" in warnings[0]
+    params = ExtractorParams(min_plane_points=40)
+    frames = [process_cloud(cloud(JAZZY, i, points), params, TYPES) for i, points in enumerate(scans)]
+    check_outputs(read_bag(tmp_path / 'out'), frames, [0, 1, 2])
+    metadata = (tmp_path / 'out' / 'metadata.yaml').read_text()
+    assert 'max_eror_increment' not in metadata and 'min_plane_points' in metadata

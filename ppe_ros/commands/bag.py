@@ -14,8 +14,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description='Extract planes from every organized PointCloud2 of a bag (rosbag2 mcap/sqlite3 or ROS 1), '
         'as the extractor node would with the same parameter file, and write its outputs (labelled cloud, '
         'markers, plane table) under each input topic\'s namespace to a new rosbag2. Exit codes: 0 done, '
-        '1 damaged input or stopped on an error (OUT holds the frames before it), 2 bad arguments or input, '
-        '130 interrupted (Ctrl-C).',
+        '1 damaged input or stopped on an error (OUT holds the frames before it), 2 bad arguments or unusable '
+        'input, 130 (143) interrupted by Ctrl-C (SIGTERM).',
     )
     add_arguments(parser)
     parser.set_defaults(func=_run)

@@ -7,7 +7,10 @@ Offline twin of the live node (:mod:`ppe_ros.ros.node`): every frame goes throug
 Input (read with rosbags): a rosbag2 directory (sqlite3 or mcap, compressed or not), a bare
 ``.mcap`` / ``.db3`` file, or a ROS 1 ``.bag``. Damaged inputs are read as far as they go: a
 rosbag2 directory without ``metadata.yaml`` (recorder killed) is read from its storage files, an
-MCAP file without footer and a ROS 1 bag without index are scanned record by record.
+MCAP file without footer and a ROS 1 bag without index are scanned record by record (a chunk cut
+short gives the records complete in it), a ``.db3`` that SQLite refuses is read page by page
+(:class:`SalvageSqliteReader`), and a cut or corrupt ``.zstd`` storage file (``compression_mode:
+file``) is decompressed up to the damage.
 
 Output: a rosbag2 (``--storage mcap`` default, or ``sqlite3``) with, for every input topic, the
 node's three outputs at the input message's bag timestamp, each with the input's header:
@@ -73,7 +76,14 @@ from rosbags.rosbag2.storage_mcap import McapReader, Statistics, read_sized
 from rosbags.typesys.msg import normalize_msgtype
 
 from ppe_ros.ros.messages import MessageTypes, rosbags_message_types
-from ppe_ros.ros.processing import ExtractorParams, FrameSkipped, OutputSelection, process_cloud
+from ppe_ros.ros.processing import (
+    PARAM_SPEC_BY_NAME,
+    ROS_BUILTIN_PARAMETERS,
+    ExtractorParams,
+    FrameSkipped,
+    OutputSelection,
+    process_cloud,
+)
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
@@ -109,6 +119,7 @@ EXIT_USAGE = 2
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 SQLITE_MAGIC = b'SQLite format 3\x00'
 ROS1_MAGIC = b'#ROSBAG V'
+ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 
 
 class BagError(Exception):
@@ -215,11 +226,31 @@ class InputBag:
         if not streams:
             return
         stream = streams[0] if len(streams) == 1 else heapq.merge(*streams, key=lambda item: item[1])
+        decompress = self.encoding == 'cdr'
         for conn, timestamp, raw in stream:
+            if decompress and bytes(raw[:4]) == ZSTD_MAGIC:
+                raw = _zstd_message(raw)
             yield conn.topic, int(timestamp), raw
 
     def close(self) -> None:
         self._stack.close()
+
+
+def _zstd_message(raw: bytes) -> bytes:
+    """A zstd-compressed message (``compression_mode: message``) read without its metadata.yaml, decompressed.
+
+    Storage files read directly (a salvaged bag) do not say that their messages are compressed;
+    a CDR message never starts with the zstd magic, so these are told apart. A message that does
+    not decompress is returned as it is (it is then skipped as undecodable, with the reason).
+    """
+    try:
+        from compression import zstd  # type: ignore[import-not-found]
+    except ImportError:
+        from backports import zstd  # type: ignore[no-redef]
+    try:
+        return zstd.decompress(raw)
+    except Exception:
+        return raw
 
 
 def describe_read_error(exc: BaseException) -> str:
@@ -232,15 +263,113 @@ def describe_read_error(exc: BaseException) -> str:
     return text if isinstance(exc, Ros1ReaderError | Ros2ReaderError) else f'{type(exc).__name__}: {text}'
 
 
+class _SalvagedMcapStream:
+    """The start of an MCAP file up to ``cut``, followed by ``tail`` (records recovered from a cut chunk).
+
+    Read-only and seekable, like the file object rosbags' MCAP reader uses; a seek never goes past
+    the end, so a record that claims to go further is seen as cut.
+    """
+
+    def __init__(self, handle: Any, cut: int, tail: bytes) -> None:
+        self._handle = handle
+        self._cut = cut
+        self._tail = tail
+        self._size = cut + len(tail)
+        self._position = 0
+
+    def tell(self) -> int:
+        return self._position
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._position, os.SEEK_END: self._size}[whence]
+        self._position = min(max(base + offset, 0), self._size)
+        return self._position
+
+    def read(self, size: int = -1) -> bytes:
+        end = self._size if size is None or size < 0 else min(self._size, self._position + size)
+        parts = []
+        if self._position < self._cut:
+            self._handle.seek(self._position)
+            parts.append(self._handle.read(min(end, self._cut) - self._position))
+        if end > self._cut:
+            parts.append(self._tail[max(self._position, self._cut) - self._cut:end - self._cut])
+        self._position = end
+        return b''.join(parts)
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+def _partial_decompress(data: bytes, compression: str) -> bytes:
+    """As much of a cut chunk's compressed data as decompresses (empty if nothing does)."""
+    try:
+        if compression == '':
+            return data
+        if compression == 'zstd':
+            try:
+                from compression import zstd  # type: ignore[import-not-found]
+            except ImportError:
+                from backports import zstd  # type: ignore[no-redef]
+            return zstd.ZstdDecompressor().decompress(data)
+        if compression == 'lz4':
+            import lz4.frame
+
+            return lz4.frame.LZ4FrameDecompressor().decompress(data)
+    except Exception:
+        return b''
+    return b''
+
+
+def _complete_records(data: bytes) -> bytes:
+    """The leading complete MCAP records (opcode, uint64 length, body) of ``data``."""
+    position = 0
+    while position + 9 <= len(data):
+        length = int.from_bytes(data[position + 1:position + 9], 'little')
+        if data[position] == 0 or position + 9 + length > len(data):
+            break
+        position += 9 + length
+    return data[:position]
+
+
+def _mcap_cut(handle: Any, start: int, size: int) -> tuple[int, bytes]:
+    """Where the complete top-level records of an MCAP file end, and the complete records of a cut chunk there.
+
+    A record whose length runs past the end of the file (a killed recorder, or a corrupt length)
+    ends the readable part; when it is a chunk, the records inside it that are complete before
+    the end are recovered (uncompressed or zstd / lz4 chunks).
+    """
+    position = start
+    while position + 9 <= size:
+        handle.seek(position)
+        head = handle.read(9)
+        length = int.from_bytes(head[1:9], 'little')
+        if position + 9 + length <= size:
+            position += 9 + length
+            continue
+        if head[0] == 0x06:  # a chunk cut short: start, end, uncompressed size, crc, compression, data
+            body = handle.read(size - position - 9)
+            if len(body) >= 32:
+                name_length = int.from_bytes(body[28:32], 'little')
+                data_start = 32 + name_length + 8
+                if data_start <= len(body):
+                    compression = body[32:32 + name_length].decode(errors='replace')
+                    return position, _complete_records(_partial_decompress(body[data_start:], compression))
+        return position, b''
+    return position, b''
+
+
 class SalvageMcapReader(McapReader):
     """rosbags' MCAP storage reader for a file without a usable footer or summary.
 
     ``ros2 bag record`` writes the summary and footer when it closes the file: a killed recorder
     leaves an MCAP that the normal reader refuses. This reader scans the records from the start
     (schemas, channels, chunks, messages) and stops at the damage; :attr:`scan_error` says where.
+    A chunk cut short gives the records complete in it before the cut.
     """
 
     scan_error: str | None = None
+    #: Whether the message counts are those :meth:`messages` will give (the scan reached the end or the cut).
+    counts_exact = True
 
     def _open(self) -> None:
         bio = self.bio
@@ -248,22 +377,29 @@ class SalvageMcapReader(McapReader):
         if bio.read(8) != MCAP_MAGIC:
             raise Ros2ReaderError('File magic is invalid.')
         if bio.read(1) != b'\x01':
-            raise Ros2ReaderError('Unexpected record.')
+            raise Ros2ReaderError('the header record is missing (the file is cut after its magic)')
         read_sized(bio)  # the header record (profile, library)
         self.data_start = bio.tell()
-        self.data_end = bio.seek(0, os.SEEK_END)
+        size = bio.seek(0, os.SEEK_END)
+        cut, tail = _mcap_cut(bio, self.data_start, size)
+        self.bio = _SalvagedMcapStream(bio, cut, tail)
+        self.data_end = cut + len(tail)
         try:
             self.meta_scan()
         except Exception as exc:  # damage: keep the schemas and channels found before it
             self.scan_error = describe_read_error(exc)
+            self.counts_exact = False
             self.statistics = Statistics(0, len(self.schemas), len(self.channels), 0, 0, 0, 2**63 - 1, 0, {})
+        if cut < size and self.scan_error is None:
+            self.scan_error = (f'the record at byte {cut} of {size} is cut short'
+                               + (' (a chunk: the records complete in it are read)' if tail else ''))
         counts = self.statistics.channel_message_counts
         self.connections = [conn._replace(msgcount=counts.get(conn.id, 0)) for conn in self.connections]
         self.metadata = self.metadata._replace(message_count=self.statistics.message_count)
 
 
 @dataclass(frozen=True)
-class _Ros1Connection:
+class _SalvagedConnection:
     id: int
     topic: str
     msgtype: str
@@ -280,7 +416,7 @@ class SalvageRos1Reader:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.connections: list[_Ros1Connection] = []
+        self.connections: list[_SalvagedConnection] = []
         self.scan_error: str | None = None
         self._bio: Any = None
         self._data_start = 0
@@ -304,7 +440,7 @@ class SalvageRos1Reader:
                     counts[conn_id] += 1
         except Exception as exc:
             self.scan_error = describe_read_error(exc)
-        self.connections = [_Ros1Connection(conn_id, topic, msgtype, counts[conn_id])
+        self.connections = [_SalvagedConnection(conn_id, topic, msgtype, counts[conn_id])
                             for conn_id, (topic, msgtype) in sorted(topics.items())]
 
     def close(self) -> None:
@@ -312,7 +448,7 @@ class SalvageRos1Reader:
             self._bio.close()
             self._bio = None
 
-    def messages(self, connections: Sequence[_Ros1Connection]) -> Iterator[tuple[_Ros1Connection, int, bytes]]:
+    def messages(self, connections: Sequence[_SalvagedConnection]) -> Iterator[tuple[_SalvagedConnection, int, bytes]]:
         wanted = {conn.id: conn for conn in connections}
         for kind, conn_id, payload in self._records():
             if kind == 'message' and conn_id in wanted:
@@ -324,19 +460,33 @@ class SalvageRos1Reader:
         end = bio.seek(0, os.SEEK_END)
         bio.seek(self._data_start)
         while bio.tell() < end:
+            start = bio.tell()
             header = Ros1Header.read(bio)
-            data = ros1_read_bytes(bio, ros1_read_uint32(bio))
+            size = ros1_read_uint32(bio)
             if header.get_uint8('op') == Ros1RecordType.CHUNK:
                 compression = header.get_string('compression')
                 if compression not in ros1_decompressors:
                     raise Ros1ReaderError(f'Compression {compression!r} is not supported.')
-                chunk = ros1_decompressors[compression](data)
-                inner = BytesIO(chunk)
-                while inner.tell() < len(chunk):
-                    inner_header = Ros1Header.read(inner)
-                    yield from self._record(inner_header, ros1_read_bytes(inner, ros1_read_uint32(inner)))
+                data = bio.read(size)
+                if len(data) < size:  # a chunk cut short: the records complete in it
+                    yield from self._chunk_records(_partial_ros1_decompress(data, compression), partial=True)
+                    raise Ros1ReaderError(f'the chunk at byte {start} is cut short ({len(data)} of {size} bytes); '
+                                          'the records complete in it are read')
+                yield from self._chunk_records(ros1_decompressors[compression](data), partial=False)
             else:
-                yield from self._record(header, data)
+                yield from self._record(header, ros1_read_bytes(bio, size))
+
+    def _chunk_records(self, chunk: bytes, *, partial: bool) -> Iterator[tuple[str, int, Any]]:
+        inner = BytesIO(chunk)
+        while inner.tell() < len(chunk):
+            try:
+                inner_header = Ros1Header.read(inner)
+                data = ros1_read_bytes(inner, ros1_read_uint32(inner))
+            except Ros1ReaderError:
+                if partial:
+                    return
+                raise
+            yield from self._record(inner_header, data)
 
     @staticmethod
     def _record(header: Any, data: bytes) -> Iterator[tuple[str, int, Any]]:
@@ -347,6 +497,321 @@ class SalvageRos1Reader:
                    (normalize_ros1_topic(header.get_string('topic')), normalize_msgtype(info.get_string('type'))))
         elif op == Ros1RecordType.MSGDATA:
             yield 'message', header.get_uint32('conn'), (header.get_time('time'), data)
+
+
+class _SqliteFile:
+    """Read-only access to the b-tree pages of an SQLite 3 file, every read bounds-checked.
+
+    Only what a rosbag2 ``.db3`` needs: table b-tree pages (leaf and interior), records and
+    overflow chains (https://www.sqlite.org/fileformat2.html). Pages past the end of a cut file
+    do not exist; a damaged page raises ValueError.
+    """
+
+    def __init__(self, handle: Any, size: int) -> None:
+        self._handle = handle
+        header = self.read(0, 100)
+        if len(header) < 100 or not header.startswith(SQLITE_MAGIC):
+            raise ValueError('the 100-byte database header is incomplete')
+        page_size = int.from_bytes(header[16:18], 'big')
+        self.page_size = 65536 if page_size == 1 else page_size
+        if self.page_size < 512 or self.page_size & (self.page_size - 1):
+            raise ValueError(f'the header gives an invalid page size {page_size}')
+        self.usable = self.page_size - header[20]
+        if self.usable < 480:
+            raise ValueError(f'the header gives an invalid reserved space {header[20]}')
+        if int.from_bytes(header[56:60], 'big') not in (0, 1):
+            raise ValueError('the database text encoding is not UTF-8')
+        self.page_count = size // self.page_size  # complete pages only
+
+    def read(self, offset: int, size: int) -> bytes:
+        self._handle.seek(offset)
+        return self._handle.read(size)
+
+    def page(self, number: int) -> bytes:
+        if not 1 <= number <= self.page_count:
+            raise ValueError(f'page {number} is beyond the end of the file ({self.page_count} complete pages)')
+        return self.read((number - 1) * self.page_size, self.page_size)
+
+    @staticmethod
+    def varint(data: bytes, offset: int) -> tuple[int, int]:
+        value = 0
+        for i in range(9):
+            byte = data[offset + i]
+            if i == 8:
+                return (value << 8) | byte, offset + 9
+            value = (value << 7) | (byte & 0x7F)
+            if byte < 0x80:
+                return value, offset + i + 1
+        raise AssertionError('unreachable')
+
+    def cells(self, number: int, data: bytes) -> tuple[int, list[int], int]:
+        """Page type, cell offsets and (interior pages) the right-most child of a b-tree page."""
+        start = 100 if number == 1 else 0
+        kind = data[start]
+        if kind not in (0x02, 0x05, 0x0A, 0x0D):
+            return kind, [], 0
+        count = int.from_bytes(data[start + 3:start + 5], 'big')
+        interior = kind in (0x02, 0x05)
+        array = start + (12 if interior else 8)
+        if array + 2 * count > self.usable:
+            raise ValueError(f'page {number} claims {count} cells, more than fit')
+        offsets = [int.from_bytes(data[array + 2 * i:array + 2 * i + 2], 'big') for i in range(count)]
+        if any(not array + 2 * count <= offset < self.usable for offset in offsets):
+            raise ValueError(f'page {number} has a cell pointer outside the page')
+        right = int.from_bytes(data[start + 8:start + 12], 'big') if interior else 0
+        return kind, offsets, right
+
+    def leaf_cell(self, data: bytes, offset: int) -> tuple[int, int, bytes, int]:
+        """A table leaf cell: rowid, payload size, local payload, first overflow page (0: none)."""
+        payload_size, offset = self.varint(data, offset)
+        rowid, offset = self.varint(data, offset)
+        usable = self.usable
+        most = usable - 35
+        if payload_size <= most:
+            local, overflow = payload_size, 0
+        else:
+            least = (usable - 12) * 32 // 255 - 23
+            local = least + (payload_size - least) % (usable - 4)
+            if local > most:
+                local = least
+            if offset + local + 4 > usable:
+                raise ValueError('a cell runs past the end of its page')
+            overflow = int.from_bytes(data[offset + local:offset + local + 4], 'big')
+        if offset + local > usable:
+            raise ValueError('a cell runs past the end of its page')
+        return rowid, payload_size, data[offset:offset + local], overflow
+
+    def overflow_pages(self, first: int, missing: int) -> list[int]:
+        """The overflow chain from ``first`` holding ``missing`` more payload bytes (ValueError if broken)."""
+        pages: list[int] = []
+        seen: set[int] = set()
+        number = first
+        while missing > 0:
+            if number in seen or not 2 <= number <= self.page_count:
+                raise ValueError(f'overflow page {number} is missing (cut or corrupt file)')
+            seen.add(number)
+            pages.append(number)
+            missing -= self.usable - 4
+            number = int.from_bytes(self.read((number - 1) * self.page_size, 4), 'big')
+        return pages
+
+    def payload(self, local: bytes, size: int, pages: Sequence[int]) -> bytes:
+        parts = [local]
+        missing = size - len(local)
+        for number in pages:
+            chunk = self.read((number - 1) * self.page_size + 4, min(self.usable - 4, missing))
+            parts.append(chunk)
+            missing -= len(chunk)
+        if missing:
+            raise ValueError('an overflow page is cut short')
+        return b''.join(parts)
+
+    @classmethod
+    def record(cls, payload: bytes) -> list[Any]:
+        """The values of a record (NULL, int, float, bytes for BLOB and TEXT); ValueError if malformed."""
+        header_size, offset = cls.varint(payload, 0)
+        if not offset <= header_size <= len(payload):
+            raise ValueError('a record header is malformed')
+        types = []
+        while offset < header_size:
+            serial, offset = cls.varint(payload, offset)
+            types.append(serial)
+        values: list[Any] = []
+        position = header_size
+        for serial in types:
+            if serial in (0, 8, 9):
+                values.append(None if serial == 0 else serial - 8)
+                continue
+            if serial in (10, 11):
+                raise ValueError('a record has a reserved serial type')
+            size = (0, 1, 2, 3, 4, 6, 8, 8)[serial] if serial < 8 else (serial - 12 - (serial & 1)) // 2
+            if position + size > len(payload):
+                raise ValueError('a record is longer than its payload')
+            raw = payload[position:position + size]
+            position += size
+            if serial == 7:
+                values.append(struct.unpack('>d', raw)[0])
+            elif serial < 7:
+                values.append(int.from_bytes(raw, 'big', signed=True))
+            else:
+                values.append(raw)  # BLOB or TEXT (UTF-8)
+        return values
+
+    def table_rows(self, root: int) -> Iterator[tuple[int, list[Any]]]:
+        """(rowid, values) of a table b-tree from its root page, skipping what is missing or damaged."""
+        stack, seen = [root], set()
+        while stack:
+            number = stack.pop()
+            if number in seen or len(seen) > self.page_count:
+                continue
+            seen.add(number)
+            try:
+                data = self.page(number)
+                kind, offsets, right = self.cells(number, data)
+            except ValueError:
+                continue
+            if kind == 0x05:
+                children = [int.from_bytes(data[o:o + 4], 'big') for o in offsets] + [right]
+                stack.extend(reversed(children))
+            elif kind == 0x0D:
+                for offset in offsets:
+                    with contextlib.suppress(ValueError, IndexError):
+                        rowid, size, local, first = self.leaf_cell(data, offset)
+                        yield rowid, self.record(self.payload(local, size, self.overflow_pages(
+                            first, size - len(local)) if first else []))
+
+
+class SalvageSqliteReader:
+    """A rosbag2 ``.db3`` that SQLite refuses (cut by a killed recorder, or corrupt): read page by page.
+
+    The topics come from the ``topics`` table, the messages from every complete leaf page of the
+    ``messages`` table found in the file, whole messages only (their overflow pages all present),
+    in time order. What is lost: pages past the cut, and messages whose own pages are missing or
+    damaged. SQLite keeps no checksums: a changed byte inside a message's data is not detected.
+    Same interface as the rosbags readers used by :class:`InputBag`.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.connections: list[_SalvagedConnection] = []
+        self.scan_error: str | None = None
+        self.lost = 0
+        self._file: _SqliteFile | None = None
+        self._handle: Any = None
+        self._rows: list[tuple[int, int, int, int, int]] = []  # timestamp, rowid, topic, page, cell offset
+
+    def open(self) -> None:
+        self._handle = self.path.open('rb')
+        try:
+            self._file = database = _SqliteFile(self._handle, self.path.stat().st_size)
+            roots = {}
+            for _, values in database.table_rows(1):
+                if len(values) >= 4 and values[0] == b'table' and isinstance(values[3], int):
+                    roots[bytes(values[1]).decode(errors='replace')] = values[3]
+            if 'topics' not in roots or 'messages' not in roots:
+                raise ValueError('its schema (page 1) does not list the topics and messages tables')
+            topics = {}
+            for rowid, values in database.table_rows(roots['topics']):
+                if len(values) >= 4 and isinstance(values[1], bytes) and isinstance(values[2], bytes):
+                    if values[3] == b'cdr':
+                        topics[rowid] = (values[1].decode(errors='replace'), values[2].decode(errors='replace'))
+            if not topics:
+                raise ValueError('its topics table is missing or damaged')
+        except (ValueError, IndexError, OSError) as exc:
+            self.close()
+            raise Ros2ReaderError(f'{self.path.name} is damaged: {exc}') from None
+        try:
+            self._scan(set(topics), skip={1, roots['topics']})
+        except OSError as exc:
+            self.close()
+            raise Ros2ReaderError(f'cannot read {self.path.name}: {exc.strerror or exc}') from None
+        counts = Counter(topic for _, _, topic, _, _ in self._rows)
+        self.connections = [_SalvagedConnection(topic_id, name, msgtype, counts[topic_id])
+                            for topic_id, (name, msgtype) in sorted(topics.items())]
+
+    def _scan(self, topics: set[int], skip: set[int]) -> None:
+        """Index the complete messages of every leaf page of the file (no payloads kept)."""
+        database = self._file
+        assert database is not None
+        rows: dict[int, tuple[int, int, int, int, int]] = {}
+        damaged_pages = 0
+        for number in range(2, database.page_count + 1):
+            if number in skip:
+                continue
+            data = database.page(number)
+            try:
+                kind, offsets, _ = database.cells(number, data)
+            except ValueError:
+                damaged_pages += 1
+                continue
+            if kind != 0x0D:
+                continue
+            for offset in offsets:
+                try:
+                    rowid, size, local, first = database.leaf_cell(data, offset)
+                    header = self._message_header(local)
+                    if header is None:
+                        continue
+                    topic_id, timestamp = header
+                    if first:  # a whole message only: every overflow page present
+                        database.overflow_pages(first, size - len(local))
+                    elif len(database.record(local)) != 4:
+                        continue
+                except (ValueError, IndexError):
+                    self.lost += 1
+                    continue
+                if topic_id in topics and rowid not in rows:
+                    rows[rowid] = (timestamp, rowid, topic_id, number, offset)
+        self._rows = sorted(rows.values())
+        problems = []
+        if self.lost:
+            problems.append(f'{self.lost} message{"s" * (self.lost != 1)} lost (pages missing or damaged)')
+        if damaged_pages:
+            problems.append(f'{damaged_pages} damaged page{"s" * (damaged_pages != 1)} skipped')
+        self.scan_error = '; '.join(problems) or None
+
+    @staticmethod
+    def _message_header(local: bytes) -> tuple[int, int] | None:
+        """(topic_id, timestamp) when a record starts like a messages row (NULL, int, int, blob)."""
+        header_size, offset = _SqliteFile.varint(local, 0)
+        types = []
+        while offset < header_size and len(types) < 5:
+            serial, offset = _SqliteFile.varint(local, offset)
+            types.append(serial)
+        if len(types) != 4 or types[0] != 0 or not all(1 <= t <= 9 and t != 7 for t in types[1:3]):
+            return None
+        if types[3] < 12 or types[3] & 1:
+            return None
+        position = header_size
+        fields = []
+        for serial in types[1:3]:
+            size = (0, 1, 2, 3, 4, 6, 8, 8)[serial] if serial < 8 else 0
+            raw = local[position:position + size]
+            if len(raw) != size:
+                raise ValueError('a message row is cut short')
+            fields.append(serial - 8 if serial >= 8 else int.from_bytes(raw, 'big', signed=True))
+            position += size
+        return fields[0], fields[1]
+
+    def describe_damage(self) -> str:
+        count = len(self._rows)
+        text = f'; read page by page: {count} complete message{"s" * (count != 1)} recovered'
+        return text + (f', {self.scan_error}' if self.scan_error else '')
+
+    def close(self) -> None:
+        if self._handle is not None:
+            self._handle.close()
+            self._handle = None
+
+    def messages(self, connections: Sequence[_SalvagedConnection]) -> Iterator[tuple[_SalvagedConnection, int, bytes]]:
+        database = self._file
+        assert database is not None
+        wanted = {conn.id: conn for conn in connections}
+        for timestamp, _, topic_id, number, offset in self._rows:
+            if topic_id not in wanted:
+                continue
+            _, size, local, first = database.leaf_cell(database.page(number), offset)
+            payload = database.payload(local, size, database.overflow_pages(first, size - len(local)) if first else [])
+            values = database.record(payload)
+            yield wanted[topic_id], timestamp, values[3]
+
+
+def _partial_ros1_decompress(data: bytes, compression: str) -> bytes:
+    """As much of a cut ROS 1 chunk as decompresses (empty if nothing does)."""
+    try:
+        if compression == 'none':
+            return data
+        if compression == 'bz2':
+            import bz2
+
+            return bz2.BZ2Decompressor().decompress(data)
+        if compression == 'lz4':
+            import lz4.frame
+
+            return lz4.frame.LZ4FrameDecompressor().decompress(data)
+    except Exception:
+        return b''
+    return b''
 
 
 def _magic(path: Path) -> bytes:
@@ -373,6 +838,13 @@ def open_input_bag(path: str | os.PathLike[str]) -> InputBag:
         if path.is_dir():
             return _open_rosbag2_directory(path, stack)
         magic = _magic(path)
+        for known, kind in ((ROS1_MAGIC, 'a ROS 1 bag'), (MCAP_MAGIC, 'an MCAP file'),
+                            (SQLITE_MAGIC, 'an sqlite3 database')):
+            if magic and len(magic) < len(known) and known.startswith(magic):
+                raise BagError(f'{path} is damaged: it is cut to {len(magic)} byte{"s" * (len(magic) != 1)}, '
+                               f'inside the file signature of {kind}; nothing to read')
+        if not magic:
+            raise BagError(f'{path} is empty (0 bytes); nothing to read')
         if magic.startswith(ROS1_MAGIC):
             return _open_ros1(path, stack)
         if magic.startswith(MCAP_MAGIC) or magic.startswith(SQLITE_MAGIC):
@@ -398,24 +870,80 @@ def _open_reader(reader: Any, stack: contextlib.ExitStack) -> Any:
 
 def _open_rosbag2_directory(path: Path, stack: contextlib.ExitStack) -> InputBag:
     files = sorted(path.glob('*.mcap')) or sorted(path.glob('*.db3'))
+    compressed = [] if files else sorted(path.glob('*.mcap.zstd')) or sorted(path.glob('*.db3.zstd'))
     if (path / 'metadata.yaml').is_file():
         try:
             reader = _open_reader(Ros2Reader(path), stack)
-        except (Ros2ReaderError, OSError, ValueError, KeyError) as exc:
-            if not files:
+        except Exception as exc:  # any storage error: a damaged file is read as far as it goes below
+            if not files and not compressed:
                 raise BagError(f'cannot read rosbag2 {path}: {describe_read_error(exc)}') from None
+            if compressed:  # compression_mode: file, a damaged .zstd: decompress what there is
+                files, damage = _decompress_as_far_as_possible(compressed, stack)
+                return _open_rosbag2_files(files, path, stack, notes=[], damage=damage)
             # a damaged metadata.yaml or storage file: the storage files tell (and an MCAP is salvaged)
             notes = [] if _is_unfinished_mcap(exc) else [
                 f'cannot use {path}: {describe_read_error(exc)}; reading its storage files directly']
             return _open_rosbag2_files(files, path, stack, notes=notes)
-        storage = 'mcap' if files and files[0].suffix == '.mcap' else 'sqlite3'
+        storage = 'mcap' if any(f.name.endswith(('.mcap', '.mcap.zstd')) for f in files or compressed) else 'sqlite3'
         return InputBag(path, f'rosbag2 ({storage})', 'cdr', [reader], stack)
+    if compressed:
+        files, damage = _decompress_as_far_as_possible(compressed, stack)
+        note = f'{path} has no metadata.yaml (was the recording interrupted?): reading its storage files directly'
+        return _open_rosbag2_files(files, path, stack, notes=[note], damage=damage)
     if not files:
         raise BagError(f'{path} is a directory but not a rosbag2 bag: it has no metadata.yaml and no .mcap or '
                        '.db3 file')
     note = (f'{path} has no metadata.yaml (was the recording interrupted?): reading its storage '
             f'file{"s" if len(files) > 1 else ""} {", ".join(f.name for f in files)} directly')
     return _open_rosbag2_files(files, path, stack, notes=[note])
+
+
+#: Bytes read from a compressed storage file at a time (small: what decompressed before a corrupt spot is kept).
+DECOMPRESS_BLOCK = 1 << 14
+
+
+def _decompress_as_far_as_possible(files: Sequence[Path], stack: contextlib.ExitStack) -> tuple[list[Path], list[str]]:
+    """zstd-compressed storage files (``compression_mode: file``) decompressed up to their damage.
+
+    The decompressed files go to a temporary directory removed when ``stack`` closes. Returns
+    them and one line per file whose compressed stream is cut or corrupt.
+    """
+    try:
+        from compression import zstd  # type: ignore[import-not-found]
+    except ImportError:
+        from backports import zstd  # type: ignore[no-redef]
+
+    folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix='process_bag.')))
+    out_files, damage = [], []
+    for file in files:
+        target = folder / file.name.removesuffix('.zstd')
+        decompressor = zstd.ZstdDecompressor()
+        problem = None
+        frames = 0
+        in_frame = False
+        try:
+            with file.open('rb') as source, target.open('wb') as sink:
+                while block := source.read(DECOMPRESS_BLOCK):
+                    while block:
+                        in_frame = True
+                        sink.write(decompressor.decompress(block))
+                        if not decompressor.eof:
+                            break
+                        frames += 1
+                        in_frame = False
+                        block = decompressor.unused_data  # a next zstd frame
+                        decompressor = zstd.ZstdDecompressor()
+            if in_frame or not frames:
+                problem = 'its zstd stream is cut short'
+        except zstd.ZstdError as exc:
+            problem = f'its zstd stream is corrupt ({exc})'
+        except OSError as exc:
+            raise BagError(f'cannot decompress {file}: {exc.strerror or exc}') from None
+        if problem:
+            size = target.stat().st_size
+            damage.append(f'{file.name} is damaged: {problem}; {size} bytes decompressed before the damage')
+        out_files.append(target)
+    return out_files, damage
 
 
 def _is_unfinished_mcap(exc: BaseException) -> bool:
@@ -425,31 +953,41 @@ def _is_unfinished_mcap(exc: BaseException) -> bool:
 
 
 def _open_rosbag2_files(files: Sequence[Path], path: Path, stack: contextlib.ExitStack, *,
-                        notes: list[str]) -> InputBag:
+                        notes: list[str], damage: Sequence[str] = ()) -> InputBag:
     """Storage files read directly (no or unusable metadata.yaml); an unfinished MCAP is salvaged."""
     readers = []
-    damage = []
+    damage = list(damage)
     storage = 'mcap' if files[0].suffix == '.mcap' else 'sqlite3'
     for file in files:
         reader = None
         try:
             reader = _open_reader(Ros2Reader(file), stack)
-        except (Ros2ReaderError, OSError, ValueError, KeyError) as exc:
-            if not (file.suffix == '.mcap' and _is_unfinished_mcap(exc)):
+        except Exception as exc:
+            if file.suffix == '.db3':
+                try:
+                    reader = _open_reader(SalvageSqliteReader(file), stack)
+                except Ros2ReaderError as salvage_error:
+                    raise BagError(f'cannot read {file}: {describe_read_error(exc)}; {salvage_error}; '
+                                   'nothing readable') from None
+                damage.append(f'{file.name} cannot be opened as a database ({describe_read_error(exc)})'
+                              f'{reader.describe_damage()}')
+            elif file.suffix != '.mcap':
                 raise BagError(f'cannot read {file}: {describe_read_error(exc)}') from None
         if reader is None:  # an MCAP without footer: scan it record by record
             reader = Ros2Reader(file)
             reader.storage = SalvageMcapReader(file)
             try:
                 _open_reader(reader, stack)
-            except (Ros2ReaderError, OSError, ValueError) as exc:
-                raise BagError(f'cannot read {file}: {describe_read_error(exc)}') from None
+            except Exception as exc:
+                if damage:  # a decompressed file: its .zstd is what is damaged
+                    raise BagError(f'{path} is damaged ({"; ".join(damage)}); nothing readable') from None
+                raise BagError(f'{file} is damaged: {describe_read_error(exc)}; nothing readable') from None
             where = f'; the scan stops at: {reader.storage.scan_error}' if reader.storage.scan_error else ''
             damage.append(f'{file.name} has no usable MCAP footer or summary (the recording was not closed){where}')
         readers.append(reader)
     if damage:
         notes = [*notes, f'{"; ".join(damage)}: reading it record by record up to the damage']
-    complete_scans = all(getattr(reader.storage, 'scan_error', None) is None for reader in readers)
+    complete_scans = all(getattr(getattr(reader, 'storage', reader), 'counts_exact', True) for reader in readers)
     return InputBag(path, f'rosbag2 ({storage})', 'cdr', readers, stack, notes=notes,
                     damage='; '.join(damage) or None, counts_known=complete_scans)
 
@@ -458,13 +996,14 @@ def _open_ros1(path: Path, stack: contextlib.ExitStack) -> InputBag:
     try:
         reader = _open_reader(Ros1Reader(path), stack)
         return InputBag(path, 'ROS 1 bag', 'ros1', [reader], stack)
-    except (Ros1ReaderError, OSError) as exc:
+    except Exception as exc:  # any error of a damaged index (e.g. UnicodeDecodeError): scan the chunks
         problem = describe_read_error(exc)
     salvage = SalvageRos1Reader(path)
     try:
         _open_reader(salvage, stack)
-    except (Ros1ReaderError, OSError, ValueError, KeyError) as exc:
-        raise BagError(f'cannot read ROS 1 bag {path}: {problem}; {describe_read_error(exc)}') from None
+    except Exception as exc:
+        raise BagError(f'cannot read ROS 1 bag {path} (damaged or cut short before its first record?): {problem}; '
+                       f'{describe_read_error(exc)}') from None
     where = f'; the scan stops at: {salvage.scan_error}' if salvage.scan_error else ''
     damage = f'the ROS 1 bag has no usable index ({problem}){where}'
     return InputBag(path, 'ROS 1 bag', 'ros1', [salvage], stack, damage=damage,
@@ -480,6 +1019,9 @@ def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
     clouds = [name for name, topic in bag.topics.items() if topic.msgtype == POINTCLOUD2]
     listing = ', '.join(f'{name} ({topic.msgtype})' for name, topic in bag.topics.items()) or 'none'
     if not requested:
+        if not clouds and bag.damage:
+            raise BagError(f'{bag.path} is damaged before its first complete {POINTCLOUD2} message '
+                           f'({bag.damage}); nothing to process')
         if not clouds:
             raise BagError(f'{bag.path} has no {POINTCLOUD2} topic; its topics: {listing}')
         return clouds
@@ -581,9 +1123,27 @@ class FrameProcessor:
         except FrameSkipped as exc:
             result = FrameResult(exc.kind, exc.reason, copy=result.copy)
         except Exception as exc:  # like the node: one bad frame never stops the run
+            if _caused_by_interrupt(exc):  # Ctrl-C inside a numba kernel: a SystemError from it
+                raise KeyboardInterrupt from None
             result = FrameResult('failed', f'processing failed: {type(exc).__name__}: {exc}', copy=result.copy)
         result.seconds = time.perf_counter() - start
         return result
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` wraps a KeyboardInterrupt (a signal handler that raised inside native code).
+
+    A second Ctrl-C while a numba kernel returns surfaces as ``SystemError: CPUDispatcher(...)
+    returned a result with an exception set`` whose cause is the KeyboardInterrupt.
+    """
+    seen = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 _WORKER_PROCESSOR: FrameProcessor | None = None
@@ -620,11 +1180,15 @@ class _InlineExecutor:
         future: Future = Future()
         self._stops.abortable = True  # a second Ctrl-C may abandon this frame
         try:
-            future.set_result(self._processor.process(raw, encoding, convert_copy))
+            result = self._processor.process(raw, encoding, convert_copy)
         except KeyboardInterrupt:
-            future.cancel()
+            result = None
         finally:
             self._stops.abortable = False
+        if result is None or (self._stops.drop and result.skip_kind == 'failed'):
+            future.cancel()  # dropped by the second Ctrl-C (a failure it caused is no failure)
+        else:
+            future.set_result(result)
         return future
 
     def shutdown(self, *, abandon: bool) -> None:
@@ -759,6 +1323,26 @@ class OutputBag:
         shutil.rmtree(self.staging, ignore_errors=True)
 
 
+def _files_of(path: Path) -> list[Path]:
+    """``path`` and, for a directory, the files and directories in it (not deeper: a bag is flat)."""
+    if path.is_dir():
+        with contextlib.suppress(OSError):
+            return [path, *path.iterdir()]
+    return [path]
+
+
+def _shares_a_file(input_path: Path, output_path: Path) -> bool:
+    """Whether OUT is (by device and inode: a hard link too) the input, one of its files, or holds one."""
+    if not output_path.exists():
+        return False
+    for source in _files_of(input_path):
+        for target in _files_of(output_path):
+            with contextlib.suppress(OSError):
+                if os.path.samefile(source, target):
+                    return True
+    return False
+
+
 def check_paths(input_path: Path, output_path: Path, force: bool) -> None:
     """Refuse outputs that would overwrite the input or an existing path without ``force``.
 
@@ -767,7 +1351,8 @@ def check_paths(input_path: Path, output_path: Path, force: bool) -> None:
     """
     source = input_path.resolve()
     target = output_path.resolve()
-    if target == source or source.is_relative_to(target) or target.is_relative_to(source):
+    if (target == source or source.is_relative_to(target) or target.is_relative_to(source)
+            or _shares_a_file(input_path, output_path)):
         raise BagError(f'refusing to write {output_path}: it is, contains or lies inside the input {input_path}')
     if output_path.exists() or output_path.is_symlink():
         if not force:
@@ -809,6 +1394,7 @@ class BagOptions:
     storage: str = DEFAULT_STORAGE
     force: bool = False
     progress: bool | None = None
+    params_warnings: tuple[str, ...] = ()
 
 
 @dataclass
@@ -918,6 +1504,8 @@ def process_bag(options: BagOptions, *, log: Callable[[str], None] | None = None
         raise BagError(f'no such file or directory: {input_path}')
     check_paths(input_path, output_path, options.force)
 
+    for text in options.params_warnings:
+        warn(f'warning: {text}')
     report = BagReport(options)
     bag = open_input_bag(input_path)
     with contextlib.closing(bag):
@@ -929,17 +1517,27 @@ def process_bag(options: BagOptions, *, log: Callable[[str], None] | None = None
         names = output_topics(selected, kinds=kinds, reserved=selected if options.copy_input else ())
         for topic in selected:
             report.topics[topic] = TopicReport(topic, names[topic], bag.topics[topic].count)
+        if bag.damage and all(entry.expected == 0 for entry in report.topics.values()):
+            raise BagError(f'{input_path} is damaged before its first complete frame ({bag.damage}); '
+                           'nothing to process')
         _log_plan(report, bag, log, warn, requested=bool(options.topics))
         try:
             output = OutputBag(output_path, options.storage, options.force)
         except (OSError, WriterError) as exc:
             raise BagError(f'cannot create the output next to {output_path}: {exc}') from None
+        stops = _StopRequests()  # also while the output is closed and moved: never left half-written
+        stops.install()
         try:
-            _run(bag, output, report, options, warn)
+            _run(bag, output, report, options, warn, stops)
         except (OSError, WriterError) as exc:  # e.g. disk full: keep what was written
             report.output_error = f'writing the output failed: {type(exc).__name__}: {exc}'
         finally:
-            _finish_output(output, report, options)
+            try:
+                _finish_output(output, report, options)
+            finally:
+                stops.restore()
+                if stops.first_signal is not None:
+                    report.interrupted_by = stops.first_signal
     report.wall_seconds = time.perf_counter() - start
     return report
 
@@ -961,7 +1559,7 @@ def _log_plan(report: BagReport, bag: InputBag, log: Callable[[str], None], warn
 
 
 def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOptions,
-         warn: Callable[[str], None]) -> None:
+         warn: Callable[[str], None], stops: _StopRequests) -> None:
     """Read, process (inline or in workers) and write in input order until done, damaged or stopped."""
     from rosbags.typesys import Stores, get_typestore
     from tqdm import tqdm
@@ -984,7 +1582,6 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
     }, default=str))
 
     convert_copy = options.copy_input and bag.encoding == 'ros1'
-    stops = _StopRequests()
     numba_threads = default_numba_threads(options.params, options.jobs)
     expected = [t.expected for t in report.topics.values()]
     total = None if any(count is None for count in expected) else sum(expected)
@@ -995,7 +1592,6 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
     executor: _InlineExecutor | _PoolExecutor | None = None
     stream = bag.messages(list(report.topics))
     abandon = False
-    stops.install()
     try:
         if options.jobs == 1:
             _set_numba_threads(numba_threads)
@@ -1056,9 +1652,6 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
         if executor is not None:
             executor.shutdown(abandon=abandon or bool(pending))
         bar.close()
-        stops.restore()
-        if stops.first_signal is not None:
-            report.interrupted_by = stops.first_signal
 
 
 def _wait(future: Future, stops: _StopRequests, report: BagReport) -> FrameResult | None:
@@ -1206,7 +1799,8 @@ def build_parser(prog: str = 'process_bag') -> argparse.ArgumentParser:
         'and write its outputs (labelled cloud, markers, plane table) to a new rosbag2.',
         epilog=f'Outputs of /ns/points: /ns/{OUTPUT_SUFFIXES["labeled_points"]}, /ns/{OUTPUT_SUFFIXES["markers"]}, '
         f'/ns/{OUTPUT_SUFFIXES["plane_table"]}. Exit codes: 0 done, 1 damaged input or stopped on an error '
-        '(OUT holds the frames before it), 2 bad arguments or input, 130 interrupted (Ctrl-C).',
+        '(OUT holds the frames before it), 2 bad arguments or unusable input, 130 (143) interrupted by Ctrl-C '
+        '(SIGTERM).',
     )
     add_arguments(parser)
     return parser
@@ -1220,27 +1814,98 @@ def options_from_args(args: argparse.Namespace) -> BagOptions:
     """
     params = ExtractorParams()
     source = 'defaults'
+    warnings: list[str] = []
     if args.params is not None:
         try:
-            params = ExtractorParams.from_yaml(args.params, node_name='extractor')
+            params, unknown = read_params_file(args.params)
         except ValueError as exc:
             raise BagError(str(exc)) from None
         source = str(args.params)
+        if unknown:  # like the node: a warning, not an error
+            warnings.append(f'params file {args.params}: ignoring unknown parameter(s) {unknown} (a typo in the '
+                            f'params file?); known: {sorted(PARAM_SPEC_BY_NAME)}')
     return BagOptions(input=Path(args.input), output=Path(args.output), topics=tuple(args.topics or ()),
                       params=params, params_source=source, copy_input=args.copy_input, jobs=args.jobs,
-                      storage=args.storage, force=args.force, progress=args.progress)
+                      storage=args.storage, force=args.force, progress=args.progress,
+                      params_warnings=tuple(warnings))
+
+
+def _unknown_parameter_names(names: Any) -> list[str]:
+    """Names the extractor does not have (ROS's own ones excepted), as the node reports them."""
+    return sorted(str(name) for name in names
+                  if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
+                  and not str(name).startswith('qos_overrides'))
+
+
+def read_params_file(path: str | os.PathLike[str]) -> tuple[ExtractorParams, list[str]]:
+    """The node's params file as :class:`ExtractorParams`, and the unknown names it ignored.
+
+    The node warns about unknown parameters and goes on; so does ``process_bag``. Every other
+    problem (unreadable file, no section, invalid value) raises ValueError.
+    """
+    unknown: list[str] = []
+
+    class _IgnoringUnknown(ExtractorParams):  # from_yaml builds through cls.from_mapping
+        @classmethod
+        def from_mapping(cls, values: Any, *, source: str = 'parameters') -> ExtractorParams:
+            if isinstance(values, dict):
+                unknown.extend(_unknown_parameter_names(values))
+                values = {name: value for name, value in values.items() if str(name) not in unknown}
+            return ExtractorParams.from_mapping(values, source=source)
+
+    params = _IgnoringUnknown.from_yaml(path, node_name='extractor')
+    return params, unknown
 
 
 def run(args: argparse.Namespace, prog: str = 'process_bag') -> int:
     """Run from parsed arguments; print the plan, warnings, summary and errors; return the exit code."""
+    signals = _CommandSignals()
+    signals.install()
+    try:
+        return _run_command(args, prog, signals)
+    finally:
+        signals.restore()
+
+
+class _CommandSignals:
+    """SIGINT / SIGTERM outside :func:`process_bag`'s own handling: before it (opening and scanning
+    the input) they stop the command; after it (the bag is closed, the summary is printed) they
+    are ignored, so that a repeated Ctrl-C never ends in a traceback."""
+
+    def __init__(self) -> None:
+        self.done = False
+        self.signum: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._handle)
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is None:
+            self.signum = signum
+        if not self.done:
+            raise KeyboardInterrupt
+
+
+def _run_command(args: argparse.Namespace, prog: str, signals: _CommandSignals) -> int:
     try:
         report = process_bag(options_from_args(args))
     except BagError as exc:
+        signals.done = True
         print(f'{prog}: error: {exc}', file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:  # before processing started
+        signals.done = True
         print(f'{prog}: interrupted', file=sys.stderr)
-        return 128 + signal.SIGINT
+        return 128 + (signals.signum or signal.SIGINT)
+    signals.done = True
     print(format_report(report))
     problems = report_problems(report)
     label = 'error' if report.interrupted_by is None else 'stopped'
