@@ -213,6 +213,8 @@ class DepthErrorModel:
 
     Attributes:
         baseline: projector-camera baseline, metres (Kinect v1: 7.5 cm).
+        focal_px: focal length (pixels) of the disparity measurement (Kinect v1: 575 px); it sets
+            the disparity scale whatever size and intrinsics the output image has.
         disparity_step_px: disparity quantisation, pixels (Kinect v1: 1/8).
         axial_noise_coefficient: ``c`` in ``sigma_z = c z²``, 1/m (Kinect v1: 1.43e-3).
         lateral_sigma_px: standard deviation of the ray's position in the image, pixels (the lateral
@@ -230,6 +232,7 @@ class DepthErrorModel:
     """
 
     baseline: float = 0.075
+    focal_px: float = 575.0
     disparity_step_px: float = 0.125
     axial_noise_coefficient: float = 1.43e-3
     lateral_sigma_px: float = 0.5
@@ -250,8 +253,10 @@ class DepthErrorModel:
 
     def __post_init__(self) -> None:
         _check_non_negative(self, [f.name for f in fields(self) if f.name not in ('surface_waves',)])
-        if not (self.baseline > 0.0 and self.band_period_px > 0.0 and self.max_depth > self.min_depth):
-            raise ValueError('DepthErrorModel needs baseline > 0, band_period_px > 0 and max_depth > min_depth')
+        if not (self.baseline > 0.0 and self.focal_px > 0.0 and self.band_period_px > 0.0
+                and self.max_depth > self.min_depth):
+            raise ValueError('DepthErrorModel needs baseline > 0, focal_px > 0, band_period_px > 0 and '
+                             'max_depth > min_depth')
         if not (0.0 < self.surface_wavelength_min <= self.surface_wavelength_max):
             raise ValueError('DepthErrorModel surface wavelengths must satisfy 0 < min <= max')
         if self.edge_dropout_probability > 1.0 or self.dropout_rate >= 1.0:
@@ -268,12 +273,13 @@ class DepthErrorModel:
                 'edge_dropout_probability': 0.0, 'dropout_rate': 0.0}
         return cls(**{**zero, **changes})
 
-    def disparity_sigma(self, focal_px: float) -> float:
+    def disparity_sigma(self) -> float:
         """Standard deviation (pixels) of the Gaussian disparity noise before quantisation.
 
         Raises:
             ValueError: the quantisation alone is noisier than ``axial_noise_coefficient`` allows.
         """
+        focal_px = self.focal_px
         total = self.axial_noise_coefficient * focal_px * self.baseline
         quantisation = self.disparity_step_px**2 / 12.0
         if total**2 < quantisation:
@@ -1424,7 +1430,7 @@ def generate_depth_scan(
         raise ValueError(f'scene must be a SurfaceScene or None; got {type(scene).__name__}')
     min_pixels = default_min_surface_pixels(height, width, reference_pixels=500 * 500) \
         if min_surface_pixels is None else _check_count(min_surface_pixels, 'min_surface_pixels')
-    sigma_d = errors.disparity_sigma(fx) if errors.axial_noise_coefficient > 0 else 0.0
+    sigma_d = errors.disparity_sigma() if errors.axial_noise_coefficient > 0 else 0.0
 
     rng = np.random.default_rng([seed, 2])
     lateral = rng.standard_normal((height, width, 2))
@@ -1475,7 +1481,7 @@ def generate_depth_scan(
     pattern = errors.radial_weight * (rho2 - 0.5) + errors.band_weight * np.cos(2 * np.pi * uu / errors.band_period_px
                                                                                   + band_phase)
     distorted = depth + errors.distortion_coefficient * depth**2 * pattern
-    focal_baseline = fx * errors.baseline
+    focal_baseline = errors.focal_px * errors.baseline
     with np.errstate(divide='ignore', invalid='ignore'):
         disparity = focal_baseline / distorted + sigma_d * disparity_noise
         if errors.disparity_step_px > 0.0:
