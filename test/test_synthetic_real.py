@@ -502,3 +502,27 @@ def test_dataset_command_and_eval_on_a_lidar_dataset(tmp_path, capsys, lidar_dat
     assert 'os1-32 (2 scans)' in printed
     text = report.read_text()
     assert '--kind lidar' in text and 'clutter unlabelled' in text
+
+
+def test_builder_fast_path_accepts_and_rejects_like_validate_polygon():
+    from ppe_ros.core.synthetic import _validate_polygon
+
+    rng = np.random.default_rng(0)
+    square = np.array([(0.0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    candidates = [square, square[::-1], square[[0, 2, 1, 3]], square + [0, 0, 1e-6] * np.array([[0], [0], [1], [0]]),
+                  np.array([(0.0, 0, 0), (1, 0, 0), (2, 0, 0)]), np.array([(0.0, 0, 0), (1, 0, 0), (np.nan, 1, 0)]),
+                  np.array([(0.0, 0, 0), (2, 0, 0), (0.5, 0.5, 0), (0, 2, 0)])]
+    candidates += [rng.normal(size=(int(rng.integers(3, 5)), 3)) for _ in range(40)]
+    for vertices in candidates:
+        try:
+            _validate_polygon(vertices, 'x')
+            valid = True
+        except ValueError:
+            valid = False
+        builder = SurfaceSceneBuilder()
+        label = builder.surface('x')
+        if valid:
+            builder.add(label, vertices)
+        else:
+            with pytest.raises(ValueError):
+                builder.add(label, vertices)

@@ -374,9 +374,7 @@ class SurfaceSceneBuilder:
     def add(self, label: int, vertices: np.ndarray, name: str = '') -> None:
         """Add a convex planar polygon ``(K, 3)`` (world frame, metres) to surface ``label``."""
         array = np.asarray(vertices, dtype=np.float64)
-        if array.shape == (3, 3) and np.all(np.isfinite(array)):  # a triangle is planar and convex
-            if not np.linalg.norm(np.cross(array[1] - array[0], array[2] - array[0])) > 0.0:
-                raise ValueError(f'face {len(self._faces)} ({name or self._names.get(label, "")!r}): zero area')
+        if array.shape in ((3, 3), (4, 3)) and _is_planar_convex(array.tolist()):  # fast path, same rules
             checked = array.copy()
             checked.setflags(write=False)
         else:
@@ -416,6 +414,37 @@ class SurfaceSceneBuilder:
         groups = tuple(self._groups[i] for i in order)
         return SurfaceScene(scene=scene, clutter_labels=frozenset(self._clutter), names=dict(self._names),
                             shape_waves=dict(self._waves), description=description, groups=groups)
+
+
+def _is_planar_convex(corners: list[list[float]]) -> bool:
+    """Whether a triangle or quad (lists of 3 coordinates) passes :func:`ppe_ros.core.synthetic._validate_polygon`'s
+    tests (finite, non-zero area, coplanar within 1e-9 of the scale, convex), in plain float arithmetic."""
+    if not all(math.isfinite(v) for corner in corners for v in corner):
+        return False
+    count = len(corners)
+    normal = [0.0, 0.0, 0.0]
+    for i in range(count):  # Newell's method
+        (x0, y0, z0), (x1, y1, z1) = corners[i], corners[(i + 1) % count]
+        normal[0] += (y0 - y1) * (z0 + z1)
+        normal[1] += (z0 - z1) * (x0 + x1)
+        normal[2] += (x0 - x1) * (y0 + y1)
+    length = math.sqrt(sum(v * v for v in normal))
+    if not length > 0.0:
+        return False
+    normal = [v / length for v in normal]
+    scale = max(1.0, max(abs(v) for corner in corners for v in corner))
+    mean = [sum(corner[k] for corner in corners) / count for k in range(3)]
+    if max(abs(sum((corner[k] - mean[k]) * normal[k] for k in range(3))) for corner in corners) > 1e-9 * scale:
+        return False
+    for i in range(count):
+        a, b, c = corners[i], corners[(i + 1) % count], corners[(i + 2) % count]
+        e1 = [b[k] - a[k] for k in range(3)]
+        e2 = [c[k] - b[k] for k in range(3)]
+        turn = ((e1[1] * e2[2] - e1[2] * e2[1]) * normal[0] + (e1[2] * e2[0] - e1[0] * e2[2]) * normal[1]
+                + (e1[0] * e2[1] - e1[1] * e2[0]) * normal[2])
+        if turn < -1e-12 * scale**2:
+            return False
+    return True
 
 
 def _face_groups(surface_scene: SurfaceScene) -> np.ndarray:
@@ -1004,6 +1033,17 @@ def _bounding_sphere(centers: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray
     return middle, float((np.linalg.norm(centers - middle, axis=1) + radii).max() * (1 + 1e-12) + 1e-9)
 
 
+def _chunk_spheres(centers: np.ndarray, radii: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres (as :func:`_bounding_sphere`) of the consecutive chunks ``bounds[c]:bounds[c + 1]``."""
+    starts = bounds[:-1]
+    low = np.minimum.reduceat(centers - radii[:, None], starts, axis=0)
+    high = np.maximum.reduceat(centers + radii[:, None], starts, axis=0)
+    middle = (low + high) / 2
+    owner = np.repeat(np.arange(len(starts)), np.diff(bounds))
+    reach = np.linalg.norm(centers - middle[owner], axis=1) + radii
+    return middle, np.maximum.reduceat(reach, starts) * (1 + 1e-12) + 1e-9
+
+
 def _split_chunks(indices: np.ndarray, centers: np.ndarray) -> list[np.ndarray]:
     """Split face indices into spatially compact chunks of at most ``_CHUNK_FACES`` (median cuts
     along the longest extent of the face centres)."""
@@ -1057,8 +1097,9 @@ class _Caster:
             object_spheres.append(_bounding_sphere(scene_packed.centers[members], scene_packed.radii[members]))
         order = np.concatenate(chunks)
         chunk_bounds = np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).astype(np.int64)
-        chunk_spheres = [_bounding_sphere(scene_packed.centers[c], scene_packed.radii[c]) for c in chunks]
-        spheres = object_spheres + chunk_spheres
+        chunk_centers, chunk_radii = _chunk_spheres(scene_packed.centers[order], scene_packed.radii[order],
+                                                    chunk_bounds)
+        spheres = object_spheres + list(zip(chunk_centers, chunk_radii, strict=True))
         packed = _PackedPolygons(**{f.name: np.ascontiguousarray(getattr(scene_packed, f.name)[order])
                                     for f in fields(_PackedPolygons)})
         return cls(packed=packed, order=order, object_bounds=np.array(object_bounds, dtype=np.int64),
@@ -1100,31 +1141,36 @@ def cast_surface_rays(surface_scene: SurfaceScene, origins: np.ndarray,
 # --------------------------------------------------------------------------------------------
 
 
-def _undulation_waves(surface_scene: SurfaceScene, amplitude: float, wavelengths: tuple[float, float], count: int,
-                      seed: int) -> dict[int, np.ndarray]:
+def _undulation_waves(surface_scene: SurfaceScene, normals: np.ndarray, amplitude: float,
+                      wavelengths: tuple[float, float], count: int, seed: int) -> dict[int, np.ndarray]:
     """Per planar surface ``(K, 5)`` waves (k vector in the surface's plane, phase, amplitude) with
-    RMS height ``amplitude`` (metres), plus the scene's own ``shape_waves``."""
+    RMS height ``amplitude`` (metres), plus the scene's own ``shape_waves``. ``normals`` are the
+    ``(F, 3)`` face normals in scene order."""
     rng = np.random.default_rng([seed, 3])
+    labels = surface_scene.planar_labels()
+    scene_labels = surface_scene.scene.labels
+    first_face = {}
+    for index, label in enumerate(scene_labels.tolist()):
+        first_face.setdefault(label, index)
+    surface_normals = normals[[first_face[int(label)] for label in labels]].reshape(-1, 3)
+    helper = np.where((np.abs(surface_normals[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    first = np.cross(surface_normals, helper)
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    second = np.cross(surface_normals, first)
+    angles = rng.uniform(0.0, 2 * np.pi, (len(labels), count))
+    lengths = rng.uniform(wavelengths[0], wavelengths[1], (len(labels), count))
+    phases = rng.uniform(0.0, 2 * np.pi, (len(labels), count))
+    vectors = (2 * np.pi / lengths)[..., None] * (np.cos(angles)[..., None] * first[:, None, :]
+                                                  + np.sin(angles)[..., None] * second[:, None, :])
+    rows = np.concatenate([vectors, phases[..., None], np.full((len(labels), count, 1),
+                                                               amplitude * math.sqrt(2.0 / count))], axis=2)
     waves: dict[int, np.ndarray] = {}
-    first_faces: dict[int, Face] = {}
-    for face in surface_scene.scene.faces:
-        first_faces.setdefault(face.label, face)
-    for label in surface_scene.planar_labels():
-        normal = first_faces[int(label)].normal
-        helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        first = np.cross(normal, helper)
-        first /= np.linalg.norm(first)
-        second = np.cross(normal, first)
-        angles = rng.uniform(0.0, 2 * np.pi, count)
-        lengths = rng.uniform(wavelengths[0], wavelengths[1], count)
-        phases = rng.uniform(0.0, 2 * np.pi, count)
-        vectors = (2 * np.pi / lengths)[:, None] * (np.cos(angles)[:, None] * first + np.sin(angles)[:, None] * second)
-        rows = np.column_stack([vectors, phases, np.full(count, amplitude * math.sqrt(2.0 / count))])
+    for index, label in enumerate(labels.tolist()):
         if amplitude > 0.0:
-            waves[int(label)] = rows
-        if int(label) in surface_scene.shape_waves:
-            shape = np.asarray(surface_scene.shape_waves[int(label)], dtype=np.float64)
-            waves[int(label)] = np.vstack([waves[int(label)], shape]) if int(label) in waves else shape
+            waves[label] = rows[index]
+        if label in surface_scene.shape_waves:
+            shape = np.asarray(surface_scene.shape_waves[label], dtype=np.float64)
+            waves[label] = np.vstack([waves[label], shape]) if label in waves else shape
     return waves
 
 
@@ -1326,7 +1372,7 @@ def generate_lidar_scan(
     hit = faces >= 0
     face_labels = np.where(hit, scene.scene.labels[np.maximum(faces, 0)], 0)
     normals = caster.normals[np.maximum(faces, 0)]
-    waves = _undulation_waves(scene, errors.surface_amplitude,
+    waves = _undulation_waves(scene, caster.normals, errors.surface_amplitude,
                               (errors.surface_wavelength_min, errors.surface_wavelength_max),
                               int(errors.surface_waves), seed)
     undulated = np.full(distances.shape, np.nan)
@@ -1453,7 +1499,7 @@ def generate_depth_scan(
     hit = faces >= 0
     face_labels = np.where(hit, scene.scene.labels[np.maximum(faces, 0)], 0)
     normals = caster.normals[np.maximum(faces, 0)]
-    waves = _undulation_waves(scene, errors.surface_amplitude,
+    waves = _undulation_waves(scene, caster.normals, errors.surface_amplitude,
                               (errors.surface_wavelength_min, errors.surface_wavelength_max),
                               int(errors.surface_waves), seed)
     undulated = np.full(distances.shape, np.nan)
