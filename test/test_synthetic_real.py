@@ -526,3 +526,21 @@ def test_builder_fast_path_accepts_and_rejects_like_validate_polygon():
         else:
             with pytest.raises(ValueError):
                 builder.add(label, vertices)
+
+
+def test_a_sequence_is_one_world_and_one_sensor_seen_with_new_noise_from_moving_poses():
+    from ppe_ros.core.synthetic_real import generate_lidar_sequence
+
+    sweeps = generate_lidar_sequence(2, 3, step=0.25, model='os1-32', cols=128)
+    positions = np.array([scan.sensor_pose.position for scan in sweeps])
+    np.testing.assert_allclose(np.linalg.norm(np.diff(positions, axis=0), axis=1), 0.25, atol=1e-12)
+    assert all(scan.params['beam_range_bias'] == sweeps[0].params['beam_range_bias'] for scan in sweeps)
+    assert len({scan.params['noise_seed'] for scan in sweeps}) == 3
+    # Same world (scene and surface undulation), new noise: from one pose the undulated ranges agree exactly.
+    again = generate_lidar_scan(make_street_scene(2), seed=2, model='os1-32', cols=128,
+                                sensor_pose=sweeps[1].sensor_pose, noise_seed=77)
+    np.testing.assert_array_equal(again.undulated_ranges, sweeps[1].undulated_ranges)
+    returned = np.isfinite(again.points[..., 0]) & np.isfinite(sweeps[1].points[..., 0])
+    assert np.any(again.points[returned] != sweeps[1].points[returned])
+    np.testing.assert_array_equal(generate_lidar_scan(seed=2, model='os1-32', cols=128).points,
+                                  generate_lidar_sequence(2, 1, model='os1-32', cols=128)[0].points)

@@ -27,10 +27,12 @@ j at azimuth ``-360 j / W`` degrees, ray starts on a circle of ``beam_origin_rad
 z axis (Ouster's ``lidar_origin_to_beam_origin_mm``). Depth-camera points are in the optical frame
 (x right, y down, z forward), as :func:`ppe_ros.io.depth.backproject_depth` makes them.
 
-Determinism: the scene from ``default_rng(seed)`` (in the scene builders), the per-scan noise from
-``default_rng([seed, 2])``, the per-sensor calibration errors (beam biases, Kinect distortion) from
-``default_rng([sensor_seed, 4])`` (``sensor_seed`` defaults to ``seed``; give several scans one
-``sensor_seed`` to model one physical sensor), the surface undulation from ``default_rng([seed, 3])``.
+Determinism: the scene from ``default_rng(seed)`` (in the scene builders) and its surface
+undulation from ``default_rng([seed, 3])`` (the world), the per-scan noise and dropouts from
+``default_rng([noise_seed, 2])``, the per-sensor calibration errors (beam biases, Kinect distortion)
+from ``default_rng([sensor_seed, 4])``; ``noise_seed`` and ``sensor_seed`` default to ``seed``. Scans
+of one world by one sensor (a sequence: :func:`generate_lidar_sequence`) share ``seed`` and
+``sensor_seed`` and differ in ``noise_seed`` and pose.
 Standard normal draws do not depend on the sigmas, so scaling a sigma scales the same pattern.
 """
 
@@ -770,6 +772,7 @@ def _add_ramp(builder: SurfaceSceneBuilder, rng: np.random.Generator, gap: tuple
 def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, half_width: float, pavement: float,
                         facade_y: float, kerb: float, ramp_gap: tuple[float, float]) -> None:
     length = STREET_HALF_LENGTH - 5.0
+    parked: list[tuple[float, float]] = []  # (side sign, x) of the parked cars
     for side, sign in (('left', 1.0), ('right', -1.0)):
         x = -length + float(rng.uniform(0.0, 10.0))
         index = 0
@@ -810,13 +813,18 @@ def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, 
                 builder.new_group()
                 _add_car(builder, builder.surface(f'car_parked_{side}{index}', clutter=True), rng,
                          (x, sign * (half_width - 1.1), 0.0), float(rng.uniform(-3, 3)), 0.0)
+                parked.append((sign, x))
             x += float(rng.uniform(5.5, 9.0))
             index += 1
     for index in range(int(rng.integers(1, 4))):
-        x = float(rng.uniform(14.0, 50.0)) * (1 if rng.random() < 0.5 else -1)
-        builder.new_group()
-        _add_car(builder, builder.surface(f'car_moving{index}', clutter=True), rng,
-                 (x, (half_width / 2) * (1 if rng.random() < 0.5 else -1), 0.0), float(rng.uniform(-4, 4)), 0.0)
+        for _ in range(20):  # not beside a parked car of the same side (they would overlap on narrow roads)
+            x = float(rng.uniform(14.0, 50.0)) * (1 if rng.random() < 0.5 else -1)
+            sign = 1.0 if rng.random() < 0.5 else -1.0
+            if all(abs(x - px) > 5.5 for ps, px in parked if ps == sign):
+                builder.new_group()
+                _add_car(builder, builder.surface(f'car_moving{index}', clutter=True), rng,
+                         (x, sign * half_width / 2, 0.0), float(rng.uniform(-4, 4)), 0.0)
+                break
 
 
 def street_sensor_pose(seed: int = 0) -> SensorPose:
@@ -1311,6 +1319,7 @@ def generate_lidar_scan(
     sensor_pose: SensorPose | None = None,
     errors: LidarErrorModel | None = None,
     sensor_seed: int | None = None,
+    noise_seed: int | None = None,
     min_surface_pixels: int | None = None,
 ) -> SensorScan:
     """A spinning-lidar sweep (Ouster OS-1 like) of ``scene`` (default ``make_street_scene(seed)``).
@@ -1325,6 +1334,7 @@ def generate_lidar_scan(
         errors: the error model; default :class:`LidarErrorModel` (realistic); ``LidarErrorModel.exact()``
             for exact geometry.
         sensor_seed: seed of the per-beam calibration errors (default ``seed``).
+        noise_seed: seed of the per-scan noise and dropouts (default ``seed``).
         min_surface_pixels: surfaces with fewer visible pixels get label 3 (default
             :func:`default_min_surface_pixels`).
 
@@ -1335,6 +1345,7 @@ def generate_lidar_scan(
     """
     seed = _check_seed(seed)
     sensor_seed = seed if sensor_seed is None else _check_seed(sensor_seed)
+    noise_seed = seed if noise_seed is None else _check_seed(noise_seed)
     errors = LidarErrorModel() if errors is None else errors
     if not isinstance(errors, LidarErrorModel):
         raise ValueError(f'errors must be a LidarErrorModel; got {type(errors).__name__}')
@@ -1356,7 +1367,7 @@ def generate_lidar_scan(
     calibration = np.random.default_rng([sensor_seed, 4])
     beam_bias = errors.beam_range_bias_sigma * calibration.standard_normal(height)
     beam_elevation_error = errors.beam_elevation_sigma_deg * calibration.standard_normal(height)
-    rng = np.random.default_rng([seed, 2])
+    rng = np.random.default_rng([noise_seed, 2])
     range_noise = rng.standard_normal((height, width))
     dropout_draw = rng.random((height, width))
 
@@ -1399,6 +1410,7 @@ def generate_lidar_scan(
         'generator': 'lidar',
         'seed': seed,
         'sensor_seed': sensor_seed,
+        'noise_seed': noise_seed,
         'model': model if custom_grid is None else 'custom grid',
         'rows': height,
         'cols': width,
@@ -1415,6 +1427,38 @@ def generate_lidar_scan(
                       sensor_pose=pose, true_ranges=true_ranges, face_labels=face_image, region_faces={},
                       clutter_labels=scene.clutter_labels, surface_names=dict(scene.names), frame='sensor',
                       undulated_ranges=undulated.reshape(height, width))
+
+
+def generate_lidar_sequence(
+    seed: int = 0,
+    n_sweeps: int = 3,
+    *,
+    step: float = 0.23,
+    model: str = 'os1-128',
+    cols: int = DEFAULT_LIDAR_COLUMNS,
+    errors: LidarErrorModel | None = None,
+    first_pose: SensorPose | None = None,
+) -> list[SensorScan]:
+    """Consecutive sweeps of one lidar driving through one street (like the shared OS-1-128 sweeps
+    1795-1797, 0.23 m apart): the scene, its undulation and the sensor's calibration errors are
+    those of ``seed``; sweep k is taken ``k * step`` metres further along the first pose's heading
+    with its own noise (``noise_seed = seed + 10**7 k``: sweep 0 is ``generate_lidar_scan(seed=seed)``).
+    ``scan.sensor_pose`` holds each pose, so the true motion between sweeps is known.
+    """
+    seed = _check_seed(seed)
+    n_sweeps = _check_count(n_sweeps, 'n_sweeps')
+    if not math.isfinite(step):
+        raise ValueError(f'step must be finite (metres); got {step}')
+    scene = make_street_scene(seed)
+    pose = street_sensor_pose(seed) if first_pose is None else first_pose
+    heading = np.array([math.cos(math.radians(pose.yaw_deg)), math.sin(math.radians(pose.yaw_deg)), 0.0])
+    sweeps = []
+    for k in range(n_sweeps):
+        moved = SensorPose(position=tuple(np.asarray(pose.position) + k * step * heading), roll_deg=pose.roll_deg,
+                           pitch_deg=pose.pitch_deg, yaw_deg=pose.yaw_deg)
+        sweeps.append(generate_lidar_scan(scene, seed=seed, model=model, cols=cols, sensor_pose=moved, errors=errors,
+                                          sensor_seed=seed, noise_seed=seed + 10**7 * k))
+    return sweeps
 
 
 KINECT_INTRINSICS = (575.0, 575.0, 319.5, 239.5)
@@ -1434,6 +1478,7 @@ def generate_depth_scan(
     sensor_pose: SensorPose | None = None,
     errors: DepthErrorModel | None = None,
     sensor_seed: int | None = None,
+    noise_seed: int | None = None,
     min_surface_pixels: int | None = None,
 ) -> SensorScan:
     """A Kinect-v1-like depth frame (pinhole, 640 x 480, f 575 px) of ``scene`` (default: :func:`make_indoor_scene`).
@@ -1447,6 +1492,7 @@ def generate_depth_scan(
             optical x = -sensor y, optical y = -sensor z); default :data:`~ppe_ros.core.synthetic.DEFAULT_SENSOR_POSE`.
         errors: default :class:`DepthErrorModel` (Kinect v1); ``DepthErrorModel.exact()`` for exact depth.
         sensor_seed: seed of the camera's fixed distortion pattern (default ``seed``).
+        noise_seed: seed of the per-frame noise and dropouts (default ``seed``).
         min_surface_pixels: surfaces with fewer visible pixels get label 3 (default: 50 per 500 x 500 pixels).
 
     Returns:
@@ -1455,6 +1501,7 @@ def generate_depth_scan(
     """
     seed = _check_seed(seed)
     sensor_seed = seed if sensor_seed is None else _check_seed(sensor_seed)
+    noise_seed = seed if noise_seed is None else _check_seed(noise_seed)
     errors = DepthErrorModel() if errors is None else errors
     if not isinstance(errors, DepthErrorModel):
         raise ValueError(f'errors must be a DepthErrorModel; got {type(errors).__name__}')
@@ -1478,7 +1525,7 @@ def generate_depth_scan(
         if min_surface_pixels is None else _check_count(min_surface_pixels, 'min_surface_pixels')
     sigma_d = errors.disparity_sigma() if errors.axial_noise_coefficient > 0 else 0.0
 
-    rng = np.random.default_rng([seed, 2])
+    rng = np.random.default_rng([noise_seed, 2])
     lateral = rng.standard_normal((height, width, 2))
     disparity_noise = rng.standard_normal((height, width))
     dropout_draw = rng.random((height, width))
@@ -1563,6 +1610,7 @@ def generate_depth_scan(
         'generator': 'depth_camera',
         'seed': seed,
         'sensor_seed': sensor_seed,
+        'noise_seed': noise_seed,
         'rows': height,
         'cols': width,
         'intrinsics': [fx, fy, cx, cy],
