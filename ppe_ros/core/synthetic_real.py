@@ -149,7 +149,7 @@ class LidarErrorModel:
         beam_origin_radius: ray starts on a circle of this radius (metres) around the z axis.
     """
 
-    range_sigma: float = 0.015
+    range_sigma: float = 0.02
     grazing_sigma: float = 0.0015
     min_cos: float = 0.02
     beam_range_bias_sigma: float = 0.01
