@@ -544,3 +544,16 @@ def test_a_sequence_is_one_world_and_one_sensor_seen_with_new_noise_from_moving_
     assert np.any(again.points[returned] != sweeps[1].points[returned])
     np.testing.assert_array_equal(generate_lidar_scan(seed=2, model='os1-32', cols=128).points,
                                   generate_lidar_sequence(2, 1, model='os1-32', cols=128)[0].points)
+
+
+def test_cast_surface_rays_validates_its_input():
+    scene = wall_scene()
+    with pytest.raises(ValueError, match=r'\(N, 3\)'):
+        cast_surface_rays(scene, np.zeros((2, 3)), np.ones((3, 3)))
+    with pytest.raises(ValueError, match='finite'):
+        cast_surface_rays(scene, np.zeros((1, 3)), np.array([[np.nan, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match='SurfaceScene'):
+        cast_surface_rays(scene.scene, np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))
+    distances, labels = cast_surface_rays(scene, np.zeros((2, 3)), np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(distances[0], 10.0)
+    assert labels[0] == scene.scene.faces[0].label and np.isnan(distances[1]) and labels[1] == 0

@@ -1139,6 +1139,14 @@ def cast_surface_rays(surface_scene: SurfaceScene, origins: np.ndarray,
     Returns:
         ``(distances (N,), labels (N,))`` as :func:`ppe_ros.core.synthetic.cast_rays` (NaN / 0 = no hit).
     """
+    origins = np.ascontiguousarray(origins, dtype=np.float64)
+    directions = np.ascontiguousarray(directions, dtype=np.float64)
+    if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
+        raise ValueError(f'origins and directions must both be (N, 3); got {origins.shape} and {directions.shape}')
+    if not (np.all(np.isfinite(origins)) and np.all(np.isfinite(directions))):
+        raise ValueError('ray origins and directions must be finite')
+    if not isinstance(surface_scene, SurfaceScene):
+        raise ValueError(f'surface_scene must be a SurfaceScene; got {type(surface_scene).__name__}')
     distances, faces = _Caster.of(surface_scene).cast(origins, directions)
     labels = np.where(faces >= 0, surface_scene.scene.labels[np.maximum(faces, 0)], 0)
     return distances, labels
