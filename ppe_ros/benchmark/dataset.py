@@ -1,4 +1,28 @@
-"""SynPEB-style benchmark data sets: generated room scans per radial noise level, train and test splits.
+"""Benchmark data sets: generated scans with ground truth, train and test splits, one folder per level.
+
+Three kinds (``make_dataset(kind=...)``, ``ppe dataset make --kind``):
+
+* ``synpeb`` (default): SynPEB-style room scans per radial noise level, described below.
+* ``lidar``: spinning-lidar sweeps of streets with real sensor errors
+  (:func:`ppe_ros.core.synthetic_real.generate_lidar_scan`), one level per lidar model.
+* ``depth_camera``: Kinect-v1-like depth frames of rooms with its errors
+  (:func:`ppe_ros.core.synthetic_real.generate_depth_scan`), one level ``kinect-v1``.
+
+Layout of a ``lidar`` / ``depth_camera`` data set::
+
+    DIR/dataset.json
+    DIR/<split>/<level>/<level>_NN.npy         (H, W, 3) float32 points, metres, NaN = no return
+    DIR/<split>/<level>/<level>_NN_labels.npy  (H, W) int32 ground truth: one label (>= 10) per planar
+                                               surface; 0 = clutter, too small surfaces and no return
+    DIR/<split>/<level>/<level>.json           lidar only: Ouster-style metadata, so that
+                                               ppe_ros.io.load_scan gives the beam origins
+
+The points are in the sensor frame (lidar: x forward, y left, z up, destaggered; depth camera:
+optical frame x right, y down, z forward). Their scene seeds come from :data:`SENSOR_SEED_SPLITS`:
+train scans use seeds 0..999 and test (held-out) scans 1000..1999, so parameters tuned on the train
+split never see a held-out scene.
+
+SynPEB kind:
 
 Layout of a data set directory::
 
@@ -56,6 +80,16 @@ DEFAULT_TEST = 30
 SPLITS = ('train', 'test')
 
 _TEST_SEED_OFFSET = 50_000  # scene seeds: seed * 100000 + index (train) or + 50000 + index (test)
+
+DATASET_KINDS = ('synpeb', 'lidar', 'depth_camera')
+"""What ``make_dataset`` can generate (see the module docstring)."""
+
+SENSOR_SEED_SPLITS: dict[str, tuple[int, int]] = {'train': (0, 1000), 'test': (1000, 2000)}
+"""Scene seeds ``[first, end)`` of the ``lidar`` and ``depth_camera`` kinds per split: tune sensor
+profiles on ``train`` (seeds 0-999) only; ``test`` (1000-1999) is held out."""
+
+DEFAULT_LIDAR_MODELS = ('os1-128',)
+DEPTH_CAMERA_LEVEL = 'kinect-v1'
 
 
 def level_name(sigma: float) -> str:
@@ -125,28 +159,36 @@ class DatasetScan:
 def make_dataset(
     directory: str | os.PathLike[str],
     *,
+    kind: str = 'synpeb',
     seed: int = 0,
     sigmas: Sequence[float] = DEFAULT_SIGMAS,
     n_train: int = DEFAULT_TRAIN,
     n_test: int = DEFAULT_TEST,
-    rows: int = 500,
-    cols: int = 500,
+    rows: int | None = None,
+    cols: int | None = None,
     angular_sigma_deg: float = DEFAULT_ANGULAR_SIGMA_DEG,
     n_objects: int = DEFAULT_N_OBJECTS,
     compressed: bool = True,
+    lidar_models: Sequence[str] = DEFAULT_LIDAR_MODELS,
     progress=None,
 ) -> dict:
-    """Write a SynPEB-style data set into ``directory`` (created; must not hold a data set already).
+    """Write a data set into ``directory`` (created; must not hold a data set already).
 
     Args:
         directory: output directory; refused if it already contains ``dataset.json`` or scan folders.
-        seed: non-negative integer; every scene, pose and noise draw is deterministic in it.
-        sigmas: radial noise standard deviations in metres, one level each.
+        kind: one of :data:`DATASET_KINDS`; ``'synpeb'`` (default) writes the SynPEB-style data set
+            exactly as before the other kinds existed.
+        seed: non-negative integer; every scene, pose and noise draw is deterministic in it. For the
+            sensor kinds it offsets the scene seeds inside each split's range of
+            :data:`SENSOR_SEED_SPLITS` (scan ``index`` of a split has seed ``first + seed + index``).
+        sigmas: (synpeb) radial noise standard deviations in metres, one level each.
         n_train, n_test: scans per level in each split.
-        rows, cols: grid size (SynPEB: 500 x 500).
-        angular_sigma_deg: beam-direction jitter (degrees per axis); SynPEB: 1 mdeg.
-        n_objects: objects per room (default 10: about 40 planes per scan).
-        compressed: ``DATA binary_compressed`` (as SynPEB) instead of ``binary``.
+        rows, cols: grid size. synpeb: default 500 x 500; lidar: ``cols`` columns per sweep (default
+            1024; the rows are the model's beams, ``rows`` must be None); depth_camera: default 480 x 640.
+        angular_sigma_deg: (synpeb) beam-direction jitter (degrees per axis); SynPEB: 1 mdeg.
+        n_objects: (synpeb, depth_camera) objects per room (default 10: about 40 planes per SynPEB scan).
+        compressed: (synpeb) ``DATA binary_compressed`` (as SynPEB) instead of ``binary``.
+        lidar_models: (lidar) one level per model of :data:`ppe_ros.core.synthetic_real.LIDAR_MODELS`.
         progress: optional callable ``progress(done, total)`` called after each written scan.
 
     Returns:
@@ -157,6 +199,13 @@ def make_dataset(
     """
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f'seed must be a non-negative integer; got {seed!r}')
+    if kind not in DATASET_KINDS:
+        raise ValueError(f'kind must be one of {", ".join(DATASET_KINDS)}; got {kind!r}')
+    if kind != 'synpeb':
+        return _make_sensor_dataset(directory, kind=kind, seed=int(seed), n_train=n_train, n_test=n_test, rows=rows,
+                                    cols=cols, n_objects=n_objects, lidar_models=lidar_models, progress=progress)
+    rows = 500 if rows is None else rows
+    cols = 500 if cols is None else cols
     levels = [float(s) for s in sigmas]
     if not levels or any(not (math.isfinite(s) and s >= 0.0) for s in levels):
         raise ValueError(f'sigmas must be a non-empty list of finite noise levels >= 0 (metres); got {sigmas}')
@@ -226,6 +275,154 @@ def make_dataset(
         'min_region_pixels': min_region,
         'labels': 'PCD field intensity: ground-truth plane id (>= 10); 3 = visible but no GT plane (a face piece '
                   f'smaller than {min_region} px); 0 = no return (NaN point)',
+        'scans': entries,
+    }
+    (root / MANIFEST_NAME).write_text(json.dumps(manifest, indent=1) + '\n')
+    return manifest
+
+
+def sensor_scene_seed(split: str, index: int, *, seed: int = 0) -> int:
+    """Scene seed of scan ``index`` of a split of a ``lidar`` / ``depth_camera`` data set.
+
+    Raises:
+        ValueError: unknown split, or the seed would leave the split's range of :data:`SENSOR_SEED_SPLITS`.
+    """
+    if split not in SENSOR_SEED_SPLITS:
+        raise ValueError(f'split must be one of {tuple(SENSOR_SEED_SPLITS)}; got {split!r}')
+    first, end = SENSOR_SEED_SPLITS[split]
+    scene_seed = first + int(seed) + int(index)
+    if not first <= scene_seed < end:
+        raise ValueError(f'{split} scene seeds are {first}..{end - 1}: seed {seed} + scan {index} leaves the range')
+    return scene_seed
+
+
+def _ouster_metadata(model: str, cols: int, errors) -> dict:
+    """Ouster-style sensor metadata of a generated sweep: with it ``load_scan`` reconstructs the beam
+    origins of :func:`ppe_ros.core.synthetic_real.generate_lidar_scan` exactly (no pixel shifts, the
+    lidar frame = the sensor frame)."""
+    from ppe_ros.core.synthetic_real import LIDAR_MODELS
+
+    altitudes = list(LIDAR_MODELS[model])
+    return {
+        'prod_line': f'ppe_ros synthetic {model}',
+        'lidar_mode': f'{cols}x10',
+        'beam_altitude_angles': altitudes,
+        'beam_azimuth_angles': [0.0] * len(altitudes),
+        'lidar_origin_to_beam_origin_mm': errors.beam_origin_radius * 1000.0,
+        'lidar_to_sensor_transform': [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
+        'data_format': {'pixels_per_column': len(altitudes), 'columns_per_frame': int(cols),
+                        'column_window': [0, int(cols) - 1], 'pixel_shift_by_row': [0] * len(altitudes)},
+    }
+
+
+def _make_sensor_dataset(directory, *, kind: str, seed: int, n_train: int, n_test: int, rows: int | None,
+                         cols: int | None, n_objects: int, lidar_models: Sequence[str], progress) -> dict:
+    from ppe_ros.core.synthetic_real import (
+        LIDAR_MODELS,
+        DepthErrorModel,
+        LidarErrorModel,
+        generate_depth_scan,
+        generate_lidar_scan,
+        make_indoor_scene,
+    )
+
+    for count, what in ((n_train, 'n_train'), (n_test, 'n_test')):
+        if isinstance(count, bool) or int(count) != count or count < 0:
+            raise ValueError(f'{what} must be a non-negative integer; got {count!r}')
+    if n_train + n_test == 0:
+        raise ValueError('the data set needs at least one scan (n_train + n_test >= 1)')
+    if isinstance(n_objects, bool) or int(n_objects) != n_objects or n_objects < 0:
+        raise ValueError(f'n_objects must be a non-negative integer; got {n_objects!r}')
+    for split, count in (('train', n_train), ('test', n_test)):
+        if count:
+            sensor_scene_seed(split, int(count) - 1, seed=seed)  # the whole split stays in its range
+    if kind == 'lidar':
+        models = list(dict.fromkeys(lidar_models))
+        unknown = [m for m in models if m not in LIDAR_MODELS]
+        if not models or unknown:
+            raise ValueError(f'lidar models must be some of {", ".join(LIDAR_MODELS)}; got {list(lidar_models)}')
+        if rows is not None:
+            raise ValueError('a lidar data set takes its rows from the lidar model; give cols only')
+        cols = 1024 if cols is None else cols
+        if isinstance(cols, bool) or int(cols) != cols or cols < 8:
+            raise ValueError(f'cols must be an integer >= 8; got {cols!r}')
+        lidar_errors = LidarErrorModel()
+        levels = [{'name': m, 'radial_sigma': lidar_errors.range_sigma, 'model': m, 'rows': len(LIDAR_MODELS[m])}
+                  for m in models]
+        error_params = lidar_errors.to_dict()
+        shape_note = f'{cols} columns'
+    else:
+        rows = 480 if rows is None else rows
+        cols = 640 if cols is None else cols
+        for value, what in ((rows, 'rows'), (cols, 'cols')):
+            if isinstance(value, bool) or int(value) != value or value < 8:
+                raise ValueError(f'{what} must be an integer >= 8; got {value!r}')
+        depth_errors = DepthErrorModel()
+        levels = [{'name': DEPTH_CAMERA_LEVEL, 'radial_sigma': depth_errors.axial_noise_coefficient * 2.0**2,
+                   'rows': int(rows)}]
+        error_params = depth_errors.to_dict()
+        shape_note = f'{rows} x {cols}'
+    root = Path(directory)
+    if (root / MANIFEST_NAME).exists() or any((root / split).exists() for split in SPLITS):
+        raise FileExistsError(f'{root} already holds a data set; choose a new directory')
+    root.mkdir(parents=True, exist_ok=True)
+
+    entries = []
+    total = (n_train + n_test) * len(levels)
+    done = 0
+    for split, count in (('train', int(n_train)), ('test', int(n_test))):
+        for level in levels:
+            folder = root / split / level['name']
+            folder.mkdir(parents=True, exist_ok=True)
+            if kind == 'lidar':
+                metadata = _ouster_metadata(level['model'], int(cols), lidar_errors)
+                (folder / f"{level['name']}.json").write_text(json.dumps(metadata, indent=1) + '\n')
+            for index in range(count):
+                scene_seed = sensor_scene_seed(split, index, seed=seed)
+                if kind == 'lidar':
+                    scan = generate_lidar_scan(seed=scene_seed, model=level['model'], cols=int(cols),
+                                               errors=lidar_errors)
+                else:
+                    pose = sensor_pose_for(scene_seed)
+                    scene = make_indoor_scene(scene_seed, sensor_pose=pose, n_objects=int(n_objects))
+                    scan = generate_depth_scan(scene, seed=scene_seed, width=int(cols), height=int(rows),
+                                               sensor_pose=pose, errors=depth_errors)
+                path = folder / f"{level['name']}_{index + 1:02d}.npy"
+                np.save(path, scan.points.astype(np.float32))
+                ground_truth = np.where(scan.labels >= 10, scan.labels, 0).astype(np.int32)
+                np.save(path.with_name(f'{path.stem}_labels.npy'), ground_truth)
+                entries.append({
+                    'file': path.relative_to(root).as_posix(),
+                    'split': split,
+                    'level': level['name'],
+                    'radial_sigma': level['radial_sigma'],
+                    'scene_seed': scene_seed,
+                    'n_planes': len(np.unique(ground_truth[ground_truth >= 10])),
+                    'clutter_fraction': float(np.mean(scan.labels == 2)),
+                    'valid_fraction': float(np.mean(np.isfinite(scan.points[..., 0]))),
+                    'sensor_pose': scan.sensor_pose.to_dict(),
+                })
+                done += 1
+                if progress is not None:
+                    progress(done, total)
+    manifest = {
+        'format': FORMAT_NAME,
+        'kind': kind,
+        'seed': int(seed),
+        'rows': None if kind == 'lidar' else int(rows),
+        'cols': int(cols),
+        'n_objects': int(n_objects),
+        'n_train': int(n_train),
+        'n_test': int(n_test),
+        'seed_splits': {split: list(bounds) for split, bounds in SENSOR_SEED_SPLITS.items()},
+        'levels': levels,
+        'errors': error_params,
+        'frame': ('lidar sensor frame: x forward, y left, z up; rows = beams (top first), destaggered'
+                  if kind == 'lidar' else 'camera optical frame: x right, y down, z forward'),
+        'labels': '<scan>_labels.npy: one ground-truth label (>= 10) per planar surface, the same label for all '
+                  'pieces of a surface an occluder cuts apart; 0 = no ground-truth plane (clutter such as trees, '
+                  'cars, people, plants; surfaces too small to count; no return)',
+        'shape': shape_note,
         'scans': entries,
     }
     (root / MANIFEST_NAME).write_text(json.dumps(manifest, indent=1) + '\n')

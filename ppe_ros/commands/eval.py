@@ -169,6 +169,16 @@ def dataset_note(directory: str, manifest: dict, split: str) -> str:
     planes = [s['n_planes'] for s in scans]
     levels = ', '.join(f"{lv['radial_sigma'] * 1000:.1f}" for lv in manifest['levels'])
     mean_planes = sum(planes) / len(planes) if planes else float('nan')
+    kind = manifest.get('kind', 'synpeb')
+    if kind != 'synpeb':
+        grid = f"{manifest['rows']} x {manifest['cols']}" if manifest.get('rows') else f"{manifest['cols']}-column"
+        make = (f"ppe dataset make {directory} --kind {kind} --seed {manifest['seed']} --train {manifest['n_train']} "
+                f"--test {manifest['n_test']}")
+        what = 'lidar sweeps of streets' if kind == 'lidar' else 'depth-camera frames of rooms'
+        return (f"Data set: `{make}` (generated {what} with realistic sensor errors, {grid} grid, levels "
+                f"{', '.join(lv['name'] for lv in manifest['levels'])}, {manifest['n_train']} train + "
+                f"{manifest['n_test']} test scans per level, {mean_planes:.1f} GT surfaces per {split} scan on "
+                f"average; GT = one label per planar surface, clutter unlabelled). Split evaluated: **{split}**.")
     make = (f"ppe dataset make {directory} --seed {manifest['seed']} --train {manifest['n_train']} "
             f"--test {manifest['n_test']} --rows {manifest['rows']} --cols {manifest['cols']}")
     return (f"Data set: `{make}` (generated SynPEB-style rooms, {manifest['rows']} x {manifest['cols']} grid, "
