@@ -23,8 +23,8 @@ def _deviation(points: np.ndarray, normal: np.ndarray, mean: np.ndarray) -> floa
 
 def cost(points_a, points_b, sigmas_a, sigmas_b, tau, noise_factor):
     normal, mean, _ = _plane(np.concatenate([points_a, points_b]))
-    allowed_a = tau**2 + noise_factor**2 * _plane(points_a)[2]
-    allowed_b = tau**2 + noise_factor**2 * _plane(points_b)[2]
+    scatter = min(max(_plane(points_a)[2], _plane(points_b)[2]), max(np.mean(sigmas_a**2), np.mean(sigmas_b**2)))
+    allowed_a = allowed_b = tau**2 + noise_factor**2 * scatter
     value = max(_deviation(points_a, normal, mean) / allowed_a, _deviation(points_b, normal, mean) / allowed_b)
     # where the line through the midpoint of the means along the union's normal meets each own plane
     na, ca, _ = _plane(points_a)

@@ -13,13 +13,15 @@ pieces A and B are the same surface when
   to (by more than 2 tau plus 2 sigma of that ray), over at most ``max_gap`` pixels; and
 * the orthogonal least-squares plane U of their union lies within tau RMS of each piece's own
   plane over that piece's points:
-  ``dev(P, U)^2 = mean_P dist_U(p)^2 - s_P^2 <= t_P^2 = tau^2 + lambda^2 s_P^2`` for P = A and P = B,
-  where ``s_P^2 = mean_P dist_P(p)^2`` is the piece's own scatter about its plane (lambda,
-  ``noise_factor``: a deviation between two pieces' planes that is small against the scatter of
-  their points is not significant; the tolerance grows with the noise the data show, as a depth
-  camera's does with depth; 0 for a constant tau); and
+  ``dev(P, U)^2 = mean_P dist_U(p)^2 - s_P^2 <= t^2`` for P = A and P = B, with
+  ``t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))``: ``s_P^2 =
+  mean_P dist_P(p)^2`` is a piece's scatter about its own plane and ``sigma_P^2`` the mean range
+  variance of its rays by the noise model. (lambda, ``noise_factor``: a deviation between two
+  pieces' planes that is small against the noise their points show is not significant, so the
+  tolerance grows with the noise, as a depth camera's does with depth; capped by the noise model,
+  so that a merged surface does not widen its own tolerance; 0 for a constant tau); and
 * the two pieces' own planes meet: along U's normal, at the midpoint of the pieces' means, they are
-  at most ``min(t_A, t_B)`` apart (``t_P`` the tolerance above). Without it a step between two
+  at most ``t`` apart. Without it a step between two
   side-by-side pieces (a kerb beside the road) would pass, the union's plane tilting to split it.
 
 ``dev(A, U)^2 N_A + dev(B, U)^2 N_B`` is the union's increase of the sum of squared point-to-plane
@@ -150,16 +152,16 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
-    and step^2 / min(t_A, t_B)^2, with t_P^2 = tau^2 + lambda^2 s_P^2 (s_P^2: P's mean squared distance
-    from its own plane).
+    and step^2 / t^2, with t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
+    (s_P^2: P's mean squared distance from its own plane; sigma_P^2: the mean range variance of its rays).
 
     U is the union's LS plane; step is the distance between the planes of A and B along U's normal
     at the midpoint of their means. m_*: moments; plane_*: their _plane_of rows.
     """
     mean_u, sc = _scatter(m_a + m_b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
-    allowed_a = tau2 + noise_factor2 * plane_a[9]
-    allowed_b = tau2 + noise_factor2 * plane_b[9]
+    scatter = min(max(plane_a[9], plane_b[9]), max(m_a[10] / m_a[0], m_b[10] / m_b[0]))
+    allowed_a = allowed_b = tau2 + noise_factor2 * scatter
     cost = max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
                _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b)
     x0 = 0.5 * (plane_a[0] + plane_b[0])
