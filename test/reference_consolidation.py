@@ -58,7 +58,7 @@ def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only):
     usable = np.array([g in planes if g >= 0 else False for g in ids])
     work = np.where(usable, ids, -1)
     pairs = set()
-    height, width = scan.height, scan.width
+    width = scan.width
     for step, along_rows in ((1, True), (width, False)):
         for k in range(len(work)):
             b = work[k]

@@ -254,3 +254,25 @@ def test_memory_error_is_one_line_and_exit_2(small_scan, capsys, monkeypatch):
     assert main(['info', str(path)]) == 2
     err = capsys.readouterr().err
     assert err == 'ppe info: error: out of memory (MemoryError); the input is too large for this machine\n'
+
+
+def test_extract_with_a_sensor_profile_uses_its_defaults_and_the_python_api_agrees(small_scan, tmp_path, capsys):
+    from ppe_ros import extract_planes
+    from ppe_ros.core.sensor import PROFILES
+
+    path, _ = small_scan
+    out = tmp_path / 'lidar.npz'
+    assert main(['extract', str(path), '-o', str(out), '--sensor', 'lidar', '--json']) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary['sensor'] == 'lidar'
+    assert summary['snapshots'][0]['max_error_increment'] == PROFILES['lidar'].max_error_increment
+    saved = np.load(out)
+    expected = extract_planes(load_scan(path).points, sensor='lidar')
+    np.testing.assert_array_equal(saved['labels'], expected.labels)
+    assert saved['point_counts'].min() >= PROFILES['lidar'].min_plane_points
+
+
+def test_surface_tolerance_needs_a_sensor(small_scan, tmp_path, capsys):
+    path, _ = small_scan
+    assert main(['extract', str(path), '-o', str(tmp_path / 'x.npz'), '--surface-tolerance', '0.03']) == 2
+    assert '--surface-tolerance needs --sensor' in capsys.readouterr().err

@@ -391,3 +391,14 @@ def test_failure_reason_names_the_exception_inside_a_compiled_kernel():
 def test_frame_label_names_stamp_and_frame_id(types):
     assert frame_label(cloud(types, np.zeros((2, 2, 3)))) == "stamp 1700000123.456000000 s, frame_id 'os_lidar'"
     assert frame_label(object()) == 'a frame without a readable header'
+
+
+def test_the_sensor_parameter_selects_the_profile(types, scan):
+    from ppe_ros.core.extraction import extract_planes
+
+    params = ExtractorParams(min_plane_points=20, sensor='lidar', surface_tolerance=0.04)
+    frame = process_cloud(cloud(types, scan), params, types)
+    expected = extract_planes(frame.points, sensor='lidar', surface_tolerance=0.04, min_plane_points=20)
+    np.testing.assert_array_equal(frame.planes.labels, expected.labels)
+    with pytest.raises(ValueError, match='sensor must be one of'):
+        ExtractorParams(sensor='sonar')

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from reference_consolidation import consolidate_reference, cost
@@ -48,7 +50,7 @@ def test_a_step_of_twelve_centimetres_is_never_one_surface_at_a_tolerance_of_fiv
     for share in (0.5, 0.2, 0.05):
         n_b = int(400 * share)
         a = np.c_[rng.uniform(0, 4, (400 - n_b, 2)), rng.normal(0, 0.005, 400 - n_b)]
-        b = np.c_[rng.uniform(0, 4, (n_b, 2)) + [4, 0], rng.normal(0.12, 0.005, n_b)]
+        b = np.c_[rng.uniform(0, 4, (n_b, 2)) + np.array([4.0, 0.0]), rng.normal(0.12, 0.005, n_b)]
         zero_a, zero_b = np.zeros(len(a)), np.zeros(len(b))
         assert merge_cost(_moments(a, zero_a), _moments(b, zero_b), 0.05) > 1.0
         flat = b - [0, 0, 0.12]
@@ -177,7 +179,7 @@ def test_lidar_profile_keeps_faces_whole_and_apart_on_a_noisy_scan_with_beam_bia
     truth = scan_data.truth
     for face in (0, 1):  # the floor and the wall behind the post: one plane each, mostly covered
         labels = planes.labels[truth == face]
-        values, counts = np.unique(labels[labels > 0], return_counts=True)
+        _, counts = np.unique(labels[labels > 0], return_counts=True)
         assert counts.max() >= 0.8 * (truth == face).sum()
     wall = np.bincount(planes.labels[truth == 1]).argmax()
     panel = planes.labels[truth == 3]
@@ -190,10 +192,51 @@ def test_a_bumpy_blob_is_not_reported_as_planes():
                           elevation_fov_deg=30, noise=0.0, seed=0)
     rng = np.random.default_rng(2)
     points = scan_data.points.copy()
-    # the left half is a rough bush: 20 cm random relief along the rays
+    # in front of the left half of the wall, a rough bush 1 m closer: 20 cm random relief along the rays
     ranges = np.linalg.norm(points - scan_data.origins, axis=-1)
-    relief = np.where(np.arange(cols)[None, :] < cols // 2, rng.normal(0, 0.2, (rows, cols)), 0.0)
+    relief = np.where(np.arange(cols)[None, :] < cols // 2, rng.normal(-1.0, 0.2, (rows, cols)), 0.0)
     points = scan_data.origins + (points - scan_data.origins) * ((ranges + relief) / ranges)[..., None]
-    planes = extract_planes(points, origins=scan_data.origins, sensor='lidar', min_plane_points=10)
+    planes = extract_planes(points, origins=scan_data.origins, sensor='lidar')
     assert (planes.labels[:, : cols // 2] > 0).mean() < 0.25
     assert (planes.labels[:, cols // 2 + 2:] > 0).mean() > 0.9
+
+
+def test_systematic_covariance_grows_with_the_surface_deviation_and_vanishes_without_it():
+    from ppe_ros.core.extraction import systematic_covariances
+
+    scan_data = cast_scan([plane([-1, 0, 0], -4.0)], rows=30, cols=40, position=(0, 0, 0), azimuth_fov_deg=40,
+                          elevation_fov_deg=30, noise=0.0, seed=0)
+    rows = np.indices((30, 40))[0]
+    labels_all = np.ones((30, 40), np.int32)
+
+    def covariance_of(relief):
+        ranges = np.linalg.norm(scan_data.points, axis=-1)
+        points = scan_data.points * ((ranges + relief) / ranges)[..., None]
+        scan = make_ray_scan(points)
+        planes = extract_planes(points, max_error_increment=1e6, min_plane_points=4)
+        planes = dataclasses.replace(planes, labels=labels_all)
+        return systematic_covariances(scan, planes, np.zeros(scan.size), 0.5)[0]
+
+    flat = covariance_of(np.zeros((30, 40)))
+    wavy = covariance_of(0.01 * np.sin(rows / 3.0))
+    wavier = covariance_of(0.02 * np.sin(rows / 3.0))
+    assert np.abs(flat).max() < 1e-12
+    assert np.trace(wavy) > 1e-7
+    assert np.trace(wavier) == pytest.approx(4 * np.trace(wavy), rel=0.05)  # variance ~ deviation^2
+    # along the normal: the offset's variance s_sys^2 / N_eff with N_eff = area / L^2 (here about 1.8 x 1.3 m)
+    normal_var = np.array([1.0, 0, 0]) @ wavy @ np.array([1.0, 0, 0])
+    assert 0.0 < normal_var < np.trace(wavy)
+
+
+def test_profile_covariances_are_wider_than_the_fit_alone_on_a_biased_scan():
+    scan_data = _wall_behind_a_post(noise=0.0, seed=3)
+    rng = np.random.default_rng(7)
+    ranges = np.linalg.norm(scan_data.points - scan_data.origins, axis=-1)
+    biased = ranges + rng.normal(0, 0.05, (ranges.shape[0], 1)) + rng.normal(0, 0.01, ranges.shape)
+    points = scan_data.origins + (scan_data.points - scan_data.origins) * (biased / ranges)[..., None]
+    with_model = extract_planes(points, origins=scan_data.origins, sensor='lidar')
+    fit_only = extract_planes(points, origins=scan_data.origins,
+                              sensor=dataclasses.replace(PROFILES['lidar'], correlation_length=None))
+    np.testing.assert_array_equal(with_model.labels, fit_only.labels)
+    biggest = 0
+    assert np.trace(with_model.covariances[biggest]) > 2 * np.trace(fit_only.covariances[biggest])

@@ -76,5 +76,13 @@ def add_ppe_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument('-n', '--max-planes', type=plane_count, nargs='+', default=None, metavar='N',
                         help='plane-count snapshots J <= N (atomic rays count as planes)')
-    parser.add_argument('--min-plane-points', type=int, default=4,
-                        help='planes with fewer rays are reported as no plane (default 4)')
+    parser.add_argument('--min-plane-points', type=int, default=None,
+                        help='planes with fewer rays are reported as no plane (default 4; with --sensor the '
+                        'profile\'s)')
+    parser.add_argument('--sensor', choices=('lidar', 'depth_camera', 'paper'), default=None,
+                        help='sensor profile: a range noise model and whole surfaces (e is then dimensionless, in '
+                        'units of the noise variance; e, lmax and --min-plane-points default to the profile\'s; '
+                        'see docs/algorithm.md); default: the paper\'s model')
+    parser.add_argument('--surface-tolerance', type=positive_float, default=None, metavar='M',
+                        help='with --sensor: RMS deviation (m) one physical surface may show from its plane '
+                        '(default: the profile\'s)')

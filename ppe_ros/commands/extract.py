@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from ppe_ros.commands._options import add_ppe_options, add_scan_options, read_scan
-from ppe_ros.core.extraction import extract_plane_hierarchy
+from ppe_ros.core.extraction import PROFILE_DEFAULT, extract_plane_hierarchy, extract_planes
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.sensor import sensor_profile
 from ppe_ros.io.files import (
     check_output_targets,
     refuse_overwriting_inputs,
@@ -23,6 +24,7 @@ from ppe_ros.io.loading import scan_input_files
 #: Defaults of the command line (tuned on SynPEB by the reference: sqrt(e) = 0.22 m, lmax = 0.18 m).
 DEFAULT_MAX_ERROR_INCREMENT = 0.0484
 DEFAULT_MAX_NEIGHBOR_DISTANCE = 0.18
+DEFAULT_MIN_PLANE_POINTS = 4
 OUTPUT_SUFFIXES = ('.npz', '.pcd')
 
 
@@ -98,15 +100,23 @@ def run(args: argparse.Namespace) -> int:
     if output.suffix not in OUTPUT_SUFFIXES:
         raise ValueError(f'output must end in .npz or .pcd; got {output.name!r}')
     png = Path(args.png) if args.png else None
-    if args.min_plane_points < 1:
-        raise ValueError(f'--min-plane-points must be >= 1; got {args.min_plane_points}')
+    profile = None if args.sensor is None else sensor_profile(args.sensor)
+    if args.surface_tolerance is not None and profile is None:
+        raise ValueError('--surface-tolerance needs --sensor (a sensor profile)')
+    min_points = args.min_plane_points
+    if min_points is None:
+        min_points = DEFAULT_MIN_PLANE_POINTS if profile is None else profile.min_plane_points
+    if min_points < 1:
+        raise ValueError(f'--min-plane-points must be >= 1; got {min_points}')
     e_list = args.max_error_increment
     n_list = args.max_planes
     if n_list is not None and any(n < 1 for n in n_list):
         raise ValueError(f'-n/--max-planes must be >= 1; got {n_list}')
     if e_list is None and n_list is None:
-        e_list = [DEFAULT_MAX_ERROR_INCREMENT]
-    lmax = DEFAULT_MAX_NEIGHBOR_DISTANCE if args.max_neighbor_distance is None else args.max_neighbor_distance
+        e_list = [DEFAULT_MAX_ERROR_INCREMENT if profile is None else profile.max_error_increment]
+    lmax = args.max_neighbor_distance
+    if lmax is None:
+        lmax = DEFAULT_MAX_NEIGHBOR_DISTANCE if profile is None else profile.max_neighbor_distance
     # every output is checked (inputs by device and inode, collisions, existing files) before anything runs
     plan = planned_outputs(output, png, _snapshot_requests(e_list, n_list))
     targets = [path for pair in plan for path in pair if path is not None]
@@ -115,21 +125,28 @@ def run(args: argparse.Namespace) -> int:
 
     scan = read_scan(args, args.scan)
     start = time.perf_counter()
-    hierarchy = extract_plane_hierarchy(
-        scan.points, origins=scan.origins, max_neighbor_distance=lmax,
-        max_error_increment=max(e_list) if e_list else None, max_planes=min(n_list) if n_list else None,
-    )
     snapshots: list[PlaneSet] = []
-    for e in e_list or []:
-        snapshots.append(hierarchy.cut(max_error_increment=e, min_plane_points=args.min_plane_points))
-    for n in n_list or []:
-        snapshots.append(hierarchy.cut(max_planes=n, min_plane_points=args.min_plane_points))
+    if profile is None:
+        hierarchy = extract_plane_hierarchy(
+            scan.points, origins=scan.origins, max_neighbor_distance=lmax,
+            max_error_increment=max(e_list) if e_list else None, max_planes=min(n_list) if n_list else None,
+        )
+        for e in e_list or []:
+            snapshots.append(hierarchy.cut(max_error_increment=e, min_plane_points=min_points))
+        for n in n_list or []:
+            snapshots.append(hierarchy.cut(max_planes=n, min_plane_points=min_points))
+    else:
+        tolerance = PROFILE_DEFAULT if args.surface_tolerance is None else args.surface_tolerance
+        snapshots = list(extract_planes(
+            scan.points, origins=scan.origins, sensor=profile, max_error_increment=list(e_list or []) or None,
+            max_planes=list(n_list) if n_list else None, max_neighbor_distance=lmax, min_plane_points=min_points,
+            surface_tolerance=tolerance))
     seconds = time.perf_counter() - start
     summary = {'scan': str(args.scan), 'grid': list(scan.shape), 'valid_fraction': scan.valid_fraction,
-               'max_neighbor_distance': lmax, 'seconds': seconds, 'snapshots': []}
+               'max_neighbor_distance': lmax, 'sensor': args.sensor, 'seconds': seconds, 'snapshots': []}
     files = []
     for planes, (path, png_path) in zip(snapshots, plan, strict=True):
-        meta = {'scan': str(args.scan), 'max_neighbor_distance': lmax,
+        meta = {'scan': str(args.scan), 'max_neighbor_distance': lmax, 'sensor': args.sensor,
                 'max_error_increment': planes.max_error_increment, 'max_planes': planes.max_planes,
                 'seconds': seconds}
         files.append((path, planes_writer(path, planes, scan.points, meta=meta)))
@@ -148,9 +165,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         print(f'{args.scan}: {scan.shape[0]}x{scan.shape[1]} grid, {scan.valid_fraction:.1%} valid, '
-              f'extraction {seconds:.2f} s (lmax {lmax:g} m)')
+              f'extraction {seconds:.2f} s (lmax {lmax:g} m' + (f', sensor {args.sensor})' if args.sensor else ')'))
+        unit = ' m^2' if profile is None or profile.noise is None else ''
         for entry in summary['snapshots']:
-            which = (f"e = {entry['max_error_increment']:g} m^2" if entry['max_error_increment'] is not None
+            which = (f"e = {entry['max_error_increment']:g}{unit}" if entry['max_error_increment'] is not None
                      else f"n = {entry['max_planes']}")
             extra = f", picture {entry['png']}" if 'png' in entry else ''
             print(f"  {which}: {entry['planes']} planes covering {entry['labelled_fraction']:.1%} of the grid "

@@ -471,7 +471,8 @@ def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, nor
                 continue
             along = (normals[p, 0] * directions[q, 0] + normals[p, 1] * directions[q, 1]
                      + normals[p, 2] * directions[q, 2])
-            distance = (normals[p, 0] * (endpoints[q, 0] - means[p, 0]) + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
+            distance = (normals[p, 0] * (endpoints[q, 0] - means[p, 0])
+                        + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
                         + normals[p, 2] * (endpoints[q, 2] - means[p, 2]))
             if abs(distance) <= tolerances[p] + 2.0 * sigmas[q] * abs(along):
                 ids[q] = p

@@ -2418,7 +2418,60 @@ def _surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile | Non
     if np.isfinite(factor) and planes.num_planes:
         planes = _drop_non_planar(unit_scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor, factor,
                                   sigmas, min_plane_points, steps, cut)
+    if profile is not None and profile.correlation_length is not None and planes.num_planes:
+        planes = replace(planes, covariances=planes.covariances + systematic_covariances(
+            unit_scan, planes, ray_sigmas, profile.correlation_length))
     return planes
+
+
+def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray,
+                           correlation_length: float) -> np.ndarray:
+    """``(J, 3, 3)`` covariance (m^2) of each plane's closest point d n from errors that do not average out.
+
+    The model: a plane's points deviate from it by the sensor's independent noise (already in the
+    fit's covariance) plus a systematic part (surface flatness, per-beam biases, depth distortion)
+    that is correlated over ``correlation_length`` (m). Its variance is estimated per plane from the
+    data: the mean squared point-to-plane distance less the noise model's share along the normal,
+    s_sys^2 = max(mean dist^2 - mean (sigma_k n . v_k)^2, 0). Over a plane of area A it averages out
+    only over N_eff = clamp(A / L^2, 1, N) independent patches, so the plane's offset at its
+    centroid has variance s_sys^2 / N_eff and its tilt about each in-plane axis e_i
+    s_sys^2 / (N_eff lambda_i) (lambda_i: the points' variance along e_i; A = 12 sqrt(lambda_1 lambda_2),
+    a rectangle's). These three independent errors are mapped to d n to first order.
+    """
+    labels = planes.labels.reshape(-1)
+    on = np.flatnonzero(labels > 0)
+    j = labels[on] - 1
+    count = planes.point_counts.astype(np.float64)
+    points = scan.endpoints[on] + scan.center
+    n_planes = planes.num_planes
+    centroid = np.stack([np.bincount(j, weights=points[:, a], minlength=n_planes) for a in range(3)], 1)
+    centroid /= count[:, None]
+    rel = points - centroid[j]
+    scatter = np.empty((n_planes, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            scatter[:, a, b] = scatter[:, b, a] = np.bincount(j, weights=rel[:, a] * rel[:, b],
+                                                              minlength=n_planes) / count
+    normals, offsets = planes.normals, planes.offsets
+    distance = np.einsum('ij,ij->i', points, normals[j]) - offsets[j]
+    along = np.einsum('ij,ij->i', scan.directions[on], normals[j]) * ray_sigmas[on]
+    residual2 = np.bincount(j, weights=distance**2, minlength=n_planes) / count
+    noise2 = np.bincount(j, weights=along**2, minlength=n_planes) / count
+    systematic2 = np.maximum(residual2 - noise2, 0.0)
+    values, vectors = np.linalg.eigh(scatter)  # ascending: the two largest span the plane
+    lam1, lam2 = np.maximum(values[:, 2], 1e-12), np.maximum(values[:, 1], 1e-12)
+    area = 12.0 * np.sqrt(lam1 * lam2)
+    n_eff = np.clip(area / float(correlation_length) ** 2, 1.0, count)
+    out = np.zeros((n_planes, 3, 3))
+    for variance, axis in ((systematic2 / n_eff, None), (systematic2 / (n_eff * lam1), 2),
+                           (systematic2 / (n_eff * lam2), 1)):
+        if axis is None:
+            column = normals
+        else:
+            e = vectors[:, :, axis]
+            column = np.einsum('ij,ij->i', e, centroid)[:, None] * normals + offsets[:, None] * e
+        out += variance[:, None, None] * column[:, :, None] * column[:, None, :]
+    return np.where(np.isfinite(out), out, 0.0)
 
 
 def _drop_non_planar(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float, noise_factor: float,

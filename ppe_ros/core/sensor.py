@@ -19,7 +19,7 @@ docs/algorithm.md ("Sensor models and whole surfaces").
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -97,6 +97,9 @@ class SensorProfile:
         max_plane_rmse_factor: a consolidated plane whose RMS point-to-plane distance exceeds this
             multiple of sqrt(tau^2 + its sensor noise^2) is not planar (trees, bushes, curved
             bodies) and is reported as no plane; inf = keep every plane.
+        correlation_length: L (m) over which a surface's systematic errors are correlated: the
+            covariances add their part, which does not shrink with the number of points
+            (extraction.systematic_covariances); None = the fit's covariance alone (the paper).
     """
 
     name: str
@@ -108,7 +111,7 @@ class SensorProfile:
     connected_only: bool = False
     min_plane_points: int = 4
     max_plane_rmse_factor: float = np.inf
-    extra: dict = field(default_factory=dict)
+    correlation_length: float | None = None
 
     def with_overrides(self, **overrides) -> SensorProfile:
         """A copy with the given (non-None) settings replaced."""
@@ -127,10 +130,10 @@ PROFILES: dict[str, SensorProfile] = {
     'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
                            min_plane_points=4),
     'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
-                           min_plane_points=20, max_plane_rmse_factor=1.5),
+                           min_plane_points=20, max_plane_rmse_factor=1.5, correlation_length=1.3),
     'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
-                                  surface_tolerance=0.005, noise_factor=2.0, min_plane_points=100,
-                                  max_plane_rmse_factor=1.5),
+                                  surface_tolerance=0.01, noise_factor=3.0, min_plane_points=100,
+                                  max_plane_rmse_factor=1.5, correlation_length=0.7),
 }
 
 

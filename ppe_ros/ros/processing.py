@@ -44,6 +44,8 @@ from ppe_ros.ros.pointcloud2 import (
 # --------------------------------------------------------------------------------------------
 
 RELIABILITY_CHOICES = ('best_effort', 'reliable')
+#: Values of the sensor parameter ('none': no profile).
+SENSOR_CHOICES = ('none', 'lidar', 'depth_camera', 'paper')
 
 #: ROS parameters every node has or that configure QoS; a params file may contain them.
 ROS_BUILTIN_PARAMETERS = ('use_sim_time', 'start_type_description_service')
@@ -129,6 +131,13 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               low=0.0, high=math.inf, low_exclusive=True),
     ParamSpec('min_plane_points', 'integer', 20,
               'planes with fewer points are reported as no plane (label 0)', low=1, high=2**31 - 1),
+    ParamSpec('sensor', 'string', 'none',
+              "sensor profile: none (the paper's model with the parameters above), lidar or depth_camera (a noise "
+              'model and whole surfaces; e and lmax are then the profile\'s, see docs/algorithm.md), or paper',
+              choices=SENSOR_CHOICES),
+    ParamSpec('surface_tolerance', 'double', 0.0,
+              'with a sensor profile: RMS deviation (m) one physical surface may show from its plane; 0 = the '
+              "profile's", low=0.0, high=10.0),
     ParamSpec('ray_origin', 'double_array', (0.0, 0.0, 0.0),
               'start point x y z (m) of every ray, in the frame of the input cloud', length=3),
     ParamSpec('max_points', 'integer', 2_000_000,
@@ -166,6 +175,8 @@ class ExtractorParams:
     max_planes: int = 0
     max_neighbor_distance: float = math.inf
     min_plane_points: int = 20
+    sensor: str = 'none'
+    surface_tolerance: float = 0.0
     ray_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     max_points: int = 2_000_000
     input_reliability: str = 'best_effort'
@@ -462,18 +473,22 @@ def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
     Raises:
         FrameSkipped: the cloud cannot be used (see :func:`cloud_points`).
     """
-    from ppe_ros.core.extraction import extract_planes
+    from ppe_ros.core.extraction import PROFILE_DEFAULT, extract_planes
 
     start = time.perf_counter()
     points = cloud_points(msg, params)
     timings = {'convert': (mark := time.perf_counter()) - start}
+    if params.sensor == 'none':
+        settings = {'max_error_increment': params.max_error_increment,
+                    'max_neighbor_distance': params.max_neighbor_distance}
+    else:  # the profile's e (in its units) and lmax
+        settings = {'sensor': params.sensor, 'surface_tolerance': params.surface_tolerance or PROFILE_DEFAULT}
     planes = extract_planes(
         points,
         origins=np.asarray(params.ray_origin, dtype=np.float64),
-        max_error_increment=params.max_error_increment,
         max_planes=params.max_planes or None,
-        max_neighbor_distance=params.max_neighbor_distance,
         min_plane_points=params.min_plane_points,
+        **settings,
     )
     if isinstance(planes, list):  # both thresholds set: one cut each; stop at whichever comes first
         planes = min(planes, key=lambda cut: cut.actions)
