@@ -4,6 +4,7 @@ The public API needs only numpy and numba (no ROS import here)::
 
     from ppe_ros import extract_planes
     planes = extract_planes(points, max_error_increment=0.0484, max_neighbor_distance=0.18)
+    planes = extract_planes(points, origins=origins, sensor='lidar')   # a real sensor's profile
 
 Names are resolved lazily so that ``import ppe_ros`` stays fast.
 """
@@ -22,6 +23,9 @@ _EXPORTS = {
     'release_work_memory': 'ppe_ros.core.extraction',
     'fit_plane': 'ppe_ros.core.fitting',
     'fit_labeled_planes': 'ppe_ros.core.fitting',
+    'NoiseModel': 'ppe_ros.core.sensor',
+    'SensorProfile': 'ppe_ros.core.sensor',
+    'PROFILES': 'ppe_ros.core.sensor',
 }
 
 __all__ = sorted(_EXPORTS)

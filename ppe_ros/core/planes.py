@@ -27,7 +27,9 @@ class PlaneSet:
         rmse: ``(J,)`` ``sqrt(sse / point_counts)``, metres.
         covariances: ``(J, 3, 3)`` covariance of the closest-point vector ``offsets * normals``
             (m^2), from the Gauss-Newton information matrix of the fit, with the noise variance
-            estimated from the plane's own residuals (``sse / (count - 3)``).
+            estimated from the plane's own residuals (``sse / (count - 3)``); with a sensor profile
+            the fit is weighted by the noise model and a systematic part is added (errors
+            correlated over the surface, see docs/algorithm.md).
         max_error_increment: the threshold e (m^2) this snapshot was cut at, or None.
         max_planes: the plane-count threshold this snapshot was cut at, or None.
         actions: number of greedy actions executed to reach this snapshot.

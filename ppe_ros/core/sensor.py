@@ -132,7 +132,7 @@ PROFILES: dict[str, SensorProfile] = {
     'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
                            min_plane_points=20, max_plane_rmse_factor=1.5, correlation_length=1.3),
     'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
-                                  surface_tolerance=0.01, noise_factor=3.0, min_plane_points=100,
+                                  surface_tolerance=0.005, noise_factor=3.0, min_plane_points=100,
                                   max_plane_rmse_factor=1.5, correlation_length=0.7),
 }
 
