@@ -868,6 +868,39 @@ def _pack_faces(polygons: Sequence[np.ndarray]) -> _PackedFaces:
     return packed
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, edge_offsets, edge_counts, centers,
+              radii, inside_tolerance, min_distance):
+    """Distance t along the ray (o, d) at which it meets face f inside its polygon, if min_distance < t < best;
+    else inf. The face's bounding sphere (centers, radii) is tested first."""
+    cx = centers[f, 0] - ox
+    cy = centers[f, 1] - oy
+    cz = centers[f, 2] - oz
+    along = cx * dx + cy * dy + cz * dz
+    radius = radii[f]
+    if along + radius < 0.0 or along - radius > best:
+        return np.inf
+    if cx * cx + cy * cy + cz * cz - along * along > radius * radius:
+        return np.inf
+    nx, ny, nz = normals[f, 0], normals[f, 1], normals[f, 2]
+    denominator = nx * dx + ny * dy + nz * dz
+    if denominator == 0.0:
+        return np.inf
+    t = (offsets[f] - (nx * ox + ny * oy + nz * oz)) / denominator
+    if not (t > min_distance and t < best):
+        return np.inf
+    px = ox + t * dx
+    py = oy + t * dy
+    pz = oz + t * dz
+    for e in range(edge_counts[f]):
+        value = (
+            edge_normals[f, e, 0] * px + edge_normals[f, e, 1] * py + edge_normals[f, e, 2] * pz
+        ) - edge_offsets[f, e]
+        if value < -inside_tolerance:
+            return np.inf
+    return t
+
+
 @njit(cache=True, nogil=True)
 def _cast_rays_kernel(
     origins: np.ndarray,
@@ -896,34 +929,9 @@ def _cast_rays_kernel(
         best = np.inf
         best_face = -1
         for f in range(n_faces):
-            cx = centers[f, 0] - ox
-            cy = centers[f, 1] - oy
-            cz = centers[f, 2] - oz
-            along = cx * dx + cy * dy + cz * dz
-            radius = radii[f]
-            if along + radius < 0.0 or along - radius > best:
-                continue
-            if cx * cx + cy * cy + cz * cz - along * along > radius * radius:
-                continue
-            nx, ny, nz = normals[f, 0], normals[f, 1], normals[f, 2]
-            denominator = nx * dx + ny * dy + nz * dz
-            if denominator == 0.0:
-                continue
-            t = (offsets[f] - (nx * ox + ny * oy + nz * oz)) / denominator
-            if not (t > min_distance and t < best):
-                continue
-            px = ox + t * dx
-            py = oy + t * dy
-            pz = oz + t * dz
-            inside = True
-            for e in range(edge_counts[f]):
-                value = (
-                    edge_normals[f, e, 0] * px + edge_normals[f, e, 1] * py + edge_normals[f, e, 2] * pz
-                ) - edge_offsets[f, e]
-                if value < -inside_tolerance:
-                    inside = False
-                    break
-            if inside:
+            t = _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, edge_offsets, edge_counts,
+                          centers, radii, inside_tolerance, min_distance)
+            if t < best:
                 best = t
                 best_face = f
         if best_face >= 0:

@@ -58,6 +58,7 @@ from ppe_ros.core.synthetic import (
     SensorPose,
     SyntheticScan,
     _check_seed,
+    _face_hit,
     _newell_normal,
     _validate_polygon,
     beam_offset_origins,
@@ -949,33 +950,9 @@ def _cast_grouped_kernel(origins, directions, normals, offsets, edge_normals, ed
                 if gx * gx + gy * gy + gz * gz - along * along > radius * radius:
                     continue
                 for f in range(chunk_bounds[c], chunk_bounds[c + 1]):
-                    cx = centers[f, 0] - ox
-                    cy = centers[f, 1] - oy
-                    cz = centers[f, 2] - oz
-                    along_f = cx * dx + cy * dy + cz * dz
-                    radius_f = radii[f]
-                    if along_f + radius_f < 0.0 or along_f - radius_f > best:
-                        continue
-                    if cx * cx + cy * cy + cz * cz - along_f * along_f > radius_f * radius_f:
-                        continue
-                    nx, ny, nz = normals[f, 0], normals[f, 1], normals[f, 2]
-                    denominator = nx * dx + ny * dy + nz * dz
-                    if denominator == 0.0:
-                        continue
-                    t = (offsets[f] - (nx * ox + ny * oy + nz * oz)) / denominator
-                    if not (t > min_distance and t < best):
-                        continue
-                    px = ox + t * dx
-                    py = oy + t * dy
-                    pz = oz + t * dz
-                    inside = True
-                    for e in range(edge_counts[f]):
-                        value = (edge_normals[f, e, 0] * px + edge_normals[f, e, 1] * py
-                                 + edge_normals[f, e, 2] * pz) - edge_offsets[f, e]
-                        if value < -inside_tolerance:
-                            inside = False
-                            break
-                    if inside:
+                    t = _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, edge_offsets,
+                                  edge_counts, centers, radii, inside_tolerance, min_distance)
+                    if t < best:
                         best = t
                         best_face = f
         if best_face >= 0:
