@@ -301,9 +301,12 @@ class _SalvagedMcapStream:
 
 
 def _partial_decompress(data: bytes, compression: str) -> bytes:
-    """As much of a cut chunk's compressed data as decompresses (empty if nothing does)."""
+    """As much of a cut chunk's compressed data as decompresses (empty if nothing does).
+
+    ``compression``: an MCAP chunk's ('', 'zstd', 'lz4') or a ROS 1 chunk's ('none', 'bz2', 'lz4').
+    """
     try:
-        if compression == '':
+        if compression in ('', 'none'):
             return data
         if compression == 'zstd':
             try:
@@ -311,6 +314,10 @@ def _partial_decompress(data: bytes, compression: str) -> bytes:
             except ImportError:
                 from backports import zstd  # type: ignore[no-redef]
             return zstd.ZstdDecompressor().decompress(data)
+        if compression == 'bz2':
+            import bz2
+
+            return bz2.BZ2Decompressor().decompress(data)
         if compression == 'lz4':
             import lz4.frame
 
@@ -469,7 +476,7 @@ class SalvageRos1Reader:
                     raise Ros1ReaderError(f'Compression {compression!r} is not supported.')
                 data = bio.read(size)
                 if len(data) < size:  # a chunk cut short: the records complete in it
-                    yield from self._chunk_records(_partial_ros1_decompress(data, compression), partial=True)
+                    yield from self._chunk_records(_partial_decompress(data, compression), partial=True)
                     raise Ros1ReaderError(f'the chunk at byte {start} is cut short ({len(data)} of {size} bytes); '
                                           'the records complete in it are read')
                 yield from self._chunk_records(ros1_decompressors[compression](data), partial=False)
@@ -794,24 +801,6 @@ class SalvageSqliteReader:
             payload = database.payload(local, size, database.overflow_pages(first, size - len(local)) if first else [])
             values = database.record(payload)
             yield wanted[topic_id], timestamp, values[3]
-
-
-def _partial_ros1_decompress(data: bytes, compression: str) -> bytes:
-    """As much of a cut ROS 1 chunk as decompresses (empty if nothing does)."""
-    try:
-        if compression == 'none':
-            return data
-        if compression == 'bz2':
-            import bz2
-
-            return bz2.BZ2Decompressor().decompress(data)
-        if compression == 'lz4':
-            import lz4.frame
-
-            return lz4.frame.LZ4FrameDecompressor().decompress(data)
-    except Exception:
-        return b''
-    return b''
 
 
 def _magic(path: Path) -> bytes:
