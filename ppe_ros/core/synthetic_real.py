@@ -1294,6 +1294,26 @@ def default_min_surface_pixels(rows: int, cols: int, *, reference_pixels: int = 
     return max(10, round(50 * rows * cols / reference_pixels))
 
 
+def _cast_undulated(scene, world_starts, world_directions, errors, seed):
+    """Cast rays (world frame) and displace each hit along its face's normal by the face's undulation.
+
+    Returns (distances to the flat faces (NaN: no hit), hit mask, scene label of each hit (0: none),
+    the hit faces' normals, distances to the undulating surfaces (NaN: no hit)).
+    """
+    caster = _Caster.of(scene)
+    distances, faces = caster.cast(world_starts, world_directions)
+    hit = faces >= 0
+    face_labels = np.where(hit, scene.scene.labels[np.maximum(faces, 0)], 0)
+    normals = caster.normals[np.maximum(faces, 0)]
+    waves = _undulation_waves(scene, caster.normals, errors.surface_amplitude,
+                              (errors.surface_wavelength_min, errors.surface_wavelength_max),
+                              int(errors.surface_waves), seed)
+    undulated = np.full(distances.shape, np.nan)
+    undulated[hit] = _displace_hits(world_starts[hit], world_directions[hit], distances[hit], face_labels[hit],
+                                    normals[hit], waves)
+    return distances, hit, face_labels, normals, undulated
+
+
 def generate_lidar_scan(
     scene: SurfaceScene | None = None,
     *,
@@ -1363,17 +1383,8 @@ def generate_lidar_scan(
     rotation = pose.rotation()
     world_starts = starts.reshape(-1, 3) @ rotation.T + np.asarray(pose.position)
     world_directions = cast.reshape(-1, 3) @ rotation.T
-    caster = _Caster.of(scene)
-    distances, faces = caster.cast(world_starts, world_directions)
-    hit = faces >= 0
-    face_labels = np.where(hit, scene.scene.labels[np.maximum(faces, 0)], 0)
-    normals = caster.normals[np.maximum(faces, 0)]
-    waves = _undulation_waves(scene, caster.normals, errors.surface_amplitude,
-                              (errors.surface_wavelength_min, errors.surface_wavelength_max),
-                              int(errors.surface_waves), seed)
-    undulated = np.full(distances.shape, np.nan)
-    undulated[hit] = _displace_hits(world_starts[hit], world_directions[hit], distances[hit], face_labels[hit],
-                                    normals[hit], waves)
+    distances, hit, face_labels, normals, undulated = _cast_undulated(scene, world_starts, world_directions, errors,
+                                                                      seed)
     cos_inc = np.abs(np.einsum('ij,ij->i', normals, world_directions))
     sigma = errors.sigma(cos_inc).reshape(height, width)
     measured = undulated.reshape(height, width) + beam_bias[:, None] + sigma * range_noise
@@ -1526,17 +1537,8 @@ def generate_depth_scan(
     position = np.asarray(pose.position)
     world_directions = rays.reshape(-1, 3) @ rotation.T
     world_starts = np.broadcast_to(position, world_directions.shape)
-    caster = _Caster.of(scene)
-    distances, faces = caster.cast(world_starts, world_directions)
-    hit = faces >= 0
-    face_labels = np.where(hit, scene.scene.labels[np.maximum(faces, 0)], 0)
-    normals = caster.normals[np.maximum(faces, 0)]
-    waves = _undulation_waves(scene, caster.normals, errors.surface_amplitude,
-                              (errors.surface_wavelength_min, errors.surface_wavelength_max),
-                              int(errors.surface_waves), seed)
-    undulated = np.full(distances.shape, np.nan)
-    undulated[hit] = _displace_hits(world_starts[hit], world_directions[hit], distances[hit], face_labels[hit],
-                                    normals[hit], waves)
+    distances, hit, face_labels, _, undulated = _cast_undulated(scene, world_starts, world_directions, errors,
+                                                                seed)
     ray_z = rays[..., 2]
     true_depth = distances.reshape(height, width) * ray_z
     depth = undulated.reshape(height, width) * ray_z
@@ -1548,7 +1550,7 @@ def generate_depth_scan(
         targets = world_starts[hit] + world_directions[hit] * distances[hit, None]
         towards = targets - projector
         length = np.linalg.norm(towards, axis=1)
-        blocked, _ = caster.cast(np.broadcast_to(projector, towards.shape), towards / length[:, None])
+        blocked, _ = _Caster.of(scene).cast(np.broadcast_to(projector, towards.shape), towards / length[:, None])
         shadowed[np.flatnonzero(hit)] = blocked < length - np.maximum(1e-3, 1e-4 * length)
     shadowed = shadowed.reshape(height, width)
 
