@@ -370,14 +370,35 @@ def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _piece_planes(moments):
-    """Unit normals and means (internal frame) of the LS planes of pieces given by (K, 10) moments."""
+    """Unit normals, means (internal frame) and scatter about the plane (m^2) of the LS planes of pieces
+    given by (K, 11) moments."""
     normals = np.empty((len(moments), 3))
     means = np.empty((len(moments), 3))
+    own = np.empty(len(moments))
     row = np.empty(13)
     for g in range(len(moments)):
         normals[g, 0], normals[g, 1], normals[g, 2] = _plane_of(moments[g], row)
         means[g, 0], means[g, 1], means[g, 2] = row[0], row[1], row[2]
-    return normals, means
+        own[g] = row[9]
+    return normals, means, own
+
+
+def _dense_pieces(scan: RayScan, ids: np.ndarray, sigmas: np.ndarray, min_points: int):
+    """The pieces of ``ids`` (>= 0; -1: none) as dense ids 0..K-1 with their moments.
+
+    Returns (labels: (K,) the original id of each dense id, dense: (H*W,) dense id of each pixel or -1,
+    moments: (K, 11), small: (K,) pieces of fewer than min_points rays, planes: _piece_planes of the
+    moments, with small pieces' rows computed from a placeholder).
+    """
+    uniq, dense = np.unique(ids, return_inverse=True)
+    dense = dense.reshape(-1) - (1 if len(uniq) and uniq[0] < 0 else 0)
+    labels = uniq[uniq >= 0]
+    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
+    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
+    moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
+    small = moments[:, 0] < min_points
+    planes = _piece_planes(np.where(small[:, None], np.ones(11), moments))
+    return labels, dense, moments, small, planes
 
 
 def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
@@ -407,17 +428,10 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
-    uniq, dense = np.unique(ids, return_inverse=True)
-    dense = dense.reshape(-1) - (1 if len(uniq) and uniq[0] < 0 else 0)
-    labels = uniq[uniq >= 0]
-    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
-    if len(labels) < 2:
+    if len(np.unique(ids[ids >= 0])) < 2:
         return ids.copy()
-    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
-    moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
-    small = moments[:, 0] < 3
+    labels, dense, moments, small, (normals, means, _) = _dense_pieces(scan, ids, sigmas, 3)
     dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
-    normals, means = _piece_planes(np.where(small[:, None], np.ones(11), moments))
     pairs = _candidate_pairs(dense_for_pairs, scan.endpoints, scan.directions, scan.ranges,
                              np.ascontiguousarray(sigmas, dtype=np.float64), scan.height, scan.width, normals, means,
                              tau, int(max_gap), bool(connected_only))
@@ -490,20 +504,9 @@ def absorb_rays(scan: RayScan, surface_ids: np.ndarray, sigmas: np.ndarray, surf
     ids = np.ascontiguousarray(surface_ids, dtype=np.int64).copy()
     if ids.size == 0 or ids.max() < 0:
         return ids
-    uniq, dense = np.unique(ids, return_inverse=True)
-    dense = dense.reshape(-1) - (1 if uniq[0] < 0 else 0)
-    labels = uniq[uniq >= 0]
-    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
-    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
-    moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
-    small = moments[:, 0] < max(int(min_points), 3)
+    labels, dense, _, small, (normals, means, own) = _dense_pieces(scan, ids, sigmas, max(int(min_points), 3))
     dense = np.where((dense >= 0) & ~small[np.maximum(dense, 0)], dense, -1)
-    normals, means = _piece_planes(np.where(small[:, None], np.ones(11), moments))
-    own = np.empty(len(labels))
-    row = np.empty(13)
-    for g in range(len(labels)):  # the pieces' scatter about their planes
-        _plane_of(moments[g] if not small[g] else np.ones(11), row)
-        own[g] = row[9]
+    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     tolerances = np.sqrt(float(surface_tolerance) ** 2 + float(noise_factor) ** 2 * own)
     _absorb_kernel(dense, scan.endpoints, scan.directions, ray_sigmas, scan.valid, scan.height, scan.width, normals,
                    means, tolerances)

@@ -2416,8 +2416,8 @@ def _surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile | Non
                                   actions=steps, **cut)
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
-        planes = _drop_non_planar(unit_scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor, factor,
-                                  sigmas, min_plane_points, steps, cut)
+        planes = _drop_non_planar(unit_scan, scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor,
+                                  factor, sigmas, min_plane_points, steps, cut)
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         planes = replace(planes, covariances=planes.covariances + systematic_covariances(
             unit_scan, planes, ray_sigmas, profile.correlation_length))
@@ -2474,12 +2474,13 @@ def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarr
     return np.where(np.isfinite(out), out, 0.0)
 
 
-def _drop_non_planar(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float, noise_factor: float,
-                     factor: float, sigmas: np.ndarray | None, min_plane_points: int, steps: int,
-                     cut: dict) -> PlaneSet:
+def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float,
+                     noise_factor: float, factor: float, sigmas: np.ndarray | None, min_plane_points: int,
+                     steps: int, cut: dict) -> PlaneSet:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
-    plus the sensor's noise along the normal (lambda: noise_factor).
+    plus the sensor's noise along the normal (lambda: noise_factor). scan has unit directions; the
+    kept planes are refitted on fit_scan (the greedy's, directions scaled by sigmas).
     """
     labels = planes.labels.reshape(-1)
     on = np.flatnonzero(labels > 0)
@@ -2497,8 +2498,6 @@ def _drop_non_planar(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, ta
         return planes
     keep = np.concatenate([[False], planar])
     ids = np.where(keep[labels], labels, -1).astype(np.int64)
-    fit_scan = scan if sigmas is None else replace(
-        scan, directions=scan.directions * np.where(scan.valid, sigmas, 0.0)[:, None])
     refit, _ = _fit_pixel_groups(fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
                                  actions=steps, **cut)
     return refit
