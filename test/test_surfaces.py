@@ -202,7 +202,7 @@ def test_a_bumpy_blob_is_not_reported_as_planes():
 
 
 def test_systematic_covariance_grows_with_the_surface_deviation_and_vanishes_without_it():
-    from ppe_ros.core.extraction import systematic_covariances
+    from ppe_ros.core.surfaces import systematic_covariances
 
     scan_data = cast_scan([plane([-1, 0, 0], -4.0)], rows=30, cols=40, position=(0, 0, 0), azimuth_fov_deg=40,
                           elevation_fov_deg=30, noise=0.0, seed=0)

@@ -99,7 +99,7 @@ class SensorProfile:
             bodies) and is reported as no plane; inf = keep every plane.
         correlation_length: L (m) over which a surface's systematic errors are correlated: the
             covariances add their part, which does not shrink with the number of points
-            (extraction.systematic_covariances); None = the fit's covariance alone (the paper).
+            (surfaces.systematic_covariances); None = the fit's covariance alone (the paper).
     """
 
     name: str

@@ -819,7 +819,10 @@ def _run(argv: list[str]) -> int:
         if node is not None:
             node.stop()
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RCLError:  # rclpy's signal handler shut the context down between try_shutdown's check and call
+            pass
     return exit_code
 
 

@@ -1,0 +1,133 @@
+"""Whole surfaces: a snapshot of the greedy consolidated into one plane per physical surface.
+
+After the greedy (ppe_ros.core.extraction) with a sensor profile, the pieces of one surface are
+merged (ppe_ros.core.consolidation), planes that are not planar within the sensor's tolerance are
+reported as no plane, and each plane's covariance gets the share of the errors that do not average
+out (systematic_covariances). Frames: the scan's; lengths in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ppe_ros.core.consolidation import absorb_rays, consolidate_pieces
+from ppe_ros.core.fitting import _fit_pixel_groups
+from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.scan import RayScan
+from ppe_ros.core.sensor import SensorProfile
+
+if TYPE_CHECKING:
+    from ppe_ros.core.extraction import PlaneHierarchy
+
+
+def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile | None, min_plane_points: int,
+              surface_tolerance: float | None, connected_only: bool) -> PlaneSet:
+    """One snapshot of the greedy, consolidated into whole surfaces and filtered for planarity."""
+    if 'max_error_increment' in cut:
+        steps = hierarchy.steps_for_error(cut['max_error_increment'])
+    else:
+        steps = hierarchy.steps_for_count(cut['max_planes'])
+    ids = hierarchy.plane_ids(steps)
+    scan = hierarchy.scan
+    sigmas = hierarchy.sigmas
+    unit_scan = scan if sigmas is None else replace(
+        scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
+    ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
+    if surface_tolerance is not None:
+        noise_factor = 0.0 if profile is None else profile.noise_factor
+        ids = consolidate_pieces(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only=connected_only,
+                                 noise_factor=noise_factor)
+        ids = absorb_rays(unit_scan, ids, ray_sigmas, surface_tolerance, noise_factor=noise_factor,
+                          min_points=min_plane_points)
+    planes, _ = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
+                                  actions=steps, **cut)
+    factor = np.inf if profile is None else profile.max_plane_rmse_factor
+    if np.isfinite(factor) and planes.num_planes:
+        planes = _drop_non_planar(unit_scan, scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor,
+                                  factor, sigmas, min_plane_points, steps, cut)
+    if profile is not None and profile.correlation_length is not None and planes.num_planes:
+        planes = replace(planes, covariances=planes.covariances + systematic_covariances(
+            unit_scan, planes, ray_sigmas, profile.correlation_length))
+    return planes
+
+
+def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray,
+                           correlation_length: float) -> np.ndarray:
+    """``(J, 3, 3)`` covariance (m^2) of each plane's closest point d n from errors that do not average out.
+
+    The model: a plane's points deviate from it by the sensor's independent noise (already in the
+    fit's covariance) plus a systematic part (surface flatness, per-beam biases, depth distortion)
+    that is correlated over ``correlation_length`` (m). Its variance is estimated per plane from the
+    data: the mean squared point-to-plane distance less the noise model's share along the normal,
+    s_sys^2 = max(mean dist^2 - mean (sigma_k n . v_k)^2, 0). Over a plane of area A it averages out
+    only over N_eff = clamp(A / L^2, 1, N) independent patches, so the plane's offset at its
+    centroid has variance s_sys^2 / N_eff and its tilt about each in-plane axis e_i
+    s_sys^2 / (N_eff lambda_i) (lambda_i: the points' variance along e_i; A = 12 sqrt(lambda_1 lambda_2),
+    a rectangle's). These three independent errors are mapped to d n to first order.
+    """
+    labels = planes.labels.reshape(-1)
+    on = np.flatnonzero(labels > 0)
+    j = labels[on] - 1
+    count = planes.point_counts.astype(np.float64)
+    points = scan.endpoints[on] + scan.center
+    n_planes = planes.num_planes
+    centroid = np.stack([np.bincount(j, weights=points[:, a], minlength=n_planes) for a in range(3)], 1)
+    centroid /= count[:, None]
+    rel = points - centroid[j]
+    scatter = np.empty((n_planes, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            scatter[:, a, b] = scatter[:, b, a] = np.bincount(j, weights=rel[:, a] * rel[:, b],
+                                                              minlength=n_planes) / count
+    normals, offsets = planes.normals, planes.offsets
+    distance = np.einsum('ij,ij->i', points, normals[j]) - offsets[j]
+    along = np.einsum('ij,ij->i', scan.directions[on], normals[j]) * ray_sigmas[on]
+    residual2 = np.bincount(j, weights=distance**2, minlength=n_planes) / count
+    noise2 = np.bincount(j, weights=along**2, minlength=n_planes) / count
+    systematic2 = np.maximum(residual2 - noise2, 0.0)
+    values, vectors = np.linalg.eigh(scatter)  # ascending: the two largest span the plane
+    lam1, lam2 = np.maximum(values[:, 2], 1e-12), np.maximum(values[:, 1], 1e-12)
+    area = 12.0 * np.sqrt(lam1 * lam2)
+    n_eff = np.clip(area / float(correlation_length) ** 2, 1.0, count)
+    out = np.zeros((n_planes, 3, 3))
+    for variance, axis in ((systematic2 / n_eff, None), (systematic2 / (n_eff * lam1), 2),
+                           (systematic2 / (n_eff * lam2), 1)):
+        if axis is None:
+            column = normals
+        else:
+            e = vectors[:, :, axis]
+            column = np.einsum('ij,ij->i', e, centroid)[:, None] * normals + offsets[:, None] * e
+        out += variance[:, None, None] * column[:, :, None] * column[:, None, :]
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float,
+                     noise_factor: float, factor: float, sigmas: np.ndarray | None, min_plane_points: int,
+                     steps: int, cut: dict) -> PlaneSet:
+    """Report as no plane every plane whose RMS point-to-plane distance exceeds
+    factor * sqrt(tau^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
+    plus the sensor's noise along the normal (lambda: noise_factor). scan has unit directions; the
+    kept planes are refitted on fit_scan (the greedy's, directions scaled by sigmas).
+    """
+    labels = planes.labels.reshape(-1)
+    on = np.flatnonzero(labels > 0)
+    j = labels[on] - 1
+    normals_internal = planes.normals[j]
+    points = scan.endpoints[on] + scan.center
+    distance = np.einsum('ij,ij->i', points, normals_internal) - planes.offsets[j]
+    along = np.abs(np.einsum('ij,ij->i', scan.directions[on], normals_internal)) * ray_sigmas[on]
+    count = np.maximum(planes.point_counts, 1)
+    mean_d2 = np.bincount(j, weights=distance**2, minlength=planes.num_planes) / count
+    noise2 = np.bincount(j, weights=along**2, minlength=planes.num_planes) / count
+    sigma2 = np.bincount(j, weights=ray_sigmas[on] ** 2, minlength=planes.num_planes) / count
+    planar = mean_d2 <= factor**2 * (tau**2 + noise_factor**2 * sigma2 + noise2)
+    if planar.all():
+        return planes
+    keep = np.concatenate([[False], planar])
+    ids = np.where(keep[labels], labels, -1).astype(np.int64)
+    refit, _ = _fit_pixel_groups(fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
+                                 actions=steps, **cut)
+    return refit
