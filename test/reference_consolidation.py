@@ -26,12 +26,12 @@ def cost(points_a, points_b, sigmas_a, sigmas_b, tau, noise_factor):
     scatter = min(max(_plane(points_a)[2], _plane(points_b)[2]), max(np.mean(sigmas_a**2), np.mean(sigmas_b**2)))
     allowed_a = allowed_b = tau**2 + noise_factor**2 * scatter
     value = max(_deviation(points_a, normal, mean) / allowed_a, _deviation(points_b, normal, mean) / allowed_b)
-    # where the line through the midpoint of the means along the union's normal meets each own plane
+    # the step at each piece's mean: where the line from it along the union's normal meets the other's plane
     na, ca, _ = _plane(points_a)
     nb, cb, _ = _plane(points_b)
-    mid = 0.5 * (ca + cb)
-    step = na @ (ca - mid) / (na @ normal) - nb @ (cb - mid) / (nb @ normal)
-    return max(value, step**2 / min(allowed_a, allowed_b))
+    step_at_a = nb @ (cb - ca) / (nb @ normal)
+    step_at_b = na @ (ca - cb) / (na @ normal)
+    return max(value, min(step_at_a**2, step_at_b**2) / min(allowed_a, allowed_b))
 
 
 def _bridges(scan, sigmas, ids, k, normal, mean, tau, connected_only):
@@ -48,7 +48,7 @@ def _bridges(scan, sigmas, ids, k, normal, mean, tau, connected_only):
     return height * start_height > 0 and abs(start_height) > abs(height)
 
 
-def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only):
+def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_columns=False):
     planes = {}
     for g in np.unique(ids[ids >= 0]):
         members = np.flatnonzero(ids == g)
@@ -85,13 +85,19 @@ def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only):
         for q in ((k + 1) if (k + 1) % width else None, k + width if k + width < len(work) else None):
             if q is not None and work[k] >= 0 and work[q] >= 0 and work[k] != work[q]:
                 pairs.add((min(work[k], work[q]), max(work[k], work[q])))
+    if wrap_columns:  # the last column touches the first
+        for row in range(scan.height):
+            a, b = work[row * width + width - 1], work[row * width]
+            if a >= 0 and b >= 0 and a != b:
+                pairs.add((min(a, b), max(a, b)))
     return pairs
 
 
-def consolidate_reference(scan, ids, sigmas, tau, *, noise_factor=0.0, connected_only=False, max_gap=64):
+def consolidate_reference(scan, ids, sigmas, tau, *, noise_factor=0.0, connected_only=False, max_gap=64,
+                          wrap_columns=False):
     """Surface id (the smallest piece id) of each pixel, -1 for none."""
     ids = np.asarray(ids, np.int64)
-    pairs = candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only)
+    pairs = candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_columns)
     root = {g: g for g in np.unique(ids[ids >= 0])}
 
     def find(g):

@@ -10,7 +10,14 @@ from reference_consolidation import consolidate_reference, cost
 from scenes import cast_scan, face_from_polygon, plane
 
 from ppe_ros import extract_planes
-from ppe_ros.core.consolidation import _piece_moments, _smallest_eigen, consolidate_pieces, merge_cost
+from ppe_ros.core.consolidation import (
+    _piece_moments,
+    _smallest_eigen,
+    absorb_rays,
+    columns_wrap,
+    consolidate_pieces,
+    merge_cost,
+)
 from ppe_ros.core.extraction import extract_plane_hierarchy
 from ppe_ros.core.scan import make_ray_scan
 from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, sensor_profile
@@ -56,6 +63,68 @@ def test_a_step_of_twelve_centimetres_is_never_one_surface_at_a_tolerance_of_fiv
         flat = b - [0, 0, 0.12]
         assert merge_cost(_moments(a, zero_a), _moments(flat, zero_b), 0.05) < 0.05
 
+
+
+def test_a_small_piece_whose_own_plane_is_tilted_by_noise_joins_the_large_plane_it_lies_on():
+    """The step between two pieces is measured at each piece's mean (the smaller of the two): a small
+    piece's noisy normal, extrapolated to a far mean, must not split a surface; a step still does."""
+    rng = np.random.default_rng(3)
+    a = np.c_[rng.uniform(0, 10, (2000, 1)), rng.uniform(0, 4, (2000, 1)), rng.normal(0, 0.01, 2000)]
+    x = rng.uniform(10.0, 11.0, 120)
+    tilted = np.c_[x, rng.uniform(1.5, 2.5, 120), np.tan(np.radians(6.0)) * (x - 10.5)]  # on z = 0 on average
+    zero_a, zero_b = np.zeros(len(a)), np.zeros(len(tilted))
+    assert merge_cost(_moments(a, zero_a), _moments(tilted, zero_b), 0.05) < 1.0
+    # (at the midpoint of the two means, x = 7.75 m, the tilted plane is 0.29 m below the large one)
+    kerb = tilted + np.array([0.0, 0.0, 0.12])
+    assert merge_cost(_moments(a, zero_a), _moments(kerb, zero_b), 0.05) > 1.0
+
+
+def _floor_revolution(rows: int = 12, cols: int = 96, seed: int = 0) -> np.ndarray:
+    """A full lidar revolution (column j at azimuth 2 pi (j + 0.5) / cols) of the floor z = -1, 5 mm noise."""
+    azimuth = 2.0 * np.pi * (np.arange(cols) + 0.5) / cols
+    elevation = np.radians(np.linspace(-40.0, -10.0, rows))
+    directions = np.stack([np.cos(elevation)[:, None] * np.cos(azimuth), np.cos(elevation)[:, None] * np.sin(azimuth),
+                           np.sin(elevation)[:, None] * np.ones(cols)], axis=-1)
+    ranges = -1.0 / directions[..., 2] + np.random.default_rng(seed).normal(0.0, 0.005, (rows, cols))
+    return directions * ranges[..., None]
+
+
+def test_columns_wrap_on_a_full_revolution_only():
+    points = _floor_revolution()
+    assert columns_wrap(make_ray_scan(points))
+    assert not columns_wrap(make_ray_scan(points[:, :80]))  # 300 deg of it
+    camera = _wall_behind_a_post(noise=0.0, seed=0)  # 70 deg field of view
+    assert not columns_wrap(make_ray_scan(camera.points, camera.origins))
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_pieces_that_touch_across_the_seam_are_one_surface_and_match_the_reference(seed):
+    points = _floor_revolution(seed=seed)
+    points[:, 30:60] = np.nan  # no returns: with connected_only nothing bridges them
+    scan = make_ray_scan(points)
+    cols = np.indices(points.shape[:2])[1]
+    ids = np.where(cols < 30, 1 + cols // 10, np.where(cols >= 60, 10 + cols // 12, -1)).reshape(-1)
+    ids = np.where(scan.valid, ids, -1)
+    sigmas = np.where(scan.valid, 0.005, np.nan)
+    apart = consolidate_pieces(scan, ids, sigmas, 0.02, connected_only=True)
+    joined = consolidate_pieces(scan, ids, sigmas, 0.02, connected_only=True, wrap_columns=True)
+    assert len(np.unique(apart[apart >= 0])) == 2
+    assert len(np.unique(joined[joined >= 0])) == 1
+    want = consolidate_reference(scan, ids, sigmas, 0.02, connected_only=True, wrap_columns=True)
+    np.testing.assert_array_equal(joined, want)
+
+
+def test_absorbed_rays_cross_the_seam_only_when_the_columns_wrap():
+    points = _floor_revolution()
+    points[:, 3:10] = np.nan  # columns 0-2 are reachable from the surface only across the seam
+    scan = make_ray_scan(points)
+    cols = np.indices((scan.height, scan.width))[1].reshape(-1)
+    ids = np.where(scan.valid & (cols >= 10), 0, -1)
+    sigmas = np.where(scan.valid, 0.005, np.nan)
+    plain = absorb_rays(scan, ids, sigmas, 0.02)
+    wrapped = absorb_rays(scan, ids, sigmas, 0.02, wrap_columns=True)
+    assert (plain[cols < 3] == -1).all()
+    assert (wrapped[cols < 3] == 0).all()
 
 # ------------------------------------------------------------------ consolidation against the reference
 

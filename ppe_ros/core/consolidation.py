@@ -164,11 +164,11 @@ def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     allowed_a = allowed_b = tau2 + noise_factor2 * scatter
     cost = max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
                _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b)
-    x0 = 0.5 * (plane_a[0] + plane_b[0])
-    x1 = 0.5 * (plane_a[1] + plane_b[1])
-    x2 = 0.5 * (plane_a[2] + plane_b[2])
-    step = _along_normal(plane_a, x0, x1, x2, u0, u1, u2) - _along_normal(plane_b, x0, x1, x2, u0, u1, u2)
-    return max(cost, step * step / min(allowed_a, allowed_b))
+    # at each piece's mean its own plane is at 0: the step there is the other plane's distance
+    step_at_a = _along_normal(plane_b, plane_a[0], plane_a[1], plane_a[2], u0, u1, u2)
+    step_at_b = _along_normal(plane_a, plane_b[0], plane_b[1], plane_b[2], u0, u1, u2)
+    step2 = min(step_at_a * step_at_a, step_at_b * step_at_b)
+    return max(cost, step2 / min(allowed_a, allowed_b))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -401,9 +401,41 @@ def _dense_pieces(scan: RayScan, ids: np.ndarray, sigmas: np.ndarray, min_points
     return labels, dense, moments, small, planes
 
 
+def columns_wrap(scan: RayScan) -> bool:
+    """True if the scan's last column is next to its first: a full revolution of a spinning lidar.
+
+    The columns' mean ray directions are compared: the angle between the last and the first column
+    must be at most twice the median angle between consecutive columns (a camera's or a cropped
+    scan's first and last columns are its field of view apart).
+    """
+    if scan.width < 8 or scan.height < 1:
+        return False
+    valid = scan.valid.reshape(scan.height, scan.width)
+    directions = np.where(valid[..., None], scan.directions.reshape(scan.height, scan.width, 3), 0.0)
+    mean = directions.sum(axis=0)
+    norm = np.linalg.norm(mean, axis=1)
+    if not (norm[0] > 0 and norm[-1] > 0):
+        return False
+    ok = norm > 0
+    unit = mean[ok] / norm[ok, None]
+    steps = np.arccos(np.clip(np.einsum('ij,ij->i', unit[1:], unit[:-1]), -1.0, 1.0))
+    if len(steps) < 4:
+        return False
+    seam = float(np.arccos(np.clip(unit[0] @ unit[-1], -1.0, 1.0)))
+    return seam <= 2.0 * float(np.median(steps))
+
+
+def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(m, 2) pairs (a < b) of distinct pieces that touch across the seam (last column, first column)."""
+    grid = ids.reshape(height, width)
+    a, b = grid[:, -1], grid[:, 0]
+    both = (a >= 0) & (b >= 0) & (a != b)
+    return np.stack([np.minimum(a[both], b[both]), np.maximum(a[both], b[both])], axis=1).astype(np.int64)
+
+
 def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
                        noise_factor: float = 0.0, connected_only: bool = False,
-                       max_gap: int = DEFAULT_MAX_GAP) -> np.ndarray:
+                       max_gap: int = DEFAULT_MAX_GAP, wrap_columns: bool = False) -> np.ndarray:
     """Merge the pieces of one physical surface (see the module docstring).
 
     Args:
@@ -416,6 +448,8 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
             its own plane (the noise the data show; a depth camera's grows with depth).
         connected_only: consider only pieces that touch in the grid.
         max_gap: the largest occluded gap (pixels) between two pieces of a surface.
+        wrap_columns: the last column is next to the first (a full revolution, :func:`columns_wrap`):
+            pieces that touch across that seam are candidates too.
 
     Returns:
         ``(H*W,)`` surface id of each pixel (the smallest piece id of its surface), -1 for none.
@@ -435,6 +469,8 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
     pairs = _candidate_pairs(dense_for_pairs, scan.endpoints, scan.directions, scan.ranges,
                              np.ascontiguousarray(sigmas, dtype=np.float64), scan.height, scan.width, normals, means,
                              tau, int(max_gap), bool(connected_only))
+    if wrap_columns:
+        pairs = np.concatenate([pairs, _seam_pairs(dense_for_pairs, scan.height, scan.width)])
     n = np.int64(len(labels))
     codes = np.unique(pairs[:, 0] * n + pairs[:, 1])  # sorted by (a, b), each pair once
     pairs = np.stack([codes // n, codes % n], axis=1)
@@ -446,10 +482,12 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances):
+def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances,
+                   wrap_columns):
     """Grow every surface into 4-neighbouring rays without one that lie on its plane (breadth first,
     in pixel order); ids is updated in place. A ray k lies on surface P when its distance from P's
-    plane is at most tolerances[P] + 2 sigma_k |n . v_k|."""
+    plane is at most tolerances[P] + 2 sigma_k |n . v_k|. wrap_columns: the first and the last column
+    are neighbours."""
     n = len(ids)
     queue = np.empty(n, np.int64)
     head = 0
@@ -466,13 +504,13 @@ def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, nor
         j = k - i * width
         for side in range(4):
             if side == 0:
-                if j == 0:
+                if j == 0 and not wrap_columns:
                     continue
-                q = k - 1
+                q = k - 1 if j > 0 else k + width - 1
             elif side == 1:
-                if j + 1 == width:
+                if j + 1 == width and not wrap_columns:
                     continue
-                q = k + 1
+                q = k + 1 if j + 1 < width else k - width + 1
             elif side == 2:
                 if i == 0:
                     continue
@@ -495,9 +533,10 @@ def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, nor
 
 
 def absorb_rays(scan: RayScan, surface_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
-                noise_factor: float = 0.0, min_points: int = 1) -> np.ndarray:
+                noise_factor: float = 0.0, min_points: int = 1, wrap_columns: bool = False) -> np.ndarray:
     """Give rays without a surface (and surfaces of fewer than ``min_points`` rays) to a neighbouring
     surface whose plane they lie on (see :func:`_absorb_kernel`; tolerance sqrt(tau^2 + lambda^2 s_P^2)).
+    wrap_columns: the first and the last column are neighbours (:func:`columns_wrap`).
 
     Returns the new ``(H*W,)`` surface ids (-1: none).
     """
@@ -509,5 +548,5 @@ def absorb_rays(scan: RayScan, surface_ids: np.ndarray, sigmas: np.ndarray, surf
     ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     tolerances = np.sqrt(float(surface_tolerance) ** 2 + float(noise_factor) ** 2 * own)
     _absorb_kernel(dense, scan.endpoints, scan.directions, ray_sigmas, scan.valid, scan.height, scan.width, normals,
-                   means, tolerances)
+                   means, tolerances, bool(wrap_columns))
     return np.where(dense >= 0, labels[np.maximum(dense, 0)], -1)

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ppe_ros.core.consolidation import absorb_rays, consolidate_pieces
+from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces
 from ppe_ros.core.fitting import _fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan
@@ -38,10 +38,11 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
         noise_factor = 0.0 if profile is None else profile.noise_factor
+        wrap = columns_wrap(unit_scan)
         ids = consolidate_pieces(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only=connected_only,
-                                 noise_factor=noise_factor)
+                                 noise_factor=noise_factor, wrap_columns=wrap)
         ids = absorb_rays(unit_scan, ids, ray_sigmas, surface_tolerance, noise_factor=noise_factor,
-                          min_points=min_plane_points)
+                          min_points=min_plane_points, wrap_columns=wrap)
     planes, _ = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
                                   actions=steps, **cut)
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
