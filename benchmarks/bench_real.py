@@ -109,7 +109,7 @@ def ppe_settings(sensor: str, paper: bool, kind: str) -> tuple[dict, str]:
         return ({'max_error_increment': NODE_MAX_ERROR_INCREMENT, 'max_neighbor_distance': NODE_MAX_NEIGHBOR_DISTANCE,
                  'min_plane_points': MIN_PLANE_POINTS}, 'PPE node defaults (e 0.01, lmax inf)')
     profile = kind if sensor == 'auto' else sensor
-    return {'sensor': profile, 'min_plane_points': MIN_PLANE_POINTS}, f'PPE sensor={profile}'
+    return {'sensor': profile}, f'PPE sensor={profile}'
 
 
 def run_ppe(points, origins, kwargs):

@@ -2368,7 +2368,7 @@ def extract_planes(
         raise ValueError(f'min_plane_points must be >= 1; got {min_plane_points!r}')
     if surface_tolerance is not None and not (np.isfinite(float(surface_tolerance)) and surface_tolerance > 0):
         raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
-    noise = None if profile is None else profile.noise
+    noise = None if profile is None else profile.noise_for(points, origins)
     hierarchy = extract_plane_hierarchy(
         points,
         origins=origins,

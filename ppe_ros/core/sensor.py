@@ -12,6 +12,12 @@ The noise model (all terms independent, added in quadrature)::
 ``z_k`` is the depth of the endpoint along ``optical_axis`` (a depth camera's z; its axial noise
 ``depth_quadratic * z^2`` turned into ray-length noise by the ray's obliquity ``r / z``).
 
+The coefficients of a device family are not those of every device (a simulated or a newer camera
+is far less noisy than a Kinect v1), so a profile may *scale* its model to the scan at hand
+(:func:`estimate_noise_scale`): the random part of the noise is measured from second differences
+of the ranges along each grid row, which cancel every smooth or per-beam error and keep the
+independent noise, and the model is multiplied by its ratio to the model's prediction.
+
 A :class:`SensorProfile` bundles a noise model with the extraction settings chosen for that kind of
 sensor (the greedy's stop, the surface tolerance of the consolidation, the smallest plane); see
 docs/algorithm.md ("Sensor models and whole surfaces").
@@ -79,6 +85,41 @@ class NoiseModel:
             variance += along_ray**2
         return np.maximum(np.sqrt(variance), self.minimum)
 
+    def scaled(self, factor: float) -> NoiseModel:
+        """The model with every sigma_k multiplied by ``factor`` (> 0), the floor too."""
+        factor = float(factor)
+        if not (np.isfinite(factor) and factor > 0.0):
+            raise ValueError(f'noise scale must be finite and > 0; got {factor!r}')
+        return replace(self, constant=self.constant * factor, proportional=self.proportional * factor,
+                       depth_quadratic=self.depth_quadratic * factor, minimum=self.minimum * factor)
+
+
+def estimate_noise_scale(ranges: np.ndarray, sigmas: np.ndarray) -> float:
+    """Ratio of a scan's random range noise to a noise model's sigmas; NaN with too few samples.
+
+    Args:
+        ranges: ``(H, W)`` measured ray lengths (m), NaN = no return.
+        sigmas: ``(H, W)`` the model's sigma_k (m) of the same rays.
+
+    Along a grid row the second difference ``r[j-1] - 2 r[j] + r[j+1]`` of three rays on one
+    surface is, for independent noise of sigma_k, about N(0, 6 sigma_k^2): the surface's range
+    profile is close to linear over three neighbouring rays, and per-beam biases and smooth errors
+    cancel. The scale is the median of ``|second difference| / (sqrt(6) sigma_k)`` divided by
+    0.6745 (the median of |N(0, 1)|): robust to the depth jumps at edges, which are outliers.
+    At least 100 triples of valid rays are needed.
+    """
+    r = np.asarray(ranges, dtype=np.float64)
+    sig = np.asarray(sigmas, dtype=np.float64)
+    if r.ndim != 2 or r.shape != sig.shape:
+        raise ValueError(f'ranges and sigmas must be (H, W) arrays of one shape; got {r.shape} and {sig.shape}')
+    second = r[:, :-2] - 2.0 * r[:, 1:-1] + r[:, 2:]
+    with np.errstate(invalid='ignore', divide='ignore'):
+        ratio = np.abs(second) / (np.sqrt(6.0) * sig[:, 1:-1])
+    ratio = ratio[np.isfinite(ratio)]
+    if len(ratio) < 100:
+        return float('nan')
+    return float(np.median(ratio) / 0.6744897501960817)
+
 
 @dataclass(frozen=True)
 class SensorProfile:
@@ -100,6 +141,8 @@ class SensorProfile:
         correlation_length: L (m) over which a surface's systematic errors are correlated: the
             covariances add their part, which does not shrink with the number of points
             (surfaces.systematic_covariances); None = the fit's covariance alone (the paper).
+        noise_scale_bounds: (low, high): scale the noise model to each scan by
+            :func:`estimate_noise_scale`, clamped to these bounds; None = use the model as it is.
     """
 
     name: str
@@ -112,6 +155,37 @@ class SensorProfile:
     min_plane_points: int = 4
     max_plane_rmse_factor: float = np.inf
     correlation_length: float | None = None
+    noise_scale_bounds: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.noise_scale_bounds is not None:
+            low, high = (float(x) for x in self.noise_scale_bounds)
+            if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
+                raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
+
+    def noise_for(self, points: np.ndarray, origins: np.ndarray | None = None) -> NoiseModel | None:
+        """The noise model for one organized scan ``points`` (H, W, 3) with ray starts ``origins``
+        (None, (3,) or (H, W, 3)): the profile's, scaled to the scan when ``noise_scale_bounds`` is set
+        (a scan with too few valid neighbours keeps the model as it is)."""
+        if self.noise is None or self.noise_scale_bounds is None:
+            return self.noise
+        points = np.asarray(points, dtype=np.float64)
+        starts = np.zeros(3) if origins is None else np.asarray(origins, dtype=np.float64)
+        if points.ndim != 3 or points.shape[-1] != 3 or starts.shape not in ((3,), points.shape):
+            return self.noise  # not an organized scan: the extractor's own checks report it
+        rays = points - starts
+        with np.errstate(invalid='ignore'):
+            ranges = np.linalg.norm(rays, axis=-1)
+            directions = rays / np.where(ranges > 0, ranges, np.nan)[..., None]
+        flat_r, flat_v = ranges.reshape(-1), directions.reshape(-1, 3)
+        sigmas = np.full(flat_r.shape, np.nan)
+        valid = np.isfinite(flat_r) & (flat_r > 0) & np.all(np.isfinite(flat_v), axis=1)
+        sigmas[valid] = self.noise.sigmas(flat_r[valid], flat_v[valid])
+        scale = estimate_noise_scale(ranges.reshape(points.shape[:2]), sigmas.reshape(points.shape[:2]))
+        if not np.isfinite(scale):
+            return self.noise
+        low, high = self.noise_scale_bounds
+        return self.noise.scaled(min(max(scale, float(low)), float(high)))
 
     def with_overrides(self, **overrides) -> SensorProfile:
         """A copy with the given (non-None) settings replaced."""
@@ -130,10 +204,10 @@ PROFILES: dict[str, SensorProfile] = {
     'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
                            min_plane_points=4),
     'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
-                           min_plane_points=20, max_plane_rmse_factor=1.5, correlation_length=1.3),
+                           min_plane_points=40, max_plane_rmse_factor=1.0, correlation_length=1.3),
     'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
                                   surface_tolerance=0.005, noise_factor=3.0, min_plane_points=100,
-                                  max_plane_rmse_factor=1.5, correlation_length=0.7),
+                                  max_plane_rmse_factor=1.5, correlation_length=0.7, noise_scale_bounds=(0.1, 4.0)),
 }
 
 
