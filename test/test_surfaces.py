@@ -216,6 +216,36 @@ def test_the_noise_scale_is_the_ratio_of_the_scans_random_noise_to_the_model(tru
     assert profile.with_overrides(noise_scale_bounds=None).noise_for(np.zeros((2, 2, 3))) is model
 
 
+
+def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_ones_to_the_tolerance():
+    """flatness_length D0: tau_D = tau min(1, D / D0). A 1 m patch bumpy by 3 cm RMS (a bush) passes a
+    5 cm tolerance but not 5 cm * 1/4; a 1 m flat patch and a 12 m wall undulating by 3 cm pass both."""
+    from ppe_ros.core.fitting import _fit_pixel_groups
+    from ppe_ros.core.surfaces import _drop_non_planar
+
+    rng = np.random.default_rng(7)
+    rows, cols = 40, 120
+    y, z = np.meshgrid(np.linspace(-6.0, 6.0, cols), np.linspace(-1.0, 3.0, rows))
+    depth = 6.0 + 0.04 * np.sin(2 * np.pi * y / 6.0) + rng.normal(0.0, 0.005, (rows, cols))  # the wall
+    patch = (slice(5, 15), slice(10, 20))  # 1 m x 1 m
+    bush = (slice(25, 35), slice(100, 110))
+    depth[patch] = 5.0 + rng.normal(0.0, 0.005, (10, 10))
+    depth[bush] = 4.0 + 0.042 * np.sign(rng.standard_normal((10, 10))) + rng.normal(0.0, 0.005, (10, 10))
+    points = np.stack([depth, y * depth / 6.0, z * depth / 6.0], axis=-1)
+    scan = make_ray_scan(points)
+    ids = np.zeros((rows, cols), np.int64)
+    ids[patch], ids[bush] = 1, 2
+    planes, _ = _fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    sigmas = np.where(scan.valid, 0.005, np.nan)
+
+    def kept(flatness_length):
+        out = _drop_non_planar(scan, scan, planes, sigmas, 0.05, 0.0, 1.3, None, 4, 0, {}, flatness_length)
+        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+
+    assert kept(None) == [0, 1, 2]
+    assert kept(4.0) == [0, 1]
+
+
 def test_the_depth_profile_scales_its_model_to_a_clean_rendered_frame(shared_data):
     """ICL-NUIM 0 (a training frame: a rendered living room, far cleaner than a Kinect): scaled to the
     frame's own noise, the depth profile keeps pictures and furniture fronts a centimetre or two in

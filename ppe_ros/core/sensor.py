@@ -141,6 +141,9 @@ class SensorProfile:
         correlation_length: L (m) over which a surface's systematic errors are correlated: the
             covariances add their part, which does not shrink with the number of points
             (surfaces.systematic_covariances); None = the fit's covariance alone (the paper).
+        flatness_length: D0 (m): the planarity test's tolerance of a plane of size D is
+            tau min(1, D / D0) (a small patch must be flat to the noise; surfaces.whole_surfaces);
+            None = tau for every plane.
         noise_scale_bounds: (low, high): scale the noise model to each scan by
             :func:`estimate_noise_scale`, clamped to these bounds; None = use the model as it is.
     """
@@ -156,12 +159,15 @@ class SensorProfile:
     max_plane_rmse_factor: float = np.inf
     correlation_length: float | None = None
     noise_scale_bounds: tuple[float, float] | None = None
+    flatness_length: float | None = None
 
     def __post_init__(self) -> None:
         if self.noise_scale_bounds is not None:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
                 raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
+        if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
+            raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
 
     def noise_for(self, points: np.ndarray, origins: np.ndarray | None = None) -> NoiseModel | None:
         """The noise model for one organized scan ``points`` (H, W, 3) with ray starts ``origins``
@@ -204,7 +210,8 @@ PROFILES: dict[str, SensorProfile] = {
     'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
                            min_plane_points=4),
     'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
-                           min_plane_points=40, max_plane_rmse_factor=1.0, correlation_length=1.3),
+                           min_plane_points=40, max_plane_rmse_factor=1.3, correlation_length=1.3,
+                           flatness_length=4.0),
     'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
                                   surface_tolerance=0.005, noise_factor=3.0, min_plane_points=100,
                                   max_plane_rmse_factor=1.5, correlation_length=0.7, noise_scale_bounds=(0.1, 4.0)),

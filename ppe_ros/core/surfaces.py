@@ -48,11 +48,24 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
         planes = _drop_non_planar(unit_scan, scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor,
-                                  factor, sigmas, min_plane_points, steps, cut)
+                                  factor, sigmas, min_plane_points, steps, cut, profile.flatness_length)
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         planes = replace(planes, covariances=planes.covariances + systematic_covariances(
             unit_scan, planes, ray_sigmas, profile.correlation_length))
     return planes
+
+
+def _plane_scatter(points: np.ndarray, j: np.ndarray, count: np.ndarray, n_planes: int):
+    """Centroid (J, 3) and per-point scatter matrix (J, 3, 3) of each plane's points (plane j[i] of points[i])."""
+    centroid = np.stack([np.bincount(j, weights=points[:, a], minlength=n_planes) for a in range(3)], 1)
+    centroid /= count[:, None]
+    rel = points - centroid[j]
+    scatter = np.empty((n_planes, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            scatter[:, a, b] = scatter[:, b, a] = np.bincount(j, weights=rel[:, a] * rel[:, b],
+                                                              minlength=n_planes) / count
+    return centroid, scatter
 
 
 def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray,
@@ -75,14 +88,7 @@ def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarr
     count = planes.point_counts.astype(np.float64)
     points = scan.endpoints[on] + scan.center
     n_planes = planes.num_planes
-    centroid = np.stack([np.bincount(j, weights=points[:, a], minlength=n_planes) for a in range(3)], 1)
-    centroid /= count[:, None]
-    rel = points - centroid[j]
-    scatter = np.empty((n_planes, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            scatter[:, a, b] = scatter[:, b, a] = np.bincount(j, weights=rel[:, a] * rel[:, b],
-                                                              minlength=n_planes) / count
+    centroid, scatter = _plane_scatter(points, j, count, n_planes)
     normals, offsets = planes.normals, planes.offsets
     distance = np.einsum('ij,ij->i', points, normals[j]) - offsets[j]
     along = np.einsum('ij,ij->i', scan.directions[on], normals[j]) * ray_sigmas[on]
@@ -107,11 +113,15 @@ def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarr
 
 def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float,
                      noise_factor: float, factor: float, sigmas: np.ndarray | None, min_plane_points: int,
-                     steps: int, cut: dict) -> PlaneSet:
+                     steps: int, cut: dict, flatness_length: float | None = None) -> PlaneSet:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
-    factor * sqrt(tau^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
-    plus the sensor's noise along the normal (lambda: noise_factor). scan has unit directions; the
-    kept planes are refitted on fit_scan (the greedy's, directions scaled by sigmas).
+    factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
+    plus the sensor's noise along the normal (lambda: noise_factor). tau_D = tau min(1, D /
+    flatness_length) for a plane of size D (the square root of its area, 12 sqrt(l1 l2) from the
+    scatter's two largest eigenvalues): a surface's deviation from flatness grows with its size, so
+    a small patch must be flat to the noise, which a tree's or a car's pieces are not; None: tau_D =
+    tau. scan has unit directions; the kept planes are refitted on fit_scan (the greedy's, directions
+    scaled by sigmas).
     """
     labels = planes.labels.reshape(-1)
     on = np.flatnonzero(labels > 0)
@@ -124,7 +134,13 @@ def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sig
     mean_d2 = np.bincount(j, weights=distance**2, minlength=planes.num_planes) / count
     noise2 = np.bincount(j, weights=along**2, minlength=planes.num_planes) / count
     sigma2 = np.bincount(j, weights=ray_sigmas[on] ** 2, minlength=planes.num_planes) / count
-    planar = mean_d2 <= factor**2 * (tau**2 + noise_factor**2 * sigma2 + noise2)
+    tau2 = np.full(planes.num_planes, tau**2)
+    if flatness_length is not None:
+        _, scatter = _plane_scatter(points, j, count.astype(np.float64), planes.num_planes)
+        values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
+        size = np.sqrt(12.0 * np.sqrt(np.maximum(values[:, 2], 0.0) * np.maximum(values[:, 1], 0.0)))
+        tau2 *= np.minimum(1.0, size / float(flatness_length)) ** 2
+    planar = mean_d2 <= factor**2 * (tau2 + noise_factor**2 * sigma2 + noise2)
     if planar.all():
         return planes
     keep = np.concatenate([[False], planar])
