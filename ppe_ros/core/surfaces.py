@@ -51,8 +51,21 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
                                   factor, sigmas, min_plane_points, steps, cut, profile.flatness_length)
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         planes = replace(planes, covariances=planes.covariances + systematic_covariances(
-            unit_scan, planes, ray_sigmas, profile.correlation_length))
+            unit_scan, planes, _independent_sigmas(unit_scan, ray_sigmas, profile), profile.correlation_length))
     return planes
+
+
+def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: SensorProfile) -> np.ndarray:
+    """The rays' independent noise (m) that the systematic covariance does not count: the sigmas the
+    greedy used, but at most the profile's unscaled model's. A scan measured noisier than the model
+    (noise_scale_bounds) keeps the excess as systematic error: the second differences that measure
+    the scale also see structured errors (lateral jitter on slanted surfaces, disparity steps)."""
+    if profile.noise is None:
+        return ray_sigmas
+    model = np.full(unit_scan.size, np.nan)
+    valid = unit_scan.valid
+    model[valid] = profile.noise.sigmas(unit_scan.ranges[valid], unit_scan.directions[valid])
+    return np.fmin(ray_sigmas, model)
 
 
 def _plane_scatter(points: np.ndarray, j: np.ndarray, count: np.ndarray, n_planes: int):
