@@ -77,8 +77,8 @@ class OusterRayOrigins:
         if not (isinstance(rows, int) and isinstance(columns, int)) or rows < 1 or columns < 1:
             raise ScanFileError(f'{source}: data_format must give pixels_per_column and columns_per_frame')
         self.shape = (rows, columns)
+        self._sensor_frame = ouster_ray_origins(self.metadata, rows, columns, source=source)  # validates
         self.beam_origin_mm = float(self.metadata['lidar_origin_to_beam_origin_mm'])
-        self._sensor_frame = ouster_ray_origins(self.metadata, rows, columns, source=source)
         self._sensor_frame.setflags(write=False)
         self._lidar_frame: np.ndarray | None = None
 

@@ -105,7 +105,7 @@ def warm_up(types: MessageTypes, params: ExtractorParams | None = None, *,
     Args:
         types: message classes to build the clouds and outputs with.
         params: the settings to warm up with (default the node defaults); ``min_plane_points`` is
-            lowered to 4 for the small cloud.
+            lowered to 4 and ``max_points`` is the default's, for the small cloud.
         sensors: profiles to run (default ``params.sensor`` only).
         log: gets the progress lines (default: none).
         tick_s: a "still compiling" line this often (s); 0 = none.
@@ -123,7 +123,11 @@ def warm_up(types: MessageTypes, params: ExtractorParams | None = None, *,
             ticker.step(what)
             say(f'JIT warm-up {what} ...')
             start = time.perf_counter()
-            frame = process_cloud(cloud, params.replace(sensor=sensor, min_plane_points=4), types,
-                                  outputs=OutputSelection(True, True, True))
+            settings = params.replace(sensor=sensor, min_plane_points=4, max_points=ExtractorParams().max_points)
+            frame = process_cloud(cloud, settings, types, outputs=OutputSelection(True, True, True))
+            # one start per pixel (Ouster metadata) takes other paths of the ray model and the markers
+            beam_starts = np.zeros((int(cloud.height), int(cloud.width), 3))
+            beam_starts[..., 0] = 0.0158
+            process_cloud(cloud, settings, types, outputs=OutputSelection(False, True, False), ray_origins=beam_starts)
             steps.append(WarmUpStep(sensor, time.perf_counter() - start, frame.planes.num_planes))
     return steps
