@@ -9,12 +9,15 @@ Input (``--cloud``): by default a synthetic 128 x 1024 spinning-lidar scan of a 
 floor and ceiling: 30 planes fitted to the true faces, 98 % of pixels planar (the worst case for
 the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` (or
 ``$PPE_SHARED_DATA/ouster``) with the planes that ``extract_planes`` finds (about a thousand small
-ones: the worst case for the number of markers).
+ones: the worst case for the number of markers); or ``depth``: a generated 640 x 480 Kinect-like
+depth frame of a furnished room (optical frame, NaN invalid), with the planes the node finds.
 
-    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster] [--params FILE.yaml]
+    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster|depth]
+        [--params FILE.yaml]
 
 ``--params`` takes the node's params file (default: the node defaults, as in config/extractor.yaml);
-e.g. ``marker_mesh_stride: 2`` shows what a coarser mesh saves.
+e.g. ``marker_mesh_stride: 2`` shows what a coarser mesh saves, ``marker_max_triangles: 0`` what the
+mesh budget saves (config/depth_camera.yaml with ``--cloud depth`` is the depth-camera case).
 
 Prints a markdown table (median and max over the repeats, milliseconds; wall time per step and the
 thread's CPU time for the total, which other processes on a busy machine do not inflate).
@@ -42,6 +45,7 @@ from ppe_ros.ros.processing import (
     ProcessedFrame,
     build_outputs,
     cloud_points,
+    process_cloud,
 )
 
 OUSTER = Path(os.environ.get('PPE_SHARED_DATA', Path(__file__).resolve().parents[2] / 'shared' / 'data')) / 'ouster'
@@ -84,7 +88,7 @@ def driver_message(points: np.ndarray, types):
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
-    parser.add_argument('--cloud', choices=('synthetic', 'ouster'), default='synthetic')
+    parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth'), default='synthetic')
     parser.add_argument('--params', default=None, metavar='FILE.yaml',
                         help="the node's params file (default: the node defaults)")
     args = parser.parse_args(argv)
@@ -101,6 +105,13 @@ def main(argv: list[str] | None = None) -> int:
                                 max_neighbor_distance=params.max_neighbor_distance,
                                 min_plane_points=params.min_plane_points)
         description = f'Ouster {OUSTER_FILE}, planes from extract_planes'
+    elif args.cloud == 'depth':  # what the node finds with these params
+        from ppe_ros.core.synthetic_real import generate_depth_scan
+
+        points = generate_depth_scan(seed=0).points
+        msg = driver_message(points, types)
+        planes = process_cloud(msg, params, types, outputs=OutputSelection(False, False, False)).planes
+        description = f'generated 640 x 480 depth frame (indoor scene, seed 0), planes from the node ({params.sensor})'
     else:  # the true faces, fitted: the overhead does not depend on how the planes were found
         points, labels = synthetic_room()
         msg = driver_message(points, types)
@@ -111,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
 
     rows: dict[str, list[float]] = {k: [] for k in ('convert', 'labeled_points', 'markers', 'plane_table')}
     totals, builds, cpu_totals = [], [], []
-    marker_bytes = 0
+    marker_bytes = marker_stride = 0
     for repeat in range(args.repeats + 1):  # the first run compiles / loads the numba cache
         start, cpu_start = time.perf_counter(), time.thread_time()
         points_in = cloud_points(msg, params)
@@ -122,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         total = time.perf_counter() - start
         cpu_total = time.thread_time() - cpu_start
         if repeat == 0:
-            marker_bytes = len(frame.markers)
+            marker_bytes, marker_stride = len(frame.markers), frame.marker_stride
             continue
         for key in rows:
             rows[key].append(frame.timings[key] * 1e3)
@@ -134,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'Cloud: {description}, {height} x {width}, {planes.num_planes} planes '
           f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
           f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats; '
-          f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}).\n')
+          f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}, '
+          f'marker_max_triangles {params.marker_max_triangles}: mesh stride used {marker_stride}).\n')
     print('| step | median ms | max ms |')
     print('|---|---|---|')
     labels = {'convert': 'conversion in (PointCloud2 -> validated points)', 'labeled_points': 'labelled cloud',

@@ -925,9 +925,9 @@ def test_the_node_uses_the_metadata_ray_starts_unless_ray_origin_is_set(ros_cont
     metadata_pub.publish(String(data='not json'))  # warned about and ignored
     assert spin_until(executor, lambda: 'metadata' in harness.node._warned_at)
     metadata_pub.publish(String(data=json.dumps(ouster_metadata(rows, columns))))
-    assert spin_until(executor, lambda: harness.node._ouster is not None)
+    assert spin_until(executor, lambda: harness.node._ray_starts.ouster is not None)
     harness.send(make_cloud(scan_points, frame_id='os_lidar'))
-    expected = harness.node._ouster.for_cloud(rows, columns, 'os_lidar')
+    expected = harness.node._ray_starts.ouster.for_cloud(rows, columns, 'os_lidar')
     assert seen[-1] is expected and np.allclose(np.linalg.norm(expected[..., :2], axis=-1), 0.0158)
     harness.send(make_cloud(scan_points[:, :-1], frame_id='os_lidar'))  # another size: ray_origin
     assert seen[-1] is None

@@ -216,6 +216,9 @@ def test_skipped_frames_do_not_stop_the_process(client_factory):
     try:
         assert extractor.ready.wait(READY_TIMEOUT_S), extractor.output
         executor, probe = client_factory(domain_id)
+        # a subscriber on an output: with none the node idles and does not look at the clouds (issue 19 item 5)
+        probe.create_subscription(PointCloud2, '/planes', lambda msg: None,
+                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0)
         unorganized = make_cloud(sec=1)

@@ -130,7 +130,7 @@ def test_import_has_no_ros_dependency():
 
 
 @pytest.mark.timeout(300)
-def test_colcon_build_installs_executables_and_config(tmp_path):
+def test_colcon_build_installs_executables_config_launch_and_rviz(tmp_path, monkeypatch):
     colcon = Path(sys.executable).parent / 'colcon'
     if not colcon.exists():
         colcon_path = shutil.which('colcon')
@@ -150,9 +150,18 @@ def test_colcon_build_installs_executables_and_config(tmp_path):
     for executable in ('extractor', 'process_bag', 'ppe'):
         path = install / 'lib' / 'ppe_ros' / executable
         assert path.is_file(), f'missing {path}'
-    assert (install / 'share' / 'ppe_ros' / 'config' / 'extractor.yaml').is_file()
-    assert (install / 'share' / 'ppe_ros' / 'package.xml').is_file()
+    share = install / 'share' / 'ppe_ros'
+    assert (share / 'package.xml').is_file()
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'ppe_ros').is_file()
+    from ppe_ros.ros.processing import ExtractorParams
+
+    for name in ('extractor.yaml', 'lidar.yaml', 'depth_camera.yaml'):  # the installed params files load
+        assert (share / 'config' / name).read_text() == (REPO / 'config' / name).read_text()
+        ExtractorParams.from_yaml(share / 'config' / name)
+    assert (share / 'rviz' / 'ppe_ros.rviz').read_text() == RVIZ_FILE.read_text()
+    assert rviz_displays(share / 'rviz' / 'ppe_ros.rviz')
+    # the installed launch file, against the installed share (what `ros2 launch ppe_ros extractor.launch.py` finds)
+    check_launch_file(share / 'launch' / 'extractor.launch.py', share, monkeypatch)
 
 
 # ------------------------------------------------------------------ the launch file, with launch stubbed

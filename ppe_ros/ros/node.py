@@ -51,32 +51,32 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.exceptions import ParameterException, ParameterNotDeclaredException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
-from ppe_ros.io.errors import ScanFileError
 from ppe_ros.ros.concurrency import LatestMailbox, Turnstile
 from ppe_ros.ros.diagnostics import WARNING_THROTTLE_S, FrameStats, NodeState, ThrottledLog, diagnostics_status
 from ppe_ros.ros.messages import rclpy_message_types
 from ppe_ros.ros.parameters import (
     QOS_OVERRIDES_PREFIX,
     as_declared_type,
+    coerce_parameters,
+    declare_extractor_parameters,
     input_qos,
     metadata_qos,
     output_qos,
+    parameter_changes,
     parameter_descriptor,
     qos_override_names,
     unknown_parameter_names,
+    validate_parameter_changes,
 )
 from ppe_ros.ros.processing import (
-    PARAM_SPEC_BY_NAME,
     PARAM_SPECS,
     ExtractorParams,
     FrameSkipped,
@@ -85,8 +85,8 @@ from ppe_ros.ros.processing import (
     frame_label,
     process_cloud,
 )
-from ppe_ros.ros.sensor_metadata import OusterRayOrigins
-from ppe_ros.ros.warmup import warm_up, warm_up_cloud
+from ppe_ros.ros.sensor_metadata import RayStarts
+from ppe_ros.ros.warmup import WORKQUEUE_LAYER_ERROR, parallel_workers_safe, warm_up, warm_up_cloud
 
 __all__ = [  # the names tests and tools import from here (their homes are the modules above)
     'WARNING_THROTTLE_S',
@@ -132,7 +132,7 @@ class ExtractorNode(Node):
         super().__init__(node_name, **kwargs)
         self._types = rclpy_message_types()
         try:
-            self._params = self._declare_parameters()
+            self._params = declare_extractor_parameters(self)
         except ValueError:
             super().destroy_node()  # no worker yet: release the node handle and report the parameter
             raise
@@ -160,7 +160,7 @@ class ExtractorNode(Node):
         self._workers: list[threading.Thread] = []
         self._workers_lock = threading.Lock()
         self._parallel_workers_safe = True  # False under numba's workqueue layer (see _work)
-        self._ouster: OusterRayOrigins | None = None  # from the metadata topic
+        self._ray_starts = RayStarts(self._warn_throttled, self.get_logger().info)  # Ouster metadata's
         self._marker_stride = 0  # of the last markers built
 
         self._subscription_lock = threading.Lock()
@@ -180,70 +180,14 @@ class ExtractorNode(Node):
         """The current validated parameters (replaced as a whole on every accepted change)."""
         return self._params
 
-    def _declare_parameters(self) -> ExtractorParams:
-        overrides = getattr(self, '_parameter_overrides', {})
-        values = {}
-        for spec in PARAM_SPECS:
-            override = overrides.get(spec.name)
-            if override is not None:
-                coerced = as_declared_type(spec, override.value)
-                if coerced is not override.value:
-                    overrides[spec.name] = Parameter(spec.name, value=coerced)
-            default = list(spec.default) if spec.kind == 'double_array' else spec.default
-            try:
-                value = self.declare_parameter(spec.name, default, parameter_descriptor(spec)).value
-                values[spec.name] = spec.validate(value)
-            except (ParameterException, ValueError) as exc:
-                raise ValueError(f'invalid parameter {spec.name!r}: {exc}') from None
-        try:
-            params = ExtractorParams(**values)
-            self._check_numba_threads(params.numba_threads)
-        except ValueError as exc:
-            raise ValueError(f'invalid parameters: {exc}') from None
-        unknown = unknown_parameter_names(overrides)
-        if unknown:
-            self.get_logger().warning(
-                f'ignoring unknown parameter(s) {unknown} (a typo in the params file?); '
-                f'known: {sorted(PARAM_SPEC_BY_NAME)}'
-            )
-        return params
-
-    @staticmethod
-    def _check_numba_threads(count: int) -> None:
-        import numba
-
-        if count > numba.config.NUMBA_NUM_THREADS:
-            raise ValueError(
-                f'numba_threads must be 0 (all) or at most {numba.config.NUMBA_NUM_THREADS} '
-                f'(NUMBA_NUM_THREADS); got {count}'
-            )
-
     def _coerce_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
-        unknown = sorted(p.name for p in parameters if not self.has_parameter(p.name))
-        if unknown:  # rclpy's own message would be "Invalid access to undeclared parameter(s): []"
-            raise ParameterNotDeclaredException(
-                f'{unknown}: the extractor has no such parameter; known: {sorted(PARAM_SPEC_BY_NAME)}')
-        out = []
-        for parameter in parameters:
-            spec = PARAM_SPEC_BY_NAME.get(parameter.name)
-            value = parameter.value
-            coerced = value if spec is None else as_declared_type(spec, value)
-            out.append(parameter if coerced is value else Parameter(parameter.name, value=coerced))
-        return out
-
-    def _changes(self, parameters: list[Parameter]) -> dict[str, Any]:
-        return {p.name: p.value for p in parameters if p.name in PARAM_SPEC_BY_NAME}
+        return coerce_parameters(self, parameters)
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        try:
-            changed = self._params.replace(**self._changes(parameters))
-            self._check_numba_threads(changed.numba_threads)
-        except ValueError as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
+        return validate_parameter_changes(self._params, parameters)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        changes = self._changes(parameters)
+        changes = parameter_changes(parameters)
         if not changes:
             return
         previous = self._params
@@ -304,33 +248,7 @@ class ExtractorNode(Node):
         self._stats.record_received(dropped=self._mailbox.put(msg))
 
     def _on_metadata(self, msg: Any) -> None:
-        """Ouster metadata JSON: per-beam ray starts for the clouds it describes (kept until the next one)."""
-        topic = self._metadata_subscription.topic_name
-        try:
-            ouster = OusterRayOrigins(msg.data, source=f'metadata on {topic}')
-        except (ScanFileError, ValueError, TypeError) as exc:
-            self._warn_throttled('metadata', f'metadata ignored (ray origins stay ray_origin): {exc}')
-            return
-        self._ouster = ouster
-        rows, columns = ouster.shape
-        self.get_logger().info(
-            f'Ouster metadata on {topic}: beam origins {ouster.beam_origin_mm:g} mm off the lidar axis; '
-            f'{rows} x {columns} clouds get per-beam ray starts while ray_origin is [0, 0, 0]')
-
-    def _ray_origins(self, msg: Any, params: ExtractorParams) -> np.ndarray | None:
-        """Per-pixel ray starts from the Ouster metadata for this cloud, or None (``params.ray_origin``)."""
-        ouster = self._ouster
-        if ouster is None or any(params.ray_origin):  # a ray_origin set by hand wins
-            return None
-        try:
-            height, width, frame_id = int(msg.height), int(msg.width), str(msg.header.frame_id)
-        except (AttributeError, TypeError, ValueError):
-            return None  # process_cloud reports the cloud
-        origins = ouster.for_cloud(height, width, frame_id)
-        if origins is None:
-            self._warn_throttled('metadata_size', f'the Ouster metadata describes {ouster.shape[0]} x '
-                                 f'{ouster.shape[1]} clouds; this one is {height} x {width}: ray_origin used')
-        return origins
+        self._ray_starts.update(msg.data, self._metadata_subscription.topic_name)
 
     # ---------------------------------------------------------------- worker
 
@@ -371,21 +289,6 @@ class ExtractorNode(Node):
         logger.info(f'JIT warm-up done in {time.perf_counter() - start:.2f} s ({steps[-1].planes} planes '
                     'in the warm-up cloud)')
 
-    def _check_threading_layer(self) -> None:
-        """Several workers launch numba's parallel kernels at once: only the omp and tbb layers allow that."""
-        import numba
-
-        try:
-            layer = numba.threading_layer()
-        except ValueError:  # no parallel kernel has run yet (the warm-up failed)
-            return
-        if layer == 'workqueue':
-            self._parallel_workers_safe = False
-            if self._params.workers > 1:
-                self.get_logger().error(
-                    "workers > 1 needs numba's omp or tbb threading layer (numba uses 'workqueue' here, which "
-                    'aborts the process when two threads launch parallel kernels at once; pip install tbb): '
-                    'running one worker')
 
     def _active(self, index: int) -> bool:
         """Whether worker ``index`` takes frames under the current ``workers`` value."""
@@ -406,7 +309,9 @@ class ExtractorNode(Node):
             try:
                 self._apply_numba_threads(index, self._params)
                 self._warm_up()
-                self._check_threading_layer()
+                self._parallel_workers_safe = parallel_workers_safe()
+                if not self._parallel_workers_safe and self._params.workers > 1:
+                    self.get_logger().error(WORKQUEUE_LAYER_ERROR)
             except Exception as exc:  # a failed warm-up must not kill the node
                 self._record_failure(f'warm-up failed: {failure_reason(exc)}')
             self.ready.set()
@@ -460,7 +365,7 @@ class ExtractorNode(Node):
         try:
             self._apply_numba_threads(index, params)
             frame = process_cloud(msg, params, self._types, outputs=outputs,
-                                  ray_origins=self._ray_origins(msg, params))
+                                  ray_origins=self._ray_starts.for_cloud(msg, params.ray_origin))
         except FrameSkipped as exc:
             self._record_skip(exc)
             return

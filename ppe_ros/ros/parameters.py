@@ -1,4 +1,4 @@
-"""The extractor node's ROS parameters and QoS: descriptors, type coercion, profiles.
+"""The extractor node's ROS parameters and QoS: declaration, descriptors, type coercion, callbacks, profiles.
 
 The parameters themselves (names, types, defaults, ranges) are :data:`ppe_ros.ros.processing.PARAM_SPECS`.
 """
@@ -8,10 +8,25 @@ from __future__ import annotations
 import array
 from typing import Any
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.exceptions import ParameterException, ParameterNotDeclaredException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ppe_ros.ros.processing import PARAM_SPEC_BY_NAME, ROS_BUILTIN_PARAMETERS, ParamSpec
+from ppe_ros.ros.processing import (
+    PARAM_SPEC_BY_NAME,
+    PARAM_SPECS,
+    ROS_BUILTIN_PARAMETERS,
+    ExtractorParams,
+    ParamSpec,
+)
 
 #: Prefix of rclpy's QoS override parameters (``qos_overrides.<topic>.<publisher|subscription>.<policy>``).
 QOS_OVERRIDES_PREFIX = 'qos_overrides.'
@@ -87,3 +102,80 @@ def metadata_qos() -> QoSProfile:
 def qos_override_names(names: Any) -> list[str]:
     """The QoS override parameter names among ``names`` (params file, ``-p``)."""
     return sorted(str(name) for name in names if str(name).startswith(QOS_OVERRIDES_PREFIX))
+
+
+def check_numba_threads(count: int) -> None:
+    """Raise ValueError for a ``numba_threads`` above the threads numba has (``NUMBA_NUM_THREADS``)."""
+    import numba
+
+    if count > numba.config.NUMBA_NUM_THREADS:
+        raise ValueError(
+            f'numba_threads must be 0 (all) or at most {numba.config.NUMBA_NUM_THREADS} '
+            f'(NUMBA_NUM_THREADS); got {count}'
+        )
+
+
+def declare_extractor_parameters(node: Node) -> ExtractorParams:
+    """Declare every parameter of :data:`PARAM_SPECS` on ``node`` (with descriptors) and validate them.
+
+    Integers given for doubles are converted first; names the node does not have are warned about.
+
+    Raises:
+        ValueError: a value given at start-up is invalid (the message names the parameter).
+    """
+    overrides = getattr(node, '_parameter_overrides', {})
+    values = {}
+    for spec in PARAM_SPECS:
+        override = overrides.get(spec.name)
+        if override is not None:
+            coerced = as_declared_type(spec, override.value)
+            if coerced is not override.value:
+                overrides[spec.name] = Parameter(spec.name, value=coerced)
+        default = list(spec.default) if spec.kind == 'double_array' else spec.default
+        try:
+            value = node.declare_parameter(spec.name, default, parameter_descriptor(spec)).value
+            values[spec.name] = spec.validate(value)
+        except (ParameterException, ValueError) as exc:
+            raise ValueError(f'invalid parameter {spec.name!r}: {exc}') from None
+    try:
+        params = ExtractorParams(**values)
+        check_numba_threads(params.numba_threads)
+    except ValueError as exc:
+        raise ValueError(f'invalid parameters: {exc}') from None
+    unknown = unknown_parameter_names(overrides)
+    if unknown:
+        node.get_logger().warning(
+            f'ignoring unknown parameter(s) {unknown} (a typo in the params file?); '
+            f'known: {sorted(PARAM_SPEC_BY_NAME)}'
+        )
+    return params
+
+
+def coerce_parameters(node: Node, parameters: list[Parameter]) -> list[Parameter]:
+    """Pre-set callback: refuse names ``node`` does not have (naming them), convert integers given for doubles."""
+    unknown = sorted(p.name for p in parameters if not node.has_parameter(p.name))
+    if unknown:  # rclpy's own message would be "Invalid access to undeclared parameter(s): []"
+        raise ParameterNotDeclaredException(
+            f'{unknown}: the extractor has no such parameter; known: {sorted(PARAM_SPEC_BY_NAME)}')
+    out = []
+    for parameter in parameters:
+        spec = PARAM_SPEC_BY_NAME.get(parameter.name)
+        value = parameter.value
+        coerced = value if spec is None else as_declared_type(spec, value)
+        out.append(parameter if coerced is value else Parameter(parameter.name, value=coerced))
+    return out
+
+
+def parameter_changes(parameters: list[Parameter]) -> dict[str, Any]:
+    """Name -> value of the extractor's own parameters among ``parameters`` (ROS's and QoS ones left out)."""
+    return {p.name: p.value for p in parameters if p.name in PARAM_SPEC_BY_NAME}
+
+
+def validate_parameter_changes(params: ExtractorParams, parameters: list[Parameter]) -> SetParametersResult:
+    """On-set callback: accept ``parameters`` if ``params`` with them is valid, else refuse with the reason."""
+    try:
+        changed = params.replace(**parameter_changes(parameters))
+        check_numba_threads(changed.numba_threads)
+    except ValueError as exc:
+        return SetParametersResult(successful=False, reason=str(exc))
+    return SetParametersResult(successful=True)

@@ -16,6 +16,7 @@ lidar-frame starts, any other the sensor-frame ones.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -100,3 +101,43 @@ class OusterRayOrigins:
             lidar.setflags(write=False)
             self._lidar_frame = lidar
         return self._lidar_frame
+
+
+class RayStarts:
+    """The node's ray starts: the Ouster metadata's per-beam ones while ``ray_origin`` is [0, 0, 0].
+
+    ``warn(key, message)`` gets throttled warnings, ``info(message)`` the line saying the metadata arrived.
+    """
+
+    def __init__(self, warn: Callable[[str, str], None], info: Callable[[str], None]) -> None:
+        self._warn = warn
+        self._info = info
+        self.ouster: OusterRayOrigins | None = None
+
+    def update(self, text: str, topic: str) -> None:
+        """A metadata message arrived on ``topic``: use it from the next frame on (a bad one is warned about)."""
+        try:
+            ouster = OusterRayOrigins(text, source=f'metadata on {topic}')
+        except (ScanFileError, ValueError, TypeError) as exc:
+            self._warn('metadata', f'metadata ignored (ray origins stay ray_origin): {exc}')
+            return
+        self.ouster = ouster
+        rows, columns = ouster.shape
+        self._info(f'Ouster metadata on {topic}: beam origins {ouster.beam_origin_mm:g} mm off the lidar axis; '
+                   f'{rows} x {columns} clouds get per-beam ray starts while ray_origin is [0, 0, 0]')
+
+    def for_cloud(self, msg: Any, ray_origin: tuple[float, float, float]) -> np.ndarray | None:
+        """``(H, W, 3)`` starts for this cloud, or None (``ray_origin`` applies): no metadata, another
+        size (warned about), or a ``ray_origin`` set by hand (it wins)."""
+        ouster = self.ouster
+        if ouster is None or any(ray_origin):
+            return None
+        try:
+            height, width, frame_id = int(msg.height), int(msg.width), str(msg.header.frame_id)
+        except (AttributeError, TypeError, ValueError):
+            return None  # process_cloud reports the cloud
+        origins = ouster.for_cloud(height, width, frame_id)
+        if origins is None:
+            self._warn('metadata_size', f'the Ouster metadata describes {ouster.shape[0]} x {ouster.shape[1]} '
+                       f'clouds; this one is {height} x {width}: ray_origin used')
+        return origins

@@ -131,3 +131,22 @@ def warm_up(types: MessageTypes, params: ExtractorParams | None = None, *,
             process_cloud(cloud, settings, types, outputs=OutputSelection(False, True, False), ray_origins=beam_starts)
             steps.append(WarmUpStep(sensor, time.perf_counter() - start, frame.planes.num_planes))
     return steps
+
+
+#: Logged when ``workers`` > 1 but numba runs its parallel kernels on the workqueue layer.
+WORKQUEUE_LAYER_ERROR = (
+    "workers > 1 needs numba's omp or tbb threading layer (numba uses 'workqueue' here, which aborts the process "
+    'when two threads launch parallel kernels at once; pip install tbb): running one worker')
+
+
+def parallel_workers_safe() -> bool:
+    """Whether several threads may launch numba's parallel kernels at once (omp and tbb: yes; workqueue: no).
+
+    Call it after a parallel kernel ran (the warm-up): before that numba has no layer yet, and this says True.
+    """
+    import numba
+
+    try:
+        return numba.threading_layer() != 'workqueue'
+    except ValueError:  # no parallel kernel has run yet (the warm-up failed)
+        return True
