@@ -21,6 +21,11 @@ mesh budget saves (config/depth_camera.yaml with ``--cloud depth`` is the depth-
 
 Prints a markdown table (median and max over the repeats, milliseconds; wall time per step and the
 thread's CPU time for the total, which other processes on a busy machine do not inflate).
+
+``--idle SECONDS``: instead, what an in-process node costs with nobody subscribed to its outputs: the
+cloud at ``--rate`` Hz (default 10) into its subscription callback for SECONDS, once idling (the
+default) and once with ``process_without_subscribers: true``; prints the process's CPU time per
+second (cores) and the frames extracted.
 """
 
 from __future__ import annotations
@@ -85,12 +90,51 @@ def driver_message(points: np.ndarray, types):
                                      field_class=types.PointField, datatypes={'intensity': FLOAT32})
 
 
+def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: bool) -> dict:
+    """CPU cores an in-process node uses while ``msg`` arrives at ``rate`` Hz and nobody subscribes."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from ppe_ros.ros.node import ExtractorNode
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '77')))
+    executor = SingleThreadedExecutor(context=context)
+    node = ExtractorNode(context=context, namespace=f'/bench_idle_{os.getpid()}', parameter_overrides=[
+        Parameter('process_without_subscribers', value=process_without_subscribers)])
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + 600
+        while not node.ready.is_set() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        start, cpu_start, sent = time.monotonic(), time.process_time(), 0
+        while time.monotonic() - start < seconds:
+            node._on_cloud(msg)
+            sent += 1
+            next_at = start + sent / rate
+            while time.monotonic() < next_at:
+                executor.spin_once(timeout_sec=max(0.0, next_at - time.monotonic()))
+        cores = (time.process_time() - cpu_start) / (time.monotonic() - start)
+        counts = node.frame_counts()
+        return dict(sent=sent, processed=counts['processed'], idle=counts['idle'], dropped=counts['dropped'],
+                    cores=cores)
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        context.try_shutdown()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
     parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth'), default='synthetic')
     parser.add_argument('--params', default=None, metavar='FILE.yaml',
                         help="the node's params file (default: the node defaults)")
+    parser.add_argument('--idle', type=float, default=0.0, metavar='SECONDS',
+                        help='measure the CPU use with no subscriber instead (in-process node)')
+    parser.add_argument('--rate', type=float, default=10.0, help='input clouds per second for --idle')
     args = parser.parse_args(argv)
     params = ExtractorParams.from_yaml(args.params) if args.params else ExtractorParams()
     types = rclpy_message_types()
@@ -118,6 +162,18 @@ def main(argv: list[str] | None = None) -> int:
         planes = fit_labeled_planes(cloud_points(msg, params), labels).planes
         description = 'synthetic 28-gon room + floor + ceiling, planes fitted to the true faces'
     planes_s = time.perf_counter() - start
+    if args.idle:
+        height, width, _ = points.shape
+        print(f'Cloud: {description}, {height} x {width}, at {args.rate:g} Hz for {args.idle:g} s into an in-process '
+              'node with no subscriber on any output.\n')
+        print('| process_without_subscribers | clouds | extracted | idle | dropped | CPU (cores) |')
+        print('|---|---|---|---|---|---|')
+        for anyway in (False, True):
+            row = idle_cost(msg, args.idle, args.rate, anyway)
+            print(f'| {str(anyway).lower()} | {row["sent"]} | {row["processed"]} | {row["idle"]} | {row["dropped"]} | '
+                  f'{row["cores"]:.2f} |')
+        print(f'\nLoad average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores.')
+        return 0
     selection = OutputSelection(True, True, True)
 
     rows: dict[str, list[float]] = {k: [] for k in ('convert', 'labeled_points', 'markers', 'plane_table')}

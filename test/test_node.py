@@ -936,3 +936,38 @@ def test_the_node_uses_the_metadata_ray_starts_unless_ray_origin_is_set(ros_cont
     harness.send(make_cloud(scan_points, frame_id='os_lidar'))  # set by hand: it wins
     assert seen[-1] is None
     assert set(harness.node._warned_at) >= {'metadata', 'metadata_size'}
+
+
+# ------------------------------------------------------------------ the JIT warm-up (issue 19 item 7)
+
+
+def test_warm_up_runs_each_profile_with_both_kinds_of_ray_starts_and_logs_progress(monkeypatch):
+    from ppe_ros.ros import warmup as warmup_module
+    from ppe_ros.ros.messages import rosbags_message_types
+
+    calls, lines = [], []
+    real_process_cloud = warmup_module.process_cloud
+
+    def recording(cloud, params, types, *, outputs, ray_origins=None):
+        calls.append((params.sensor, None if ray_origins is None else ray_origins.shape))
+        time.sleep(0.05)  # long enough for the ticker
+        return real_process_cloud(cloud, params, types, outputs=outputs, ray_origins=ray_origins)
+
+    monkeypatch.setattr(warmup_module, 'process_cloud', recording)
+    steps = warmup_module.warm_up(rosbags_message_types(), sensors=('none', 'lidar'), log=lines.append, tick_s=0.02)
+    assert [step.sensor for step in steps] == ['none', 'lidar'] and all(step.planes >= 1 for step in steps)
+    assert calls == [('none', None), ('none', (12, 16, 3)), ('lidar', None), ('lidar', (12, 16, 3))]
+    assert 'JIT warm-up step 1/2: sensor none ...' in lines and 'JIT warm-up step 2/2: sensor lidar ...' in lines
+    assert any(line.startswith('JIT warm-up: still compiling (step') for line in lines), lines
+
+
+def test_ppe_warmup_prints_its_steps():
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, '-m', 'ppe_ros.cli', 'warmup', '--sensor', 'none'], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith('| step | seconds |\n|---|---|\n| sensor none | ')
+    assert '| sensor none |' in result.stdout and '| PCD files (LZF) |' in result.stdout
+    assert 'ppe warmup: JIT warm-up step 1/1: sensor none ...' in result.stderr

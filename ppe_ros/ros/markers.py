@@ -333,15 +333,28 @@ def budgeted_plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin:
 
     The stride starts at ``stride`` and grows until the meshes of all planes together have at most
     ``max_triangles`` triangles (0 = no limit). A stride s keeps about 1/s^2 of the triangles, so
-    the next stride tried is ``ceil(s * sqrt(triangles / max_triangles))`` (at least s + 1); at
-    worst the loop ends at a stride no smaller than the grid, where no cell (and no triangle) is left.
+    the next stride tried is ``ceil(s * sqrt(triangles / max_triangles))`` (at least s + 1). The
+    triangles are first bounded without building the mesh (at most two per labelled pixel of the
+    strided grid), so that a mesh over budget is not built only to be thrown away; at worst the loop
+    ends at a stride no smaller than the grid, where no cell (and no triangle) is left.
     """
     if int(max_triangles) != max_triangles or max_triangles < 0:
         raise ValueError(f'max_triangles must be an integer >= 0; got {max_triangles}')
+
+    def next_stride(current: int, triangles: int) -> int:
+        return max(current + 1, math.ceil(current * math.sqrt(triangles / max_triangles)))
+
+    def triangle_bound(labels: np.ndarray, current: int) -> int:
+        strided = labels[::current, ::current]
+        return 0 if min(strided.shape) < 2 else 2 * int(np.count_nonzero(strided > 0))
+
+    labels = np.asarray(planes.labels)
+    if max_triangles and labels.ndim == 2:
+        while (bound := triangle_bound(labels, stride)) > max_triangles:
+            stride = next_stride(stride, bound)
     geometry = plane_geometry(points, planes, ray_origin=ray_origin, stride=stride)
     while max_triangles and len(geometry.triangles) > max_triangles:
-        ratio = len(geometry.triangles) / max_triangles
-        stride = max(stride + 1, math.ceil(stride * math.sqrt(ratio)))
+        stride = next_stride(stride, len(geometry.triangles))
         geometry = plane_geometry(points, planes, ray_origin=ray_origin, stride=stride)
     return geometry, int(stride)
 

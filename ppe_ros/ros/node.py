@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import gc
 import math
+import os
 import sys
 import threading
 import time
@@ -475,10 +476,14 @@ def usage() -> str:
         '',
         f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability;',
         '       NaN, infinite or exactly (0, 0, 0) points are no return)',
+        f'       {METADATA_TOPIC} (std_msgs/String, transient local: the Ouster driver\'s metadata JSON; per-beam',
+        '       ray starts while ray_origin is [0, 0, 0])',
         f'  out  {LABELED_POINTS_TOPIC} (sensor_msgs/PointCloud2: x y z label rgb)',
         f'       {MARKERS_TOPIC} (visualization_msgs/MarkerArray)',
         f'       {PLANE_TABLE_TOPIC} (sensor_msgs/PointCloud2, one point per plane)',
         f'       {DIAGNOSTICS_TOPIC} (diagnostic_msgs/DiagnosticArray, about 1 Hz)',
+        '  With no subscriber on any output the node idles (process_without_subscribers: false).',
+        '  QoS: -p qos_overrides.<resolved topic>.<subscription|publisher>.<history|depth|reliability>:=VALUE',
         '',
         'parameters (config/extractor.yaml lists them all; change at runtime with ros2 param set):',
     ]
@@ -518,6 +523,9 @@ def main(args: list[str] | None = None) -> int:
     try:
         return _run(list(sys.argv if args is None else args))
     except KeyboardInterrupt:  # Ctrl-C before rclpy took over the signals, or a second one at the end
+        return 0
+    except BrokenPipeError:  # `extractor --help | head`: the reader left; no traceback, none at exit either
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
 
 
