@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test lint bench peers clean
+.PHONY: venv warmup demo test lint bench peers clean
 
 venv: $(STAMP)
 
@@ -14,7 +14,13 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
 	$(PY) -m pip install --quiet -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation --config-settings editable_mode=compat -e .
+	# compile the numba kernels into their cache once (minutes with a cold cache; NOTES: warmup)
+	$(VENV)/bin/ppe warmup
 	touch $(STAMP)
+
+# fill the numba cache again (e.g. after changing a kernel, or for another NUMBA_CACHE_DIR)
+warmup: venv
+	$(VENV)/bin/ppe warmup
 
 demo: venv
 	$(VENV)/bin/ppe demo --out demo-output

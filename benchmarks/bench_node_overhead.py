@@ -9,15 +9,23 @@ Input (``--cloud``): by default a synthetic 128 x 1024 spinning-lidar scan of a 
 floor and ceiling: 30 planes fitted to the true faces, 98 % of pixels planar (the worst case for
 the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` (or
 ``$PPE_SHARED_DATA/ouster``) with the planes that ``extract_planes`` finds (about a thousand small
-ones: the worst case for the number of markers).
+ones: the worst case for the number of markers); or ``depth``: a generated 640 x 480 Kinect-like
+depth frame of a furnished room (optical frame, NaN invalid), with the planes the node finds.
 
-    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster] [--params FILE.yaml]
+    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster|depth]
+        [--params FILE.yaml]
 
 ``--params`` takes the node's params file (default: the node defaults, as in config/extractor.yaml);
-e.g. ``marker_mesh_stride: 2`` shows what a coarser mesh saves.
+e.g. ``marker_mesh_stride: 2`` shows what a coarser mesh saves, ``marker_max_triangles: 0`` what the
+mesh budget saves (config/depth_camera.yaml with ``--cloud depth`` is the depth-camera case).
 
 Prints a markdown table (median and max over the repeats, milliseconds; wall time per step and the
 thread's CPU time for the total, which other processes on a busy machine do not inflate).
+
+``--idle SECONDS``: instead, what an in-process node costs with nobody subscribed to its outputs: the
+cloud at ``--rate`` Hz (default 10) into its subscription callback for SECONDS, once idling (the
+default) and once with ``process_without_subscribers: true``; prints the process's CPU time per
+second (cores) and the frames extracted.
 """
 
 from __future__ import annotations
@@ -42,6 +50,7 @@ from ppe_ros.ros.processing import (
     ProcessedFrame,
     build_outputs,
     cloud_points,
+    process_cloud,
 )
 
 OUSTER = Path(os.environ.get('PPE_SHARED_DATA', Path(__file__).resolve().parents[2] / 'shared' / 'data')) / 'ouster'
@@ -81,12 +90,51 @@ def driver_message(points: np.ndarray, types):
                                      field_class=types.PointField, datatypes={'intensity': FLOAT32})
 
 
+def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: bool) -> dict:
+    """CPU cores an in-process node uses while ``msg`` arrives at ``rate`` Hz and nobody subscribes."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from ppe_ros.ros.node import ExtractorNode
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '77')))
+    executor = SingleThreadedExecutor(context=context)
+    node = ExtractorNode(context=context, namespace=f'/bench_idle_{os.getpid()}', parameter_overrides=[
+        Parameter('process_without_subscribers', value=process_without_subscribers)])
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + 600
+        while not node.ready.is_set() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        start, cpu_start, sent = time.monotonic(), time.process_time(), 0
+        while time.monotonic() - start < seconds:
+            node._on_cloud(msg)
+            sent += 1
+            next_at = start + sent / rate
+            while time.monotonic() < next_at:
+                executor.spin_once(timeout_sec=max(0.0, next_at - time.monotonic()))
+        cores = (time.process_time() - cpu_start) / (time.monotonic() - start)
+        counts = node.frame_counts()
+        return dict(sent=sent, processed=counts['processed'], idle=counts['idle'], dropped=counts['dropped'],
+                    cores=cores)
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        context.try_shutdown()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
-    parser.add_argument('--cloud', choices=('synthetic', 'ouster'), default='synthetic')
+    parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth'), default='synthetic')
     parser.add_argument('--params', default=None, metavar='FILE.yaml',
                         help="the node's params file (default: the node defaults)")
+    parser.add_argument('--idle', type=float, default=0.0, metavar='SECONDS',
+                        help='measure the CPU use with no subscriber instead (in-process node)')
+    parser.add_argument('--rate', type=float, default=10.0, help='input clouds per second for --idle')
     args = parser.parse_args(argv)
     params = ExtractorParams.from_yaml(args.params) if args.params else ExtractorParams()
     types = rclpy_message_types()
@@ -101,17 +149,36 @@ def main(argv: list[str] | None = None) -> int:
                                 max_neighbor_distance=params.max_neighbor_distance,
                                 min_plane_points=params.min_plane_points)
         description = f'Ouster {OUSTER_FILE}, planes from extract_planes'
+    elif args.cloud == 'depth':  # what the node finds with these params
+        from ppe_ros.core.synthetic_real import generate_depth_scan
+
+        points = generate_depth_scan(seed=0).points
+        msg = driver_message(points, types)
+        planes = process_cloud(msg, params, types, outputs=OutputSelection(False, False, False)).planes
+        description = f'generated 640 x 480 depth frame (indoor scene, seed 0), planes from the node ({params.sensor})'
     else:  # the true faces, fitted: the overhead does not depend on how the planes were found
         points, labels = synthetic_room()
         msg = driver_message(points, types)
         planes = fit_labeled_planes(cloud_points(msg, params), labels).planes
         description = 'synthetic 28-gon room + floor + ceiling, planes fitted to the true faces'
     planes_s = time.perf_counter() - start
+    if args.idle:
+        height, width, _ = points.shape
+        print(f'Cloud: {description}, {height} x {width}, at {args.rate:g} Hz for {args.idle:g} s into an in-process '
+              'node with no subscriber on any output.\n')
+        print('| process_without_subscribers | clouds | extracted | idle | dropped | CPU (cores) |')
+        print('|---|---|---|---|---|---|')
+        for anyway in (False, True):
+            row = idle_cost(msg, args.idle, args.rate, anyway)
+            print(f'| {str(anyway).lower()} | {row["sent"]} | {row["processed"]} | {row["idle"]} | {row["dropped"]} | '
+                  f'{row["cores"]:.2f} |')
+        print(f'\nLoad average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores.')
+        return 0
     selection = OutputSelection(True, True, True)
 
     rows: dict[str, list[float]] = {k: [] for k in ('convert', 'labeled_points', 'markers', 'plane_table')}
     totals, builds, cpu_totals = [], [], []
-    marker_bytes = 0
+    marker_bytes = marker_stride = 0
     for repeat in range(args.repeats + 1):  # the first run compiles / loads the numba cache
         start, cpu_start = time.perf_counter(), time.thread_time()
         points_in = cloud_points(msg, params)
@@ -122,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         total = time.perf_counter() - start
         cpu_total = time.thread_time() - cpu_start
         if repeat == 0:
-            marker_bytes = len(frame.markers)
+            marker_bytes, marker_stride = len(frame.markers), frame.marker_stride
             continue
         for key in rows:
             rows[key].append(frame.timings[key] * 1e3)
@@ -134,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'Cloud: {description}, {height} x {width}, {planes.num_planes} planes '
           f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
           f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats; '
-          f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}).\n')
+          f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}, '
+          f'marker_max_triangles {params.marker_max_triangles}: mesh stride used {marker_stride}).\n')
     print('| step | median ms | max ms |')
     print('|---|---|---|')
     labels = {'convert': 'conversion in (PointCloud2 -> validated points)', 'labeled_points': 'labelled cloud',

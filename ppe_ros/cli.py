@@ -19,6 +19,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     'extract',
     'demo',
     'bag',
+    'warmup',
 )
 
 

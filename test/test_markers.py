@@ -18,6 +18,7 @@ from ppe_ros.ros.markers import (
     OUTLINE_NAMESPACE,
     TRIANGLE_LIST,
     arrow_lengths,
+    budgeted_plane_geometry,
     marker_array_cdr,
     plane_geometry,
 )
@@ -189,6 +190,59 @@ def test_stride_coarsens_the_mesh():
     assert plane_geometry(points, planes).triangle_counts.tolist() == [2 * 8 * 8]
     assert plane_geometry(points, planes, stride=2).triangle_counts.tolist() == [2 * 4 * 4]
     assert plane_geometry(points, planes, stride=2).areas[0] == pytest.approx(64 * SPACING**2)
+
+
+def test_per_pixel_ray_origins_move_each_pixels_intersection():
+    """Ouster beams start off the axis: a pixel's vertex is where the ray from its own start meets the plane."""
+    points, planes = flat_scene(np.ones((4, 5), np.int32))
+    same = np.broadcast_to([0.0, 0.0, 1.0], points.shape)
+    np.testing.assert_array_equal(plane_geometry(points, planes, ray_origin=same).triangles,
+                                  plane_geometry(points, planes, ray_origin=np.array([0.0, 0.0, 1.0])).triangles)
+    noisy = points.copy()
+    noisy[..., 2] += 0.05  # 5 cm beyond the plane z = 2, straight behind each point
+    origins = noisy.copy()
+    origins[..., 2] = 0.0  # every ray runs along z from its own start below its point: meets z = 2 at (x, y)
+    triangles = plane_geometry(noisy, planes, ray_origin=origins).triangles.reshape(-1, 3)
+    np.testing.assert_allclose(triangles[:, 2], 2.0, atol=1e-12)
+    expected = {tuple(np.round(p[:2], 9)) for p in points.reshape(-1, 3)}
+    assert {tuple(np.round(v[:2], 9)) for v in triangles} == expected
+    from_origin = plane_geometry(noisy, planes).triangles.reshape(-1, 3)  # rays from (0, 0, 0): shifted inwards
+    assert not np.allclose(np.sort(from_origin[:, 0]), np.sort(triangles[:, 0]))
+    with pytest.raises(ValueError, match='one per pixel'):
+        plane_geometry(points, planes, ray_origin=np.zeros((3, 5, 3)))
+
+
+def test_mesh_budget_raises_the_stride_until_the_triangles_fit():
+    points, planes = flat_scene(np.ones((41, 41), np.int32))
+    full = plane_geometry(points, planes)
+    assert len(full.triangles) == 2 * 40 * 40
+    geometry, stride = budgeted_plane_geometry(points, planes, max_triangles=0)
+    assert stride == 1 and np.array_equal(geometry.triangles, full.triangles)
+    for budget in (3200, 3199, 800, 500, 100, 7, 1):
+        geometry, stride = budgeted_plane_geometry(points, planes, max_triangles=budget)
+        assert len(geometry.triangles) <= budget, (budget, stride)
+        assert np.array_equal(geometry.triangles, plane_geometry(points, planes, stride=stride).triangles)
+        assert stride > 1 or budget >= len(full.triangles)
+    assert budgeted_plane_geometry(points, planes, max_triangles=3199)[1] == 2  # 2 * 20 * 20 = 800 triangles
+    geometry, stride = budgeted_plane_geometry(points, planes, stride=4, max_triangles=10_000)
+    assert stride == 4 and len(geometry.triangles) == 2 * 10 * 10  # within budget: the stride asked for
+    with pytest.raises(ValueError, match='max_triangles'):
+        budgeted_plane_geometry(points, planes, max_triangles=-1)
+
+
+def test_the_budget_bounds_the_markers_of_a_depth_camera_sized_cloud():
+    """Issue 19 item 9: 640 x 480 at the defaults gave 35.8 MB of markers per frame; the default budget bounds it."""
+    from ppe_ros.ros.processing import ExtractorParams
+
+    points, planes = flat_scene(np.ones((480, 640), np.int32), depth=2.0)
+    colors = np.full(1, 0x00FF0000, np.uint32)
+    stamped = StampedFrame(1, 2, 'camera_depth_optical_frame')
+    unbounded = marker_array_cdr(plane_geometry(points, planes), planes, stamped, colors=colors)
+    budget = ExtractorParams().marker_max_triangles
+    geometry, stride = budgeted_plane_geometry(points, planes, max_triangles=budget)
+    bounded = marker_array_cdr(geometry, planes, stamped, colors=colors)
+    assert len(unbounded) > 40e6 and stride == 3 and len(geometry.triangles) <= budget
+    assert len(bounded) < 72 * budget + 1e6, len(bounded)
 
 
 def test_no_planes_and_tiny_grids_give_empty_geometry():

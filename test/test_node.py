@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gc
 import itertools
+import math
 import os
 import signal
 import threading
@@ -713,3 +714,260 @@ def test_main_still_exits_2_on_an_invalid_parameter(capfd, namespace):
     assert node_module.main(argv) == 2
     err = capfd.readouterr().err
     assert "extractor: error: invalid parameter 'marker_alpha'" in err and 'Traceback' not in err
+
+
+# ------------------------------------------------------------------ idling, output rate, QoS overrides (issue 19)
+
+
+def wait_counted(executor, node, key: str, count: int, timeout: float = 20.0) -> bool:
+    return spin_until(executor, lambda: node.frame_counts()[key] >= count, timeout)
+
+
+def bare_node(context, executor, namespace, overrides=()):
+    """An extractor with no subscriber on its outputs, and a probe that only publishes clouds."""
+    node = ExtractorNode(context=context, namespace=namespace,
+                         parameter_overrides=[Parameter('input_reliability', value='reliable'), *overrides])
+    executor.add_node(node)
+    probe = rclpy.create_node('probe', context=context, namespace=namespace)
+    executor.add_node(probe)
+    publisher = probe.create_publisher(PointCloud2, 'points', RELIABLE)
+    assert spin_until(executor, node.ready.is_set, READY_TIMEOUT_S)
+    assert spin_until(executor, lambda: publisher.get_subscription_count() > 0)
+    return node, probe, publisher
+
+
+def test_without_subscribers_the_node_idles_and_says_so(ros_context, executor, namespace, scan_points):
+    """Issue 19 item 5: nobody listening, no extraction (counted as idle, reported in diagnostics)."""
+    node, probe, publisher = bare_node(ros_context, executor, namespace)
+    node.diagnostics_status()  # starts a new report window
+    for sec in range(3):
+        publisher.publish(make_cloud(scan_points, sec=sec))
+        assert wait_counted(executor, node, 'idle', sec + 1)
+    counts = node.frame_counts()
+    assert (counts['processed'], counts['idle'], counts['received']) == (0, 3, 3)
+    status = node.diagnostics_status()
+    values = values_of(status)
+    assert status.level == DiagnosticStatus.OK and status.message.startswith('idle: no subscriber on any output')
+    assert (values['idle'], values['frames_idle'], values['frames_processed']) == ('true', '3', '0')
+    assert values['time_since_last_output_s'] == 'nan' and values['output_rate_hz'] == '0.00'
+    tables = []
+    probe.create_subscription(PointCloud2, 'planes', tables.append, RELIABLE)
+    assert spin_until(executor, lambda: node._plane_table_pub.get_subscription_count() > 0)
+    publisher.publish(make_cloud(scan_points, sec=10))
+    assert spin_until(executor, lambda: bool(tables), 20.0)
+    assert node.frame_counts()['processed'] == 1 and values_of(node.diagnostics_status())['idle'] == 'false'
+
+
+def test_process_without_subscribers_extracts_anyway(ros_context, executor, namespace, scan_points):
+    node, _, publisher = bare_node(ros_context, executor, namespace,
+                                   [Parameter('process_without_subscribers', value=True)])
+    publisher.publish(make_cloud(scan_points))
+    assert wait_counted(executor, node, 'processed', 1)
+    assert node.frame_counts()['idle'] == 0
+    values = values_of(node.diagnostics_status())
+    assert values['idle'] == 'false' and float(values['time_since_last_output_s']) < 20.0
+
+
+def test_diagnostics_warn_when_the_output_rate_falls_below_the_set_fraction(ros_context, executor, namespace,
+                                                                            scan_points, monkeypatch):
+    """Issue 19 item 6: output rate and time since the last output; WARN below min_output_rate_fraction."""
+    from ppe_ros.ros import node as node_module
+
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    real_process_cloud = node_module.process_cloud
+
+    def slow(*args, **kwargs):
+        time.sleep(0.25)  # at most 4 frames/s out while 20 frames/s come in
+        return real_process_cloud(*args, **kwargs)
+
+    monkeypatch.setattr(node_module, 'process_cloud', slow)
+    node.diagnostics_status()
+    for sec in range(30):
+        node._on_cloud(make_cloud(scan_points, sec=sec))
+        spin_until(executor, lambda: False, 0.05)
+    status = node.diagnostics_status()
+    values = values_of(status)
+    assert status.level == DiagnosticStatus.WARN, status.message
+    assert status.message.startswith('output rate') and 'below 0.5 x the input rate' in status.message
+    assert 0.0 < float(values['output_rate_hz']) < 0.5 * float(values['input_rate_hz'])
+    assert float(values['time_since_last_output_s']) < 5.0
+    [result] = node.set_parameters([Parameter('min_output_rate_fraction', value=0.0)])  # 0: never
+    assert result.successful
+    assert not node.diagnostics_status().message.startswith('output rate')
+
+
+def test_output_rate_check_needs_enough_frames_and_leaves_idle_frames_out():
+    from ppe_ros.ros.diagnostics import ReportWindow
+
+    def window(received, published, idle=0, span_s=5.0):
+        return ReportWindow(received=received, skipped=0, failed=0, dropped=0, times_ms=np.zeros(0),
+                            input_rate_hz=received / span_s, output_rate_hz=published / span_s,
+                            to_extract_in_rate_window=received - idle, idle_in_rate_window=idle, totals={},
+                            skipped_by_kind={}, last_error='', last_error_age_s=math.nan,
+                            since_last_output_s=math.nan, last_planes=0, last_frame_id='', busy=0, busy_peak=0)
+
+    assert window(50, 24).output_rate_too_low(0.5) and not window(50, 25).output_rate_too_low(0.5)
+    assert not window(2, 0).output_rate_too_low(0.5)  # too few frames to tell
+    assert not window(50, 0).output_rate_too_low(0.0)
+    assert not window(50, 10, idle=40).output_rate_too_low(0.5)  # 10 of the 10 frames to extract came out
+    assert window(50, 4, idle=40).output_rate_too_low(0.5)
+
+
+def test_qos_overrides_set_the_input_and_output_qos(ros_context, executor, namespace, capfd):
+    """Issue 19 item 4: rclpy's QoS override parameters, for the (resolved) input and output topics."""
+    from rclpy.qos import ReliabilityPolicy as Reliability
+
+    overrides = [Parameter(f'qos_overrides.{namespace}/points.subscription.reliability', value='reliable'),
+                 Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=3),
+                 Parameter(f'qos_overrides.{namespace}/planes.publisher.reliability', value='best_effort'),
+                 Parameter(f'qos_overrides.{namespace}/planes/markers.publisher.depth', value=4),
+                 Parameter('qos_overrides./elsewhere/points.subscription.reliability', value='reliable')]
+    node = ExtractorNode(context=ros_context, namespace=namespace, parameter_overrides=overrides)
+    executor.add_node(node)
+    assert node.params.input_reliability == 'best_effort'  # the override wins over it
+    assert (node._subscription.qos_profile.reliability, node._subscription.qos_profile.depth) == (
+        Reliability.RELIABLE, 3)
+    assert node._plane_table_pub.qos_profile.reliability == Reliability.BEST_EFFORT
+    assert node._markers_pub.qos_profile.depth == 4
+    assert node._labeled_points_pub.qos_profile.reliability == Reliability.RELIABLE  # not overridden
+    err = capfd.readouterr().err
+    assert "ignoring QoS override(s) ['qos_overrides./elsewhere/points.subscription.reliability']" in err, err
+    [result] = node.set_parameters([Parameter('input_reliability', value='reliable')])
+    assert result.successful and node._subscription.qos_profile.depth == 3
+
+
+def test_input_reliability_change_keeps_the_depth_override(ros_context, executor, namespace):
+    from rclpy.qos import ReliabilityPolicy as Reliability
+
+    node = ExtractorNode(context=ros_context, namespace=namespace, parameter_overrides=[
+        Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=2)])
+    executor.add_node(node)
+    assert node._subscription.qos_profile.reliability == Reliability.BEST_EFFORT
+    [result] = node.set_parameters([Parameter('input_reliability', value='reliable')])
+    assert result.successful
+    assert (node._subscription.qos_profile.reliability, node._subscription.qos_profile.depth) == (
+        Reliability.RELIABLE, 2)
+
+
+# ------------------------------------------------------------------ ray origins from the Ouster metadata
+
+
+def ouster_metadata(rows: int, columns: int, nested: bool = False) -> dict:
+    legacy = {
+        'lidar_origin_to_beam_origin_mm': 15.8,
+        'lidar_to_sensor_transform': [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
+        'data_format': {'pixels_per_column': rows, 'columns_per_frame': columns, 'column_window': [0, columns - 1],
+                        'pixel_shift_by_row': [(3 * i) % columns for i in range(rows)]},
+    }
+    if not nested:
+        return legacy
+    return {'beam_intrinsics': {'lidar_origin_to_beam_origin_mm': legacy['lidar_origin_to_beam_origin_mm']},
+            'lidar_intrinsics': {'lidar_to_sensor_transform': legacy['lidar_to_sensor_transform']},
+            'lidar_data_format': legacy['data_format']}
+
+
+def test_ouster_metadata_of_either_layout_gives_the_file_loaders_ray_starts():
+    import json
+
+    from ppe_ros.io.ouster import ouster_ray_origins
+    from ppe_ros.ros.sensor_metadata import OusterRayOrigins
+
+    expected = ouster_ray_origins(ouster_metadata(4, 8), 4, 8)
+    for nested in (False, True):
+        origins = OusterRayOrigins(json.dumps(ouster_metadata(4, 8, nested)))
+        assert origins.shape == (4, 8) and origins.beam_origin_mm == 15.8
+        np.testing.assert_array_equal(origins.for_cloud(4, 8, 'os_sensor'), expected)
+        lidar = origins.for_cloud(4, 8, 'os_lidar')  # the lidar frame: starts on a 15.8 mm circle at z = 0
+        np.testing.assert_allclose(np.linalg.norm(lidar[..., :2], axis=-1), 0.0158, atol=1e-15)
+        np.testing.assert_allclose(lidar[..., 2], 0.0, atol=1e-15)
+        assert origins.for_cloud(4, 9, 'os_sensor') is None
+
+
+@pytest.mark.parametrize(('text', 'message'), [
+    ('{', 'not JSON'),
+    ('[1, 2]', 'expected an object'),
+    ('{"data_format": {}}', 'missing lidar_origin_to_beam_origin_mm, lidar_to_sensor_transform'),
+    ('{"lidar_origin_to_beam_origin_mm": "x", "lidar_to_sensor_transform": [], "data_format": '
+     '{"pixels_per_column": 4, "columns_per_frame": 8}}', 'must be'),
+])
+def test_bad_ouster_metadata_is_a_clear_error(text, message):
+    from ppe_ros.io.errors import ScanFileError
+    from ppe_ros.ros.sensor_metadata import OusterRayOrigins
+
+    with pytest.raises(ScanFileError, match=message):
+        OusterRayOrigins(text)
+
+
+def test_the_node_uses_the_metadata_ray_starts_unless_ray_origin_is_set(ros_context, executor, namespace,
+                                                                       scan_points, monkeypatch):
+    """Issue 19 item 8: the driver's latched metadata (std_msgs/String JSON) on `metadata`."""
+    import json
+
+    from rclpy.qos import DurabilityPolicy
+    from std_msgs.msg import String
+
+    from ppe_ros.ros import node as node_module
+
+    seen = []
+    real_process_cloud = node_module.process_cloud
+
+    def spy(*args, ray_origins=None, **kwargs):
+        seen.append(ray_origins)
+        return real_process_cloud(*args, ray_origins=ray_origins, **kwargs)
+
+    monkeypatch.setattr(node_module, 'process_cloud', spy)
+    harness = Harness(ros_context, executor, namespace)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    metadata_pub = harness.probe.create_publisher(String, 'metadata', latched)
+    rows, columns = scan_points.shape[:2]
+    assert spin_until(executor, lambda: metadata_pub.get_subscription_count() > 0)
+    metadata_pub.publish(String(data='not json'))  # warned about and ignored
+    assert spin_until(executor, lambda: 'metadata' in harness.node._warned_at)
+    metadata_pub.publish(String(data=json.dumps(ouster_metadata(rows, columns))))
+    assert spin_until(executor, lambda: harness.node._ray_starts.ouster is not None)
+    harness.send(make_cloud(scan_points, frame_id='os_lidar'))
+    expected = harness.node._ray_starts.ouster.for_cloud(rows, columns, 'os_lidar')
+    assert seen[-1] is expected and np.allclose(np.linalg.norm(expected[..., :2], axis=-1), 0.0158)
+    harness.send(make_cloud(scan_points[:, :-1], frame_id='os_lidar'))  # another size: ray_origin
+    assert seen[-1] is None
+    [result] = harness.node.set_parameters([Parameter('ray_origin', value=[0.0, 0.0, 0.5])])
+    assert result.successful
+    harness.send(make_cloud(scan_points, frame_id='os_lidar'))  # set by hand: it wins
+    assert seen[-1] is None
+    assert set(harness.node._warned_at) >= {'metadata', 'metadata_size'}
+
+
+# ------------------------------------------------------------------ the JIT warm-up (issue 19 item 7)
+
+
+def test_warm_up_runs_each_profile_with_both_kinds_of_ray_starts_and_logs_progress(monkeypatch):
+    from ppe_ros.ros import warmup as warmup_module
+    from ppe_ros.ros.messages import rosbags_message_types
+
+    calls, lines = [], []
+    real_process_cloud = warmup_module.process_cloud
+
+    def recording(cloud, params, types, *, outputs, ray_origins=None):
+        calls.append((params.sensor, None if ray_origins is None else ray_origins.shape))
+        time.sleep(0.05)  # long enough for the ticker
+        return real_process_cloud(cloud, params, types, outputs=outputs, ray_origins=ray_origins)
+
+    monkeypatch.setattr(warmup_module, 'process_cloud', recording)
+    steps = warmup_module.warm_up(rosbags_message_types(), sensors=('none', 'lidar'), log=lines.append, tick_s=0.02)
+    assert [step.sensor for step in steps] == ['none', 'lidar'] and all(step.planes >= 1 for step in steps)
+    assert calls == [('none', None), ('none', (12, 16, 3)), ('lidar', None), ('lidar', (12, 16, 3))]
+    assert 'JIT warm-up step 1/2: sensor none ...' in lines and 'JIT warm-up step 2/2: sensor lidar ...' in lines
+    assert any(line.startswith('JIT warm-up: still compiling (step') for line in lines), lines
+
+
+def test_ppe_warmup_prints_its_steps():
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, '-m', 'ppe_ros.cli', 'warmup', '--sensor', 'none'], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith('| step | seconds |\n|---|---|\n| sensor none | ')
+    assert '| sensor none |' in result.stdout and '| PCD files (LZF) |' in result.stdout
+    assert 'ppe warmup: JIT warm-up step 1/1: sensor none ...' in result.stderr

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -24,6 +25,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from ppe_ros.core.synthetic import plane_scan
+from ppe_ros.ros.diagnostics import RATE_WINDOW_S
 from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, xyz_to_pointcloud2
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(420)]
@@ -214,6 +216,9 @@ def test_skipped_frames_do_not_stop_the_process(client_factory):
     try:
         assert extractor.ready.wait(READY_TIMEOUT_S), extractor.output
         executor, probe = client_factory(domain_id)
+        # a subscriber on an output: with none the node idles and does not look at the clouds (issue 19 item 5)
+        probe.create_subscription(PointCloud2, '/planes', lambda msg: None,
+                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0)
         unorganized = make_cloud(sec=1)
@@ -335,3 +340,95 @@ def test_sigint_during_start_up_exits_0_without_a_traceback(client_factory, dela
     assert appeared, f'the node never appeared in the graph:\n{output}'
     assert exit_code == 0, f'exit code {exit_code}:\n{output}'
     assert 'Traceback' not in output and 'terminate called' not in output, output
+
+
+# ------------------------------------------------------------------ issue 19: QoS overrides, idling, diagnostics
+
+
+def extractor_endpoints(infos) -> list:
+    return [info for info in infos if info.node_name == 'extractor']
+
+
+def test_qos_overrides_reach_the_ros_graph_and_unknown_ones_are_warned_about(client_factory):
+    """`-p qos_overrides.<topic>.<entity>.<policy>:=...` as ROS 2 nodes take it (it was silently ignored)."""
+    from rclpy.qos import ReliabilityPolicy as Reliability
+
+    domain_id = unique_domain_id(20)
+    extractor = ExtractorProcess(domain_id, '-p', 'qos_overrides./points.subscription.reliability:=reliable',
+                                 '-p', 'qos_overrides./planes.publisher.reliability:=best_effort',
+                                 '-p', 'qos_overrides./nowhere.subscription.depth:=2')
+    try:
+        executor, probe = client_factory(domain_id)
+
+        def endpoints():
+            return (extractor_endpoints(probe.get_subscriptions_info_by_topic('/points')),
+                    extractor_endpoints(probe.get_publishers_info_by_topic('/planes')))
+
+        assert spin_until(executor, lambda: all(endpoints()), READY_TIMEOUT_S), extractor.output
+        [subscription], [table_publisher] = endpoints()
+        assert subscription.qos_profile.reliability == Reliability.RELIABLE
+        assert table_publisher.qos_profile.reliability == Reliability.BEST_EFFORT
+        [markers] = extractor_endpoints(probe.get_publishers_info_by_topic('/planes/markers'))
+        assert markers.qos_profile.reliability == Reliability.RELIABLE
+        deadline = time.monotonic() + 30.0
+        while 'ignoring QoS override' not in extractor.output and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "ignoring QoS override(s) ['qos_overrides./nowhere.subscription.depth']" in extractor.output
+    finally:
+        exit_code = extractor.stop(signal.SIGINT, timeout=READY_TIMEOUT_S)
+    assert exit_code == 0, extractor.output
+
+
+def test_idle_without_subscribers_then_outputs_rate_diagnostics_and_an_rviz_drawable_table(client_factory):
+    """Nobody listening: frames are counted as idle, not extracted; a subscriber brings the outputs back, with
+    their rate and age in the diagnostics; the plane table's x y z are float32 (RViz's XYZ transformer)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    domain_id = unique_domain_id(30)
+    extractor = ExtractorProcess(domain_id)
+    try:
+        assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
+        executor, probe = client_factory(domain_id)
+        statuses = []
+        probe.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: statuses.extend({kv.key: kv.value for kv in s.values} | {'_message': s.message}
+                                        for s in msg.status if s.name == 'extractor: plane extraction'), 10)
+        publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
+        assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
+
+        def latest(predicate, timeout: float, publish: bool) -> dict | None:
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                if publish:
+                    publisher.publish(make_cloud(sec=5))
+                spin_until(executor, lambda: False, 0.2)
+                if statuses and predicate(statuses[-1]):
+                    return statuses[-1]
+            return None
+
+        idle = latest(lambda s: int(s['frames_idle']) >= 3, 60.0, publish=True)
+        assert idle is not None, f'{statuses[-3:]}\n{extractor.output}'
+        assert (idle['idle'], idle['frames_processed'], idle['time_since_last_output_s']) == ('true', '0', 'nan')
+        assert idle['_message'].startswith('idle: no subscriber on any output')
+        tables = []
+        probe.create_subscription(PointCloud2, '/planes', tables.append,
+                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+        busy = latest(lambda s: int(s['frames_processed']) >= 5 and float(s['output_rate_hz']) > 0, 60.0,
+                      publish=True)
+        assert busy is not None and tables, f'{statuses[-3:]}\n{extractor.output}'
+        assert busy['idle'] == 'false' and float(busy['time_since_last_output_s']) < 5.0
+        assert 0.0 < float(busy['output_rate_hz']) <= float(busy['input_rate_hz']) + 1.0
+        table = tables[-1]
+        assert [(f.name, f.offset, f.datatype, f.count) for f in table.fields[:4]] == [
+            ('x', 0, PointField.FLOAT32, 1), ('y', 4, PointField.FLOAT32, 1), ('z', 8, PointField.FLOAT32, 1),
+            ('rgb', 12, PointField.FLOAT32, 1)]
+        records = pointcloud2_to_structured(table)[0]
+        np.testing.assert_allclose(records['x'], records['centroid_x'], rtol=1e-6)
+        # no input: the age grows and, once the last output left the 5 s rate window, the rate is 0
+        quiet = latest(lambda s: float(s['time_since_last_output_s']) >= RATE_WINDOW_S + 1.0, 30.0, publish=False)
+        assert quiet is not None and quiet['output_rate_hz'] == '0.00', statuses[-3:]
+    finally:
+        exit_code = extractor.stop(signal.SIGINT)
+    assert exit_code == 0, extractor.output
+    assert 'Traceback' not in extractor.output

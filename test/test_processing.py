@@ -189,9 +189,18 @@ def test_plane_table_has_one_documented_point_per_plane(frame):
     assert header_tuple(msg.header) == (*STAMP, 'os_lidar')
     assert (msg.height, msg.width) == (1, planes.num_planes)
     assert tuple(f.name for f in msg.fields) == PLANE_TABLE_FIELDS
-    assert all(f.datatype == FLOAT64 for f in msg.fields if f.name not in ('point_count', 'label'))
+    # x y z float32 (what RViz draws) and rgb; the rest float64 but the two counts
+    assert all(f.datatype == FLOAT64 for f in msg.fields if f.name not in ('x', 'y', 'z', 'rgb', 'point_count',
+                                                                           'label'))
+    assert [(f.name, f.offset, f.datatype) for f in msg.fields[:4]] == [('x', 0, 7), ('y', 4, 7), ('z', 8, 7),
+                                                                        ('rgb', 12, 7)]
     table = pointcloud2_to_structured(msg)[0]
-    np.testing.assert_array_equal(np.stack([table['x'], table['y'], table['z']], 1), planes.centroids)
+    np.testing.assert_array_equal(np.stack([table['x'], table['y'], table['z']], 1), planes.centroids.astype('<f4'))
+    np.testing.assert_array_equal(np.stack([table['centroid_x'], table['centroid_y'], table['centroid_z']], 1),
+                                  planes.centroids)
+    labeled = pointcloud2_to_structured(frame.labeled_points)  # a plane's centroid has its colour in the cloud
+    for row in table:
+        assert set(labeled['rgb'][labeled['label'] == row['label']].view(np.uint32)) == {row['rgb'].view(np.uint32)}
     np.testing.assert_array_equal(np.stack([table['normal_x'], table['normal_y'], table['normal_z']], 1),
                                   planes.normals)
     np.testing.assert_array_equal(table['d'], planes.offsets)

@@ -20,6 +20,7 @@ frame_id. All coordinates are metres in the frame of the input cloud.
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -78,8 +79,8 @@ _NO_CELL, _FULL, _MISSING_A, _MISSING_B, _MISSING_C, _MISSING_D = 0, 1, 2, 3, 4,
 
 
 @nb.njit(cache=True, parallel=True)
-def _project_vertices(points, labels, normals, offsets, origin, grazing_cosine):
-    """``(H, W, 3)``: each labelled pixel's ray meets its plane here (0 for unlabelled pixels)."""
+def _project_vertices(points, labels, normals, offsets, origins, grazing_cosine):
+    """``(H, W, 3)``: each labelled pixel's ray (from ``origins[r, c]``) meets its plane here (0 elsewhere)."""
     height, width = labels.shape
     vertices = np.zeros((height, width, 3))
     for r in nb.prange(height):
@@ -88,16 +89,17 @@ def _project_vertices(points, labels, normals, offsets, origin, grazing_cosine):
             if label <= 0:
                 continue
             j = label - 1
+            o0, o1, o2 = origins[r, c, 0], origins[r, c, 1], origins[r, c, 2]
             n0, n1, n2 = normals[j, 0], normals[j, 1], normals[j, 2]
             p0, p1, p2 = points[r, c, 0], points[r, c, 1], points[r, c, 2]
-            u0, u1, u2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
+            u0, u1, u2 = p0 - o0, p1 - o1, p2 - o2
             along = n0 * u0 + n1 * u1 + n2 * u2
             length = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
             if abs(along) > grazing_cosine * length:
-                t = (offsets[j] - (n0 * origin[0] + n1 * origin[1] + n2 * origin[2])) / along
-                vertices[r, c, 0] = origin[0] + t * u0
-                vertices[r, c, 1] = origin[1] + t * u1
-                vertices[r, c, 2] = origin[2] + t * u2
+                t = (offsets[j] - (n0 * o0 + n1 * o1 + n2 * o2)) / along
+                vertices[r, c, 0] = o0 + t * u0
+                vertices[r, c, 1] = o1 + t * u1
+                vertices[r, c, 2] = o2 + t * u2
             else:  # grazing ray: orthogonal projection of the measured point
                 off = n0 * p0 + n1 * p1 + n2 * p2 - offsets[j]
                 vertices[r, c, 0] = p0 - off * n0
@@ -276,7 +278,8 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
     Args:
         points: ``(H, W, 3)`` measured endpoints (m, cloud frame), NaN = no return.
         planes: the planes of this scan (``planes.labels`` is ``(H, W)``).
-        ray_origin: ``(3,)`` start point of every ray (m, cloud frame); default the origin.
+        ray_origin: ``(3,)`` start point of every ray, or ``(H, W, 3)`` one per pixel (m, cloud frame);
+            default the origin.
         stride: use every ``stride``-th row and column (a coarser mesh, ``stride**2`` fewer triangles).
 
     Raises:
@@ -291,14 +294,17 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
     if int(stride) != stride or stride < 1:
         raise ValueError(f'stride must be an integer >= 1; got {stride}')
     origin = np.zeros(3) if ray_origin is None else np.asarray(ray_origin, dtype=np.float64)
-    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-        raise ValueError(f'ray_origin must be a finite (3,) point; got {ray_origin!r}')
+    if origin.shape not in ((3,), points.shape) or not np.all(np.isfinite(origin)):
+        shown = repr(ray_origin) if origin.size <= 3 else f'an array of shape {origin.shape}'
+        raise ValueError(f'ray_origin must be a finite (3,) point or one per pixel {points.shape}; got {shown}')
     num_planes = planes.num_planes
     if labels.size and (labels.min() < 0 or labels.max() > num_planes):
         raise ValueError(f'planes.labels must lie in 0..{num_planes}; got {labels.min()}..{labels.max()}')
     stride = int(stride)
     points = np.ascontiguousarray(points[::stride, ::stride])
     labels = np.ascontiguousarray(labels[::stride, ::stride], dtype=np.int64)
+    origins = np.ascontiguousarray(np.broadcast_to(origin, points.shape) if origin.shape == (3,)
+                                   else origin[::stride, ::stride])
     height, width = labels.shape
     if num_planes == 0 or height < 2 or width < 2:
         return PlaneGeometry(
@@ -308,7 +314,7 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
         )
     normals = np.ascontiguousarray(planes.normals, dtype=np.float64)
     offsets = np.ascontiguousarray(planes.offsets, dtype=np.float64)
-    vertices = _project_vertices(points, labels, normals, offsets, origin, GRAZING_COSINE)
+    vertices = _project_vertices(points, labels, normals, offsets, origins, GRAZING_COSINE)
     triangles, triangle_counts, segments, segment_counts, areas = _mesh_kernel(
         vertices, labels, normals, num_planes
     )
@@ -319,6 +325,38 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
         segment_counts=segment_counts,
         areas=areas,
     )
+
+
+def budgeted_plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarray | None = None,
+                            stride: int = 1, max_triangles: int = 0) -> tuple[PlaneGeometry, int]:
+    """:func:`plane_geometry` within a mesh budget: ``(geometry, stride used)``.
+
+    The stride starts at ``stride`` and grows until the meshes of all planes together have at most
+    ``max_triangles`` triangles (0 = no limit). A stride s keeps about 1/s^2 of the triangles, so
+    the next stride tried is ``ceil(s * sqrt(triangles / max_triangles))`` (at least s + 1). The
+    triangles are first bounded without building the mesh (at most two per labelled pixel of the
+    strided grid), so that a mesh over budget is not built only to be thrown away; at worst the loop
+    ends at a stride no smaller than the grid, where no cell (and no triangle) is left.
+    """
+    if int(max_triangles) != max_triangles or max_triangles < 0:
+        raise ValueError(f'max_triangles must be an integer >= 0; got {max_triangles}')
+
+    def next_stride(current: int, triangles: int) -> int:
+        return max(current + 1, math.ceil(current * math.sqrt(triangles / max_triangles)))
+
+    def triangle_bound(labels: np.ndarray, current: int) -> int:
+        strided = labels[::current, ::current]
+        return 0 if min(strided.shape) < 2 else 2 * int(np.count_nonzero(strided > 0))
+
+    labels = np.asarray(planes.labels)
+    if max_triangles and labels.ndim == 2:
+        while (bound := triangle_bound(labels, stride)) > max_triangles:
+            stride = next_stride(stride, bound)
+    geometry = plane_geometry(points, planes, ray_origin=ray_origin, stride=stride)
+    while max_triangles and len(geometry.triangles) > max_triangles:
+        stride = next_stride(stride, len(geometry.triangles))
+        geometry = plane_geometry(points, planes, ray_origin=ray_origin, stride=stride)
+    return geometry, int(stride)
 
 
 def rgb_floats(colors: np.ndarray) -> np.ndarray:

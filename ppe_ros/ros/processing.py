@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 
 from ppe_ros.core.planes import PlaneSet
-from ppe_ros.ros.markers import marker_array_cdr, plane_geometry
+from ppe_ros.ros.markers import budgeted_plane_geometry, marker_array_cdr
 from ppe_ros.ros.messages import MessageTypes, StampedFrame
 from ppe_ros.ros.pointcloud2 import (
+    FLOAT32,
     PointCloudError,
     label_colors,
     pointcloud2_to_xyz,
@@ -152,6 +153,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               'opacity of the plane meshes in RViz (0 = invisible, 1 = opaque)', low=0.0, high=1.0),
     ParamSpec('marker_mesh_stride', 'integer', 1,
               'mesh every n-th row and column (n^2 fewer triangles for big clouds)', low=1, high=64),
+    ParamSpec('marker_max_triangles', 'integer', 150_000,
+              'mesh budget per frame: the mesh stride grows (2, 3, ...) until all meshes together have at most '
+              'this many triangles (72 bytes each); 0 = no limit', low=0, high=2**31 - 1),
     ParamSpec('numba_threads', 'integer', 0,
               'threads of the extraction kernels per worker; 0 = the cores numba sees, shared out among the workers',
               low=0, high=1024),
@@ -159,6 +163,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               'frames extracted at once, each in its own thread, outputs published in arrival order: more frames '
               'per second on a multi-core machine, no frame faster (the node only; ppe bag has --jobs)',
               low=1, high=64),
+    ParamSpec('process_without_subscribers', 'bool', False,
+              'extract frames even when no output has a subscriber (else the node idles: frames are counted, '
+              'not extracted)'),
+    ParamSpec('min_output_rate_fraction', 'double', 0.5,
+              'diagnostics say WARN when the output rate falls below this fraction of the input rate; 0 = never',
+              low=0.0, high=1.0),
 )
 PARAM_SPEC_BY_NAME: dict[str, ParamSpec] = {spec.name: spec for spec in PARAM_SPECS}
 
@@ -185,8 +195,11 @@ class ExtractorParams:
     publish_plane_table: bool = True
     marker_alpha: float = 0.5
     marker_mesh_stride: int = 1
+    marker_max_triangles: int = 150_000
     numba_threads: int = 0
     workers: int = 1
+    process_without_subscribers: bool = False
+    min_output_rate_fraction: float = 0.5
 
     def __post_init__(self) -> None:
         for spec in PARAM_SPECS:
@@ -319,14 +332,19 @@ def failure_reason(exc: BaseException) -> str:
 #: Fields of the labelled cloud: ``x y z`` float32 (m), ``label`` uint32, ``rgb`` float32-packed.
 LABELED_POINTS_FIELDS: tuple[str, ...] = ('x', 'y', 'z', 'label', 'rgb')
 
-#: Fields of the plane table, one point per plane (128 bytes per plane), all in the cloud frame:
-#: ``x y z`` centroid of the plane's points (m); ``normal_x normal_y normal_z`` unit normal
-#: (facing the sensor); ``d`` offset (m) with ``normal . p = d`` on the plane; ``rmse`` (m) and
-#: ``sse`` (m^2) of the radial residuals; ``cov_xx ... cov_zz`` the upper triangle of the 3x3
-#: covariance (m^2) of the closest-point vector ``d * normal``; ``point_count`` points of the
-#: plane; ``label`` its id in the labelled cloud.
+#: Fields of the plane table, one point per plane (144 bytes per plane), all in the cloud frame:
+#: ``x y z`` float32 centroid of the plane's points (m), what RViz draws (its XYZ transformer
+#: reads float32 only; float32 keeps 8 significant digits: 8 um at 100 m); ``rgb`` the plane's
+#: colour in the labelled cloud and the markers (float32-packed ``0x00RRGGBB``, RViz's RGB8);
+#: ``centroid_x centroid_y centroid_z`` the same centroid in float64; ``normal_x normal_y
+#: normal_z`` unit normal (facing the sensor); ``d`` offset (m) with ``normal . p = d`` on the
+#: plane; ``rmse`` (m) and ``sse`` (m^2) of the radial residuals; ``cov_xx ... cov_zz`` the upper
+#: triangle of the 3x3 covariance (m^2) of the closest-point vector ``d * normal``;
+#: ``point_count`` points of the plane; ``label`` its id in the labelled cloud. Everything but
+#: ``x y z rgb`` is float64 or uint32: the plane itself (normal, d, covariance) at full precision.
 PLANE_TABLE_DTYPE = np.dtype([
-    ('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
+    ('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('rgb', '<u4'),
+    ('centroid_x', '<f8'), ('centroid_y', '<f8'), ('centroid_z', '<f8'),
     ('normal_x', '<f8'), ('normal_y', '<f8'), ('normal_z', '<f8'), ('d', '<f8'),
     ('rmse', '<f8'), ('sse', '<f8'),
     ('cov_xx', '<f8'), ('cov_xy', '<f8'), ('cov_xz', '<f8'), ('cov_yy', '<f8'), ('cov_yz', '<f8'),
@@ -351,7 +369,7 @@ def labeled_points_message(points: np.ndarray, planes: PlaneSet, header: Any, ty
 def plane_table_message(planes: PlaneSet, header: Any, types: MessageTypes) -> Any:
     """The plane table: height 1, one point per plane, fields :data:`PLANE_TABLE_FIELDS`."""
     return structured_to_pointcloud2(plane_table_records(planes), header=header, msg_class=types.PointCloud2,
-                                     field_class=types.PointField, is_dense=True)
+                                     field_class=types.PointField, is_dense=True, datatypes={'rgb': FLOAT32})
 
 
 def plane_table_records(planes: PlaneSet) -> np.ndarray:
@@ -359,7 +377,9 @@ def plane_table_records(planes: PlaneSet) -> np.ndarray:
     table = np.zeros(planes.num_planes, PLANE_TABLE_DTYPE)
     if planes.num_planes == 0:
         return table
-    table['x'], table['y'], table['z'] = planes.centroids.T
+    table['x'], table['y'], table['z'] = planes.centroids.astype(np.float32).T
+    table['rgb'] = label_palette(planes.num_planes)[1:]
+    table['centroid_x'], table['centroid_y'], table['centroid_z'] = planes.centroids.T
     table['normal_x'], table['normal_y'], table['normal_z'] = planes.normals.T
     table['d'] = planes.offsets
     table['rmse'] = planes.rmse
@@ -406,6 +426,9 @@ class ProcessedFrame:
         plane_table: PointCloud2 of the plane table, or None if not built.
         timings: seconds spent in ``convert``, ``extract``, ``labeled_points``, ``markers``,
             ``plane_table``.
+        ray_origins: ``(3,)`` or ``(H, W, 3)`` ray starts the planes were extracted with (m, cloud frame).
+        marker_stride: mesh stride of the markers (``marker_mesh_stride``, or larger to stay within
+            ``marker_max_triangles``); 0 if no markers were built.
     """
 
     header: Any
@@ -416,6 +439,8 @@ class ProcessedFrame:
     markers: bytes | None = None
     plane_table: Any = None
     timings: dict[str, float] = field(default_factory=dict)
+    ray_origins: np.ndarray | None = None
+    marker_stride: int = 0
 
     @property
     def overhead_s(self) -> float:
@@ -461,7 +486,7 @@ def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
 
 
 def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
-                  outputs: OutputSelection | None = None) -> ProcessedFrame:
+                  outputs: OutputSelection | None = None, ray_origins: np.ndarray | None = None) -> ProcessedFrame:
     """Convert, validate, extract planes and build the selected outputs of one PointCloud2.
 
     Args:
@@ -469,6 +494,8 @@ def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
         params: extraction and output settings.
         types: message classes of the flavour to build.
         outputs: which outputs to build (default: the ``publish_*`` flags of ``params``).
+        ray_origins: ``(H, W, 3)`` ray starts (m, cloud frame) to use instead of ``params.ray_origin``
+            (the node's from the Ouster driver's metadata).
 
     Raises:
         FrameSkipped: the cloud cannot be used (see :func:`cloud_points`).
@@ -483,9 +510,10 @@ def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
                     'max_neighbor_distance': params.max_neighbor_distance}
     else:  # the profile's e (in its units) and lmax
         settings = {'sensor': params.sensor, 'surface_tolerance': params.surface_tolerance or PROFILE_DEFAULT}
+    origins = np.asarray(params.ray_origin if ray_origins is None else ray_origins, dtype=np.float64)
     planes = extract_planes(
         points,
-        origins=np.asarray(params.ray_origin, dtype=np.float64),
+        origins=origins,
         max_planes=params.max_planes or None,
         min_plane_points=params.min_plane_points,
         **settings,
@@ -494,7 +522,7 @@ def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
         planes = min(planes, key=lambda cut: cut.actions)
     timings['extract'] = time.perf_counter() - mark
     frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=points,
-                           planes=planes, timings=timings)
+                           planes=planes, timings=timings, ray_origins=origins)
     build_outputs(frame, params, types, OutputSelection.from_params(params) if outputs is None else outputs)
     return frame
 
@@ -509,8 +537,10 @@ def build_outputs(frame: ProcessedFrame, params: ExtractorParams, types: Message
         timings['labeled_points'] = (now := time.perf_counter()) - mark
         mark = now
     if selection.markers:
-        geometry = plane_geometry(points, planes, ray_origin=np.asarray(params.ray_origin),
-                                  stride=params.marker_mesh_stride)
+        origins = np.asarray(params.ray_origin) if frame.ray_origins is None else frame.ray_origins
+        geometry, frame.marker_stride = budgeted_plane_geometry(
+            points, planes, ray_origin=origins, stride=params.marker_mesh_stride,
+            max_triangles=params.marker_max_triangles)
         colors = label_palette(planes.num_planes)[1:]
         frame.markers = marker_array_cdr(geometry, planes, frame.stamped, colors=colors,
                                          mesh_alpha=params.marker_alpha)
