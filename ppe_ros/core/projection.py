@@ -197,10 +197,11 @@ def project_points(points: np.ndarray, rings: np.ndarray | None = None, *, origi
             row_of, n_rows = _elevation_rows(elevation, valid)
         bins = None if azimuth_bins is None else int(azimuth_bins)
     azimuth = np.arctan2(rays[:, 1], rays[:, 0])
-    column_of, bins = _azimuth_columns(azimuth, row_of, n_rows, bins, phased=method != 'angular_grid')
     if not np.isfinite(azimuth_start):
         raise ValueError(f'azimuth_start must be a finite angle in degrees; got {azimuth_start!r}')
-    start_bin = int(np.floor(np.mod(azimuth_start + 180.0, 360.0) / 360.0 * bins + 0.5)) % bins
+    column_of, bins, step, centre = _azimuth_columns(azimuth, row_of, n_rows, bins, phased=method != 'angular_grid')
+    start = math.radians(float(np.mod(azimuth_start + 180.0, 360.0)))
+    start_bin = math.ceil((start - centre) / step - 1e-9) % bins  # the first bin centred at or after it
     column_of, n_columns = _crop_columns(column_of, row_of >= 0, bins, start_bin)
     if n_rows * n_columns > MAX_CELLS:
         raise ValueError(f'the range image would have {n_rows} x {n_columns} cells (more than {MAX_CELLS}); '
@@ -359,29 +360,43 @@ def _grid_rows(elevation: np.ndarray, valid: np.ndarray, step: float) -> tuple[n
 
 
 def _azimuth_columns(azimuth: np.ndarray, row_of: np.ndarray, n_rows: int, bins: int | None,
-                     *, phased: bool) -> tuple[np.ndarray, int]:
-    """Azimuth bin (0 .. bins - 1, periodic) of every point; ``bins`` estimated when None."""
+                     *, phased: bool) -> tuple[np.ndarray, int, float, float]:
+    """Azimuth bin (0 .. bins - 1, periodic) of every point, the bins per revolution, the step (rad)
+    and the common offset (rad, in [0, step)) of the bins' centres from -pi + k step.
+
+    Without ``bins`` the step is estimated (:func:`estimate_azimuth_step`); a revolution then holds
+    ``ceil(2 pi / step)`` bins, the last one narrower unless 2 pi is a whole number of steps.
+    """
     ok = row_of >= 0
     column_of = np.full(len(azimuth), -1, np.int64)
     if not ok.any():
-        return column_of, bins or 1
+        return column_of, bins or 1, 2 * math.pi / (bins or 1), 0.0
     if bins is None:
-        bins = estimate_azimuth_bins(azimuth[ok], row_of[ok])
-    step = 2 * math.pi / bins
+        step = estimate_azimuth_step(azimuth[ok], row_of[ok])
+        bins = min(math.ceil(2 * math.pi / step - 1e-9), 1_000_000)
+    else:
+        step = 2 * math.pi / bins
     shifted = azimuth[ok] + math.pi
     if phased:
         phase = 2 * math.pi * shifted / step
         sin = np.bincount(row_of[ok], np.sin(phase), minlength=n_rows)
         cos = np.bincount(row_of[ok], np.cos(phase), minlength=n_rows)
-        shifted = shifted - (np.arctan2(sin, cos) / (2 * math.pi) * step)[row_of[ok]]
+        # each beam's phase as a deviation from the common one, so that beams whose returns sit on a
+        # bin edge all fall on the same side of it
+        common = math.atan2(float(sin.sum()), float(cos.sum())) % (2 * math.pi)
+        beam_phase = common + np.angle(np.exp(1j * (np.arctan2(sin, cos) - common)))
+        shifted = shifted - (beam_phase / (2 * math.pi) * step)[row_of[ok]]
         column_of[ok] = np.mod(np.rint(shifted / step).astype(np.int64), bins)
-    else:
-        column_of[ok] = np.mod(np.floor(shifted / step).astype(np.int64), bins)
-    return column_of, bins
+        return column_of, bins, step, common / (2 * math.pi) * step
+    column_of[ok] = np.mod(np.floor(shifted / step).astype(np.int64), bins)
+    return column_of, bins, step, step / 2
 
 
-def estimate_azimuth_bins(azimuth: np.ndarray, row_of: np.ndarray) -> int:
-    """Azimuth bins per revolution: 2 pi over the median step between consecutive returns of one beam.
+def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
+    """Azimuth step (rad) between consecutive returns of one beam.
+
+    The mean of the steps within 30 % of their median (no-returns make steps of several bins);
+    snapped to 2 pi / round(2 pi / step) when a revolution is within 0.05 steps of a whole number.
 
     Args:
         azimuth: ``(n,)`` azimuths (rad) of valid points; row_of: ``(n,)`` their beams (rows).
@@ -391,8 +406,14 @@ def estimate_azimuth_bins(azimuth: np.ndarray, row_of: np.ndarray) -> int:
     same_row = row_of[order][1:] == row_of[order][:-1]
     steps = steps[same_row & (steps > 1e-7)]
     if steps.size == 0:
-        return 1
-    return int(min(max(round(2 * math.pi / float(np.median(steps))), 1), 1_000_000))
+        return 2 * math.pi
+    median = float(np.median(steps))
+    step = float(np.mean(steps[np.abs(steps - median) <= 0.3 * median]))
+    step = max(step, 2 * math.pi / 1_000_000)
+    per_revolution = 2 * math.pi / step
+    if abs(per_revolution - round(per_revolution)) <= 0.05:  # a twentieth of a step in a revolution
+        return 2 * math.pi / max(round(per_revolution), 1)
+    return step
 
 
 def _crop_columns(column_of: np.ndarray, ok: np.ndarray, bins: int, start_bin: int) -> tuple[np.ndarray, int]:
@@ -493,13 +514,14 @@ def extract_planes_unorganized(points: np.ndarray, rings: np.ndarray | None = No
     image_origins = origins
     if origins is not None and np.shape(origins) == pts.shape:
         image_origins = projection.image(np.asarray(origins, dtype=np.float64), fill=0.0)
-    result = extract_planes(_image_or_empty(projection, pts), origins=image_origins, **extract_options)
+    result = extract_planes(image_or_empty(projection, pts), origins=image_origins, **extract_options)
     cuts = result if isinstance(result, list) else [result]
     mapped = [planes_for_points(projection, cut, pts, float(tolerance)) for cut in cuts]
     return mapped if isinstance(result, list) else mapped[0]
 
 
-def _image_or_empty(projection: RangeImageProjection, points: np.ndarray) -> np.ndarray:
+def image_or_empty(projection: RangeImageProjection, points: np.ndarray) -> np.ndarray:
+    """The range image of ``points`` ``(rows, columns, 3)``; one no-return cell if no point is valid."""
     if projection.rows == 0 or projection.columns == 0:
         return np.full((1, 1, 3), np.nan)
     return projection.image(points)
