@@ -50,6 +50,8 @@ ROW_METHODS = ('auto', 'rings', 'elevation', 'angular_grid')
 ELEVATION_BIN_DEG = 0.01
 #: Azimuth (deg) where a full circle is cut by default: behind the sensor (x forward).
 DEFAULT_AZIMUTH_START_DEG = 180.0
+#: Elevation runs closer than this fraction of the median spacing of the runs are one beam.
+MERGE_FRACTION = 0.3
 #: Default cell size (deg) of the fixed angular grid (Livox).
 DEFAULT_ANGULAR_RESOLUTION_DEG = 0.4
 #: Lost points within this distance (m) of their cell's plane join it when no sensor tolerance is given.
@@ -245,25 +247,19 @@ def _as_rings(rings: np.ndarray, n: int) -> np.ndarray:
 
 def _ring_rows(rings: np.ndarray, elevation: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, int]:
     """Row of each point from its ring: every ring value from the smallest to the largest is a row (an
-    absent one is an empty row); ring numbers that rise or fall with elevation keep their order (top
-    first), any other numbering is sorted by the rings' median elevations."""
+    absent one is an empty row), in ring order, top beam first (drivers number rings by elevation;
+    whether upwards or downwards is read from the rings' median elevations)."""
     ok = valid & (rings >= 0)
     row_of = np.full(len(rings), -1, np.int64)
     if not ok.any():
         return row_of, 0
     present, inverse = np.unique(rings[ok], return_inverse=True)
     medians = _group_medians(inverse, elevation[ok], len(present))
-    steps = np.diff(medians)
-    if np.all(steps <= 0) or np.all(steps >= 0):
-        low, high = int(present[0]), int(present[-1])
-        index = rings[ok] - low
-        row_of[ok] = index if (len(steps) == 0 or steps[0] <= 0) else (high - low) - index
-        return row_of, high - low + 1
-    order = np.argsort(-medians, kind='stable')  # top beam first
-    rank = np.empty(len(present), np.int64)
-    rank[order] = np.arange(len(present))
-    row_of[ok] = rank[inverse]
-    return row_of, len(present)
+    low, high = int(present[0]), int(present[-1])
+    index = rings[ok] - low
+    upwards = len(present) > 1 and np.corrcoef(present.astype(np.float64), medians)[0, 1] > 0
+    row_of[ok] = (high - low) - index if upwards else index
+    return row_of, high - low + 1
 
 
 def _group_medians(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
@@ -334,7 +330,8 @@ def beam_elevations(elevation: np.ndarray) -> np.ndarray:
 
     A beam is a run of 0.01 deg histogram bins holding a point each, separated from the next by at
     least one empty bin; runs with fewer than 2 % of the median run's points (stray returns between
-    beams) are not beams.
+    beams) are not beams, and two runs closer than 0.3 times the median spacing are one beam (their
+    count-weighted mean elevation).
     """
     width = math.radians(ELEVATION_BIN_DEG)
     low = float(elevation.min())
@@ -346,7 +343,19 @@ def beam_elevations(elevation: np.ndarray) -> np.ndarray:
     keep = run_counts >= max(1.0, 0.02 * float(np.median(run_counts)))
     run_of_bin = np.searchsorted(starts, np.arange(len(counts)), side='right') - 1
     medians = _group_medians(run_of_bin[index], elevation, len(starts))
-    return np.sort(medians[keep])[::-1]
+    order = np.argsort(-medians[keep], kind='stable')
+    centres, weights = medians[keep][order], run_counts[keep][order].astype(np.float64)
+    # one beam split by a hole in its histogram: runs much closer than the beams' spacing are merged
+    while len(centres) > 2:
+        gaps = centres[:-1] - centres[1:]
+        k = int(np.argmin(gaps))
+        if gaps[k] >= MERGE_FRACTION * float(np.median(gaps)):
+            break
+        total = weights[k] + weights[k + 1]
+        centres[k] = (centres[k] * weights[k] + centres[k + 1] * weights[k + 1]) / total
+        weights[k] = total
+        centres, weights = np.delete(centres, k + 1), np.delete(weights, k + 1)
+    return centres
 
 
 def _grid_rows(elevation: np.ndarray, valid: np.ndarray, step: float) -> tuple[np.ndarray, int]:
