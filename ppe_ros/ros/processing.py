@@ -584,8 +584,8 @@ def _unorganized_method(cloud: DecodedCloud, params: ExtractorParams) -> str:
     if method == 'auto':
         return {'ring': 'rings', 'line': 'angular_grid'}.get(cloud.beam_field, 'elevation')
     if method == 'rings' and cloud.beam_field != 'ring':
-        raise FrameSkipped('unorganized', f'unorganized cloud of {cloud.points.shape[1]} points without a ring '
-                           'field, and unorganized_rows is rings (use auto or elevation)')
+        raise FrameSkipped('unorganized', f'unorganized cloud (height 1, width {cloud.points.shape[1]}) without a '
+                           'ring field, and unorganized_rows is rings (use auto or elevation)')
     return method
 
 
@@ -603,8 +603,8 @@ def _extract_unorganized(cloud: DecodedCloud, params: ExtractorParams, settings:
                                     azimuth_bins=params.azimuth_bins or None,
                                     angular_resolution=params.angular_resolution, azimuth_start=params.azimuth_start)
     except ValueError as exc:
-        raise FrameSkipped('unorganized', f'unorganized cloud of {len(points)} points cannot be put on a range '
-                           f'image ({method}): {exc}') from None
+        raise FrameSkipped('unorganized', f'unorganized cloud (height 1, width {len(points)}) cannot be put on a '
+                           f'range image ({method}): {exc}') from None
     image = image_or_empty(projection, points)
     timings['projection'] = time.perf_counter() - start
     grid_planes = _extract_grid(image, settings)
