@@ -584,11 +584,12 @@ def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(r
 
 
 def test_the_issues_repro_with_the_real_extractor(ros_context, executor, namespace, scan_points):
-    """Height-1 cloud, then a byte-swapped one (whatever the extractor makes of it), then good clouds."""
+    """Height-1 cloud (one that cannot be put on a range image), then a byte-swapped one (whatever the
+    extractor makes of it), then good clouds."""
     harness = Harness(ros_context, executor, namespace)
-    harness.send(make_cloud(scan_points.reshape(-1, 3), sec=1), wait_for='')
+    harness.send(unprojectable_cloud(scan_points, make_cloud(scan_points, sec=1).header), wait_for='')
     harness.send(byte_swapped_cloud(scan_points, sec=2), wait_for='')
-    harness.send(make_cloud(scan_points.reshape(-1, 3), sec=3), wait_for='')
+    harness.send(unprojectable_cloud(scan_points, make_cloud(scan_points, sec=3).header), wait_for='')
     for sec in (4, 5, 6):
         harness.send(make_cloud(scan_points, sec=sec))
         assert harness.received['planes'][-1].header.stamp.sec == sec
