@@ -6,13 +6,13 @@ files) is put on one like this (all angles from each point's own ray, in the inp
 must be the sensor frame with z along the spin axis):
 
 * **row** = the beam. With ``rings`` (a driver's ``ring`` field), one row per ring value, ordered
-  from the highest to the lowest beam (by the median elevation of the rings' points). Without
+  from the highest to the lowest beam (ring numbers rising or falling with the rings' mean elevation). Without
   rings, the beams are found in the points' elevation angles: a laser's beam origin sits off the
   sensor origin (Ouster: 36 mm up and 15-28 mm out), which smears one beam's elevation seen from
   the origin by more than the gap to the next beam at short range; the vertical and radial offset
   (h, n) that make the elevation histogram sharpest are fitted first (a grid search), then every
   run of occupied 0.01 deg histogram bins is a beam and the bin edges are the midpoints between
-  neighbouring beams' median elevations. Uneven beam spacing (HDL-64E: 1/3 deg above, 1/2 deg
+  neighbouring beams' mean elevations. Uneven beam spacing (HDL-64E: 1/3 deg above, 1/2 deg
   below -8.33 deg) needs nothing special.
 * **column** = the azimuth bin. Bins per revolution: given, or 2 pi over the median azimuth step
   between consecutive returns of one beam. Each beam's bins are shifted by its own phase (the
@@ -50,6 +50,8 @@ ROW_METHODS = ('auto', 'rings', 'elevation', 'angular_grid')
 ELEVATION_BIN_DEG = 0.01
 #: Azimuth (deg) where a full circle is cut by default: behind the sensor (x forward).
 DEFAULT_AZIMUTH_START_DEG = 180.0
+#: Beams (the fullest) whose returns give the azimuth step.
+STEP_ROWS = 8
 #: Elevation runs closer than this fraction of the median spacing of the runs are one beam.
 MERGE_FRACTION = 0.3
 #: Default cell size (deg) of the fixed angular grid (Livox).
@@ -57,10 +59,10 @@ DEFAULT_ANGULAR_RESOLUTION_DEG = 0.4
 #: Lost points within this distance (m) of their cell's plane join it when no sensor tolerance is given.
 DEFAULT_LOST_POINT_TOLERANCE = 0.05
 #: Points drawn (deterministically) to fit the beam-origin offset.
-_OFFSET_SAMPLE = 8192
+_OFFSET_SAMPLE = 4096
 #: The offset grid search: (vertical h, radial n) ranges and steps, coarse then fine (m).
-_OFFSET_COARSE = (0.3, 0.01)
-_OFFSET_FINE = (0.01, 0.001)
+_OFFSET_COARSE = (0.3, 0.02)
+_OFFSET_FINE = (0.02, 0.002)
 #: Largest grid the projection builds (cells), against a degenerate azimuth step.
 MAX_CELLS = 50_000_000
 
@@ -77,7 +79,7 @@ class RangeImageProjection:
             (the nearest return), -1 for an empty cell.
         method: ``'rings'``, ``'elevation'`` or ``'angular_grid'``.
         azimuth_bins: azimuth bins per revolution (the angular grid: per 360 deg).
-        row_elevations: ``(rows,)`` median elevation (rad) of the points holding a row's cells (NaN if none).
+        row_elevations: ``(rows,)`` mean elevation (rad) of the points holding a row's cells (NaN if none).
         beam_origin_offset: ``(h, n)`` the vertical and radial beam-origin offset (m) fitted for the
             elevation bins ((0, 0) otherwise).
     """
@@ -212,7 +214,7 @@ def project_points(points: np.ndarray, rings: np.ndarray | None = None, *, origi
     ranges = np.sqrt(np.einsum('ij,ij->i', rays, rays))
     winners = _claim_cells(cells, ranges, n_rows * n_columns)
     held = winners[winners >= 0]
-    row_elevations = _group_medians(row_of[held], elevation[held], n_rows)
+    row_elevations = _group_means(row_of[held], elevation[held], n_rows)
     return RangeImageProjection(rows=n_rows, columns=n_columns, point_cells=cells, cell_points=winners,
                                 method=method, azimuth_bins=int(bins), row_elevations=row_elevations,
                                 beam_origin_offset=(float(offset[0]), float(offset[1])))
@@ -248,29 +250,27 @@ def _as_rings(rings: np.ndarray, n: int) -> np.ndarray:
 def _ring_rows(rings: np.ndarray, elevation: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, int]:
     """Row of each point from its ring: every ring value from the smallest to the largest is a row (an
     absent one is an empty row), in ring order, top beam first (drivers number rings by elevation;
-    whether upwards or downwards is read from the rings' median elevations)."""
+    whether upwards or downwards is read from the rings' mean elevations)."""
     ok = valid & (rings >= 0)
     row_of = np.full(len(rings), -1, np.int64)
     if not ok.any():
         return row_of, 0
-    present, inverse = np.unique(rings[ok], return_inverse=True)
-    medians = _group_medians(inverse, elevation[ok], len(present))
+    counts = np.bincount(rings[ok])
+    present = np.flatnonzero(counts)
+    means = (np.bincount(rings[ok], elevation[ok]) / np.maximum(counts, 1))[present]
     low, high = int(present[0]), int(present[-1])
     index = rings[ok] - low
-    upwards = len(present) > 1 and np.corrcoef(present.astype(np.float64), medians)[0, 1] > 0
+    upwards = len(present) > 1 and np.corrcoef(present.astype(np.float64), means)[0, 1] > 0
     row_of[ok] = (high - low) - index if upwards else index
     return row_of, high - low + 1
 
 
-def _group_medians(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
-    """Median of ``values`` per group ``0 .. n_groups - 1`` (the lower middle value; NaN for an empty group)."""
-    order = np.lexsort((values, group))
+def _group_means(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
+    """Mean of ``values`` per group ``0 .. n_groups - 1`` (NaN for an empty group)."""
     counts = np.bincount(group, minlength=n_groups)
-    starts = np.cumsum(counts) - counts
-    medians = np.full(n_groups, np.nan)
-    filled = counts > 0
-    medians[filled] = values[order[starts[filled] + (counts[filled] - 1) // 2]]
-    return medians
+    sums = np.bincount(group, values, minlength=n_groups)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
 
 
 def _elevations(rays: np.ndarray, offset: tuple[float, float]) -> np.ndarray:
@@ -282,8 +282,9 @@ def _elevations(rays: np.ndarray, offset: tuple[float, float]) -> np.ndarray:
 def fit_beam_origin_offset(rays: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
     """The vertical and radial beam-origin offset ``(h, n)`` (m) that make the beams' elevations sharpest.
 
-    A grid search (h in +-0.3 m, n in +-0.3 m by 10 mm, then +-10 mm by 1 mm around the best) of
-    the sum of squared counts of a 0.02 deg elevation histogram of up to 8192 evenly drawn points.
+    A grid search (h in +-0.3 m, then n in +-0.3 m by 20 mm; then both again +-20 mm by 2 mm around
+    the best) of the sum of squared counts of a 0.02 deg elevation histogram of up to 4096 evenly
+    drawn points.
     """
     index = np.flatnonzero(valid)
     if index.size < 16:
@@ -326,7 +327,7 @@ def _elevation_rows(elevation: np.ndarray, valid: np.ndarray) -> tuple[np.ndarra
 
 
 def beam_elevations(elevation: np.ndarray) -> np.ndarray:
-    """Median elevation (rad) of every beam found in ``elevation`` (finite, rad), highest first.
+    """Mean elevation (rad) of every beam found in ``elevation`` (finite, rad), highest first.
 
     A beam is a run of 0.01 deg histogram bins holding a point each, separated from the next by at
     least one empty bin; runs with fewer than 2 % of the median run's points (stray returns between
@@ -342,9 +343,9 @@ def beam_elevations(elevation: np.ndarray) -> np.ndarray:
     run_counts = np.add.reduceat(counts, starts)
     keep = run_counts >= max(1.0, 0.02 * float(np.median(run_counts)))
     run_of_bin = np.searchsorted(starts, np.arange(len(counts)), side='right') - 1
-    medians = _group_medians(run_of_bin[index], elevation, len(starts))
-    order = np.argsort(-medians[keep], kind='stable')
-    centres, weights = medians[keep][order], run_counts[keep][order].astype(np.float64)
+    means = _group_means(run_of_bin[index], elevation, len(starts))
+    order = np.argsort(-means[keep], kind='stable')
+    centres, weights = means[keep][order], run_counts[keep][order].astype(np.float64)
     # one beam split by a hole in its histogram: runs much closer than the beams' spacing are merged
     while len(centres) > 2:
         gaps = centres[:-1] - centres[1:]
@@ -385,31 +386,58 @@ def _azimuth_columns(azimuth: np.ndarray, row_of: np.ndarray, n_rows: int, bins:
         bins = min(math.ceil(2 * math.pi / step - 1e-9), 1_000_000)
     else:
         step = 2 * math.pi / bins
-    shifted = azimuth[ok] + math.pi
     if phased:
-        phase = 2 * math.pi * shifted / step
-        sin = np.bincount(row_of[ok], np.sin(phase), minlength=n_rows)
-        cos = np.bincount(row_of[ok], np.cos(phase), minlength=n_rows)
+        sin, cos = _phase_sums(azimuth, row_of, n_rows, step)
         # each beam's phase as a deviation from the common one, so that beams whose returns sit on a
         # bin edge all fall on the same side of it
         common = math.atan2(float(sin.sum()), float(cos.sum())) % (2 * math.pi)
         beam_phase = common + np.angle(np.exp(1j * (np.arctan2(sin, cos) - common)))
-        shifted = shifted - (beam_phase / (2 * math.pi) * step)[row_of[ok]]
-        column_of[ok] = np.mod(np.rint(shifted / step).astype(np.int64), bins)
+        _phased_columns(azimuth, row_of, beam_phase / (2 * math.pi) * step, step, bins, column_of)
         return column_of, bins, step, common / (2 * math.pi) * step
+    shifted = azimuth[ok] + math.pi
     column_of[ok] = np.mod(np.floor(shifted / step).astype(np.int64), bins)
     return column_of, bins, step, step / 2
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _phase_sums(azimuth, row_of, n_rows, step):
+    """Per row, the sums of sin and cos of 2 pi (azimuth + pi) / step over its points (row_of >= 0)."""
+    sin = np.zeros(n_rows)
+    cos = np.zeros(n_rows)
+    scale = 2 * math.pi / step
+    for k in range(azimuth.shape[0]):
+        r = row_of[k]
+        if r >= 0:
+            phase = scale * (azimuth[k] + math.pi)
+            sin[r] += math.sin(phase)
+            cos[r] += math.cos(phase)
+    return sin, cos
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _phased_columns(azimuth, row_of, row_offset, step, bins, column_of):
+    """column_of[k] = rint((azimuth + pi - row_offset[row]) / step) mod bins for points with a row."""
+    for k in range(azimuth.shape[0]):
+        r = row_of[k]
+        if r >= 0:
+            c = np.int64(np.rint((azimuth[k] + math.pi - row_offset[r]) / step)) % bins
+            column_of[k] = c
 
 
 def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
     """Azimuth step (rad) between consecutive returns of one beam.
 
-    The mean of the steps within 30 % of their median (no-returns make steps of several bins);
+    The mean of the steps within 30 % of their median (no-returns make steps of several bins) in the
+    STEP_ROWS beams with the most returns;
     snapped to 2 pi / round(2 pi / step) when a revolution is within 0.05 steps of a whole number.
 
     Args:
         azimuth: ``(n,)`` azimuths (rad) of valid points; row_of: ``(n,)`` their beams (rows).
     """
+    counts = np.bincount(row_of)
+    fullest = np.argsort(-counts, kind='stable')[:STEP_ROWS]  # a few beams tell the step
+    chosen = np.isin(row_of, fullest[counts[fullest] > 1])
+    azimuth, row_of = azimuth[chosen], row_of[chosen]
     order = np.lexsort((azimuth, row_of))
     steps = np.diff(azimuth[order])
     same_row = row_of[order][1:] == row_of[order][:-1]
@@ -440,10 +468,9 @@ def _crop_columns(column_of: np.ndarray, ok: np.ndarray, bins: int, start_bin: i
         starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
         widest = int(np.argmax(ends - starts))  # ties: the first
         seam = (first_full + (int(starts[widest]) + int(ends[widest])) // 2) % bins
-    rotated = np.mod(column_of - seam, bins)
-    occupied = np.flatnonzero(np.bincount(rotated[ok], minlength=bins))
+    occupied = np.flatnonzero(~np.roll(empty, -seam))
     first, last = int(occupied[0]), int(occupied[-1])
-    return np.where(ok, rotated - first, -1), last - first + 1
+    return np.where(ok, np.mod(column_of - (seam + first), bins), -1), last - first + 1
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
