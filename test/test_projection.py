@@ -211,7 +211,7 @@ def test_transposed_grid_gives_the_same_planes():
 
 def test_a_livox_like_cloud_on_the_fixed_angular_grid_finds_its_wall():
     """A non-repetitive (rosette-like) pattern of 20000 rays over a 70 deg field of view onto a wall 5 m ahead
-    and the floor: the fixed 0.4 deg grid is ~70 % filled, and the wall and floor come out as planes."""
+    and the floor: the default 0.8 deg grid is ~60 % filled, and the wall and floor come out as planes."""
     rng = np.random.default_rng(7)
     t = np.sort(rng.uniform(0, 1, 20000))
     radius = np.radians(35) * np.abs(np.sin(2 * math.pi * 37 * t)) * np.sqrt(rng.uniform(0.2, 1, t.size))

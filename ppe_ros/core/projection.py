@@ -55,7 +55,7 @@ STEP_ROWS = 8
 #: Elevation runs closer than this fraction of the median spacing of the runs are one beam.
 MERGE_FRACTION = 0.3
 #: Default cell size (deg) of the fixed angular grid (Livox).
-DEFAULT_ANGULAR_RESOLUTION_DEG = 0.4
+DEFAULT_ANGULAR_RESOLUTION_DEG = 0.8
 #: Lost points within this distance (m) of their cell's plane join it when no sensor tolerance is given.
 DEFAULT_LOST_POINT_TOLERANCE = 0.05
 #: Points drawn (deterministically) to fit the beam-origin offset.

@@ -179,7 +179,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('azimuth_start', 'double', 180.0,
               'unorganized clouds covering the full circle: azimuth (deg, counter-clockwise from x) where the range '
               'image starts (planes are cut there); 180 = behind the sensor', low=-360.0, high=360.0),
-    ParamSpec('angular_resolution', 'double', 0.4,
+    ParamSpec('angular_resolution', 'double', 0.8,
               'unorganized_rows angular_grid: cell size (deg) of the fixed grid', low=0.01, high=10.0),
     ParamSpec('lost_point_tolerance', 'double', 0.0,
               'unorganized clouds: a point that lost its range-image cell to a nearer return gets the cell\'s plane '
@@ -216,7 +216,7 @@ class ExtractorParams:
     unorganized_rows: str = 'auto'
     azimuth_bins: int = 0
     azimuth_start: float = 180.0
-    angular_resolution: float = 0.4
+    angular_resolution: float = 0.8
     lost_point_tolerance: float = 0.0
 
     def __post_init__(self) -> None:
