@@ -61,8 +61,8 @@ DEFAULT_LOST_POINT_TOLERANCE = 0.05
 #: Points drawn (deterministically) to fit the beam-origin offset.
 _OFFSET_SAMPLE = 4096
 #: The offset grid search: (vertical h, radial n) ranges and steps, coarse then fine (m).
-_OFFSET_COARSE = (0.3, 0.02)
-_OFFSET_FINE = (0.02, 0.002)
+_OFFSET_COARSE = (0.3, 0.01)
+_OFFSET_FINE = (0.01, 0.001)
 #: Largest grid the projection builds (cells), against a degenerate azimuth step.
 MAX_CELLS = 50_000_000
 
@@ -282,9 +282,9 @@ def _elevations(rays: np.ndarray, offset: tuple[float, float]) -> np.ndarray:
 def fit_beam_origin_offset(rays: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
     """The vertical and radial beam-origin offset ``(h, n)`` (m) that make the beams' elevations sharpest.
 
-    A grid search (h in +-0.3 m, then n in +-0.3 m by 20 mm; then both again +-20 mm by 2 mm around
-    the best) of the sum of squared counts of a 0.02 deg elevation histogram of up to 4096 evenly
-    drawn points.
+    A grid search (h in +-0.3 m, then n in +-0.3 m by 10 mm; then both again +-10 mm by 1 mm around
+    the best; 20 mm steps miss OS-0-128's offsets) of the sum of squared counts of a 0.02 deg
+    elevation histogram of up to 4096 evenly drawn points.
     """
     index = np.flatnonzero(valid)
     if index.size < 16:
