@@ -240,3 +240,9 @@ def test_matched_label_agreement_matches_labels_one_to_one():
     # 0-0 (1), 1-7 (3), 2-9 (1): 5 of 8; 2's other point went to 7, which is taken
     assert matched_label_agreement(a, b) == 5 / 8
     assert matched_label_agreement(b, b) == 1.0
+
+
+def test_a_cloud_without_a_valid_point_gives_no_plane_for_every_point():
+    planes = extract_planes(np.zeros((100, 3)), sensor='lidar')  # every ray shorter than MIN_RANGE
+    assert planes.num_planes == 0 and planes.labels.shape == (100,) and not planes.labels.any()
+    assert planes.meta['projection'].shape == (0, 0)

@@ -2352,7 +2352,7 @@ def extract_planes(
         A PlaneSet when both thresholds are single values (or None), else a list of PlaneSets:
         one per e (in the given order), then one per n.
     """
-    if np.ndim(points) == 2 or rings is not None:  # unorganized: project, extract, label every point
+    if rings is not None or (np.ndim(points) == 2 and np.shape(points)[1] == 3):  # unorganized: project first
         from ppe_ros.core.projection import extract_planes_unorganized
         return extract_planes_unorganized(points, rings, origins=origins, sensor=sensor,
                                           max_error_increment=max_error_increment, max_planes=max_planes,
