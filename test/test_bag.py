@@ -348,7 +348,11 @@ def test_jobs_2_writes_the_same_bag_as_jobs_1(tmp_path, scans):
 
 def test_bad_frames_are_skipped_with_the_reason_and_counted(tmp_path, scans, expected, capsys):
     types = JAZZY.types
-    unorganized = cloud(JAZZY, 1, scans[1].reshape(1, -1, 3))
+    flat = scans[1].reshape(-1, 3)  # height 1 with a ring field of no beam numbers: no range image
+    ringed = np.zeros(len(flat), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
+    ringed['x'], ringed['y'], ringed['z'], ringed['ring'] = *flat.T, -5
+    unorganized = structured_to_pointcloud2(ringed, header=header(JAZZY, 1), msg_class=types[POINTCLOUD2],
+                                            field_class=types['sensor_msgs/msg/PointField'])
     all_nan = cloud(JAZZY, 2, np.full_like(scans[2], np.nan))
     messages = [
         (bag_time(0), serialized(JAZZY, cloud(JAZZY, 0, scans[0]))),

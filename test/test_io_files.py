@@ -360,12 +360,17 @@ def test_corrupt_compressed_sizes_and_headers(tmp_path: Path) -> None:
         load_scan(path)
 
 
-def test_unorganized_pcd_is_refused(tmp_path: Path) -> None:
+def test_unorganized_pcd_is_read_as_a_point_list(tmp_path: Path) -> None:
+    """HEIGHT 1: a lidar's point list (issue 20), in the file's order; a ring field gives Scan.rings."""
     path = tmp_path / 'list.pcd'
     path.write_bytes(_header('x y z', '4 4 4', 'F F F', 3, 1, 'ascii') + b'1 2 3\n4 5 6\n7 8 9\n')
-    assert read_pcd(path).data.shape == (1, 3)  # the raw reader still reads it
-    with pytest.raises(ScanFileError, match='not organized'):
-        load_scan(path)
+    assert read_pcd(path).data.shape == (1, 3)
+    scan = load_scan(path)
+    assert scan.points.shape == (1, 3, 3) and not scan.organized and scan.rings is None
+    np.testing.assert_array_equal(scan.points[0, 1], [4, 5, 6])
+    ringed = tmp_path / 'ringed.pcd'
+    ringed.write_bytes(_header('x y z ring', '4 4 4 2', 'F F F U', 3, 1, 'ascii') + b'1 2 3 7\n4 5 6 0\n7 8 9 3\n')
+    np.testing.assert_array_equal(load_scan(ringed).rings, [[7, 0, 3]])
 
 
 def test_missing_and_unknown_files(tmp_path: Path) -> None:

@@ -217,10 +217,19 @@ def test_outputs_nobody_subscribes_to_are_not_built(ros_context, executor, names
 # ------------------------------------------------------------------ bad input
 
 
+def unprojectable_cloud(points, header):
+    """A cloud of height 1 whose ring field holds no beam numbers: it cannot be put on a range image."""
+    flat = points.reshape(-1, 3)
+    table = np.zeros(len(flat), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
+    table['x'], table['y'], table['z'] = flat.T
+    table['ring'] = -5
+    return structured_to_pointcloud2(table, header=header, msg_class=PointCloud2, field_class=PointField)
+
+
 def bad_clouds(points):
     """(kind, message) for every kind of unusable cloud."""
     good = make_cloud(points)
-    unorganized = make_cloud(points.reshape(-1, 3))
+    unorganized = unprojectable_cloud(points, good.header)
     table = np.zeros((4, 5), [('x', '<f4'), ('y', '<f4'), ('intensity', '<f4')])
     no_z = structured_to_pointcloud2(table, header=good.header, msg_class=PointCloud2, field_class=PointField)
     unsupported = make_cloud(points)
@@ -263,7 +272,7 @@ def test_bad_clouds_are_skipped_counted_and_the_node_keeps_running(ros_context, 
 def test_skipped_frames_turn_diagnostics_to_warn(ros_context, executor, namespace, scan_points):
     harness = Harness(ros_context, executor, namespace)
     harness.latest_status()  # the window before the bad frame
-    harness.send(make_cloud(scan_points.reshape(-1, 3)), wait_for='')
+    harness.send(unprojectable_cloud(scan_points, make_cloud(scan_points).header), wait_for='')
     status = harness.latest_status()
     assert status.level == DiagnosticStatus.WARN
     assert 'skipped' in status.message and 'unorganized' in status.message
@@ -558,7 +567,7 @@ def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(r
 
     monkeypatch.setattr(extraction, 'extract_planes', extract_or_fail)
     harness = Harness(ros_context, executor, namespace)
-    unorganized = make_cloud(scan_points.reshape(-1, 3), sec=10)
+    unorganized = unprojectable_cloud(scan_points, make_cloud(scan_points, sec=10).header)
     swapped = byte_swapped_cloud(scan_points, sec=11)
     for msg in ([unorganized, swapped] if order == 'skip_first' else [swapped, unorganized]):
         harness.send(msg, wait_for='')
@@ -576,11 +585,12 @@ def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(r
 
 
 def test_the_issues_repro_with_the_real_extractor(ros_context, executor, namespace, scan_points):
-    """Height-1 cloud, then a byte-swapped one (whatever the extractor makes of it), then good clouds."""
+    """Height-1 cloud (one that cannot be put on a range image), then a byte-swapped one (whatever the
+    extractor makes of it), then good clouds."""
     harness = Harness(ros_context, executor, namespace)
-    harness.send(make_cloud(scan_points.reshape(-1, 3), sec=1), wait_for='')
+    harness.send(unprojectable_cloud(scan_points, make_cloud(scan_points, sec=1).header), wait_for='')
     harness.send(byte_swapped_cloud(scan_points, sec=2), wait_for='')
-    harness.send(make_cloud(scan_points.reshape(-1, 3), sec=3), wait_for='')
+    harness.send(unprojectable_cloud(scan_points, make_cloud(scan_points, sec=3).header), wait_for='')
     for sec in (4, 5, 6):
         harness.send(make_cloud(scan_points, sec=sec))
         assert harness.received['planes'][-1].header.stamp.sec == sec

@@ -26,7 +26,7 @@ from std_msgs.msg import Header
 
 from ppe_ros.core.synthetic import plane_scan
 from ppe_ros.ros.diagnostics import RATE_WINDOW_S
-from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, xyz_to_pointcloud2
+from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2, xyz_to_pointcloud2
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(420)]
 
@@ -221,9 +221,12 @@ def test_skipped_frames_do_not_stop_the_process(client_factory):
                                   QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0)
-        unorganized = make_cloud(sec=1)
-        unorganized.height, unorganized.width = 1, unorganized.height * unorganized.width
-        unorganized.row_step = unorganized.point_step * unorganized.width
+        organized = make_cloud(sec=1)  # flattened, with a ring field of no beam numbers: no range image
+        flat = pointcloud2_to_structured(organized).reshape(-1)
+        ringed = np.zeros(len(flat), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
+        ringed['x'], ringed['y'], ringed['z'], ringed['ring'] = flat['x'], flat['y'], flat['z'], -5
+        unorganized = structured_to_pointcloud2(ringed, header=organized.header, msg_class=PointCloud2,
+                                                field_class=PointField)
         deadline = time.monotonic() + 30.0
         while 'frame skipped: unorganized cloud' not in extractor.output and time.monotonic() < deadline:
             publisher.publish(unorganized)

@@ -23,6 +23,8 @@ from ppe_ros.ros.pointcloud2 import (
     PointCloudError,
     is_organized,
     label_colors,
+    pointcloud2_beams,
+    pointcloud2_field,
     pointcloud2_to_structured,
     pointcloud2_to_xyz,
     structured_to_pointcloud2,
@@ -270,6 +272,35 @@ def test_ouster_like_mixed_fields(flavour: str) -> None:
     table = pointcloud2_to_structured(message)
     assert np.array_equal(table['ring'], ring) and np.array_equal(table['t'], t_ns)
     assert np.all(table['range'] == 4321) and table.dtype['reflectivity'] == np.dtype('<u2')
+
+
+@pytest.mark.parametrize('flavour', FLAVOURS)
+@pytest.mark.parametrize('big_endian', [False, True], ids=['little', 'big'])
+def test_beam_fields_are_read_ring_first_then_line(flavour: str, big_endian: bool) -> None:
+    order = '>' if big_endian else '<'
+    points = _points(1, 6)
+    ring = np.array([[3, 1, 4, 1, 5, 9]], dtype=np.uint16)
+    line = np.array([[0, 1, 2, 3, 0, 1]], dtype=np.uint8)
+    layout = {'x': (0, order + 'f4'), 'y': (4, order + 'f4'), 'z': (8, order + 'f4'), 'line': (12, 'u1'),
+              'ring': (14, order + 'u2')}
+    data = _packed(points, layout, 16, extra={'ring': ring, 'line': line})
+    fields = [('x', 0, FLOAT32, 1), ('y', 4, FLOAT32, 1), ('z', 8, FLOAT32, 1), ('line', 12, 2, 1),
+              ('ring', 14, UINT16, 1)]
+    message = _message(flavour, fields=fields, height=1, width=6, point_step=16, row_step=96, data=data,
+                       is_bigendian=big_endian)
+    values, name = pointcloud2_beams(message)
+    assert name == 'ring' and values.dtype == np.uint16 and values.dtype.isnative
+    np.testing.assert_array_equal(values, ring)
+    np.testing.assert_array_equal(pointcloud2_field(message, 'line'), line)
+    assert pointcloud2_field(message, 'intensity') is None
+    livox = _message(flavour, fields=fields[:4], height=1, width=6, point_step=16, row_step=96, data=data,
+                     is_bigendian=big_endian)
+    values, name = pointcloud2_beams(livox)
+    assert name == 'line'
+    np.testing.assert_array_equal(values, line)
+    plain = _message(flavour, fields=fields[:3], height=1, width=6, point_step=16, row_step=96, data=data,
+                     is_bigendian=big_endian)
+    assert pointcloud2_beams(plain) == (None, None)
 
 
 @pytest.mark.parametrize('flavour', FLAVOURS)

@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lidar_sweeps import HDL_LIKE_ELEVATIONS, room_sweep, shuffled
 
+from ppe_ros.core.projection import matched_label_agreement
 from ppe_ros.core.synthetic import plane_scan
 from ppe_ros.ros.markers import MESH_NAMESPACE, NORMAL_NAMESPACE, OUTLINE_NAMESPACE
 from ppe_ros.ros.messages import rclpy_message_types, rosbags_message_types
@@ -95,6 +97,12 @@ def test_config_yaml_holds_every_parameter_with_the_code_defaults():
     ('ray_origin', [0.0, 0.0], 'ray_origin must be a list of 3 finite numbers'),
     ('ray_origin', [0.0, math.inf, 0.0], 'ray_origin'),
     ('input_reliability', 'sometimes', "one of 'best_effort', 'reliable'"),
+    ('layout', 'transposed', "layout must be one of 'auto', 'rows_are_beams', 'columns_are_beams'"),
+    ('unorganized_rows', 'ring', "unorganized_rows must be one of 'auto', 'rings', 'elevation'"),
+    ('azimuth_bins', -1, 'azimuth_bins must be in'),
+    ('azimuth_start', math.inf, 'azimuth_start must be in'),
+    ('angular_resolution', 0.0, 'angular_resolution must be in'),
+    ('lost_point_tolerance', -0.1, 'lost_point_tolerance must be in'),
     ('publish_markers', 'yes', 'publish_markers must be true or false'),
     ('marker_alpha', 1.5, r'marker_alpha must be in \[0.0, 1.0\]'),
     ('marker_mesh_stride', 0, 'marker_mesh_stride'),
@@ -302,10 +310,105 @@ def expect_skip(types, msg, kind, message, params=None):
     return caught.value
 
 
-def test_unorganized_cloud_is_skipped(types, scan):
+def test_a_cloud_of_height_1_without_a_ring_field_is_extracted_on_elevation_bins(types, scan):
+    """The little 24 x 32 scan, flattened: its rows are found again in the elevation angles."""
     msg = cloud(types, scan.reshape(-1, 3))
     assert msg.height == 1
-    expect_skip(types, msg, 'unorganized', r'unorganized cloud \(height 1, width 768\)')
+    frame = process_cloud(msg, ExtractorParams(min_plane_points=20), types)
+    assert frame.layout == 'unorganized' and frame.planes.labels.shape == (1, 768)
+    assert frame.grid_points.shape == (24, 32, 3) and frame.grid_planes.labels.shape == (24, 32)
+    assert frame.planes.num_planes == 3
+    organized = process_cloud(cloud(types, scan), ExtractorParams(min_plane_points=20), types).planes
+    assert matched_label_agreement(organized.labels, frame.planes.labels) >= 0.99
+    assert 'projection' in frame.timings
+
+
+def hesai_like_cloud(types, points, rings, *, field='ring'):
+    """Height 1, fields x y z intensity <field> timestamp (HesaiLidar_ROS_2.0's layout)."""
+    table = np.zeros(len(points), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'),
+                                   (field, '<u2'), ('timestamp', '<f8')])
+    table['x'], table['y'], table['z'] = points.T
+    table[field] = rings
+    return structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
+                                     field_class=types.PointField)
+
+
+@pytest.fixture(scope='module')
+def sweep():
+    sweep = room_sweep(HDL_LIKE_ELEVATIONS[::2], 720, sigma=0.005)
+    sweep[np.random.default_rng(8).random(sweep.shape[:2]) < 0.1] = np.nan
+    return sweep
+
+
+def test_a_hesai_like_cloud_gets_the_planes_of_the_organized_sweep_per_point(types, sweep):
+    params = ExtractorParams(sensor='lidar')
+    organized = process_cloud(cloud(types, sweep), params, types)
+    points, rings, index = shuffled(sweep)
+    frame = process_cloud(hesai_like_cloud(types, points, rings), params, types)
+    assert frame.layout == 'unorganized' and frame.grid_points.shape == (32, 720, 3)
+    assert frame.planes.meta['projection'].method == 'rings'
+    labels = frame.planes.labels.reshape(-1)
+    assert matched_label_agreement(organized.planes.labels.reshape(-1)[index], labels) >= 0.999
+    # the labelled cloud keeps the input's height 1, its points and their order
+    labeled = pointcloud2_to_structured(frame.labeled_points)
+    assert labeled.shape == (1, len(points))
+    np.testing.assert_array_equal(labeled['label'][0], labels)
+    np.testing.assert_array_equal(labeled['x'][0], points[:, 0].astype(np.float32))
+    markers = types.decode_markers(frame.markers).markers
+    assert len(markers) > frame.planes.num_planes  # DELETEALL, then meshes (on the range image) and more
+
+
+def test_a_livox_like_line_field_selects_the_angular_grid(types, sweep):
+    points, rings, _ = shuffled(sweep)
+    frame = process_cloud(hesai_like_cloud(types, points, rings % 4, field='line'), ExtractorParams(sensor='lidar'),
+                          types)
+    assert frame.planes.meta['projection'].method == 'angular_grid'
+    assert frame.planes.num_planes >= 4
+
+
+def test_unorganized_rows_rings_without_a_ring_field_is_skipped(types, sweep):
+    points, _, _ = shuffled(sweep)
+    expect_skip(types, cloud(types, points), 'unorganized', 'without a ring field, and unorganized_rows is rings',
+                ExtractorParams(unorganized_rows='rings'))
+
+
+def test_bad_ring_values_are_skipped_with_the_reason(types, sweep):
+    points, rings, _ = shuffled(sweep)
+    table = np.zeros(len(points), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
+    table['x'], table['y'], table['z'] = points.T
+    table['ring'] = rings - 5
+    msg = structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
+                                    field_class=types.PointField)
+    expect_skip(types, msg, 'unorganized', r'cannot be put on a range image \(rings\): rings must lie in 0')
+
+
+def velodyne_like_cloud(types, sweep, *, with_ring=True):
+    """Velodyne's organized layout: one row per firing, the lasers across (width = lasers), a ring field."""
+    firings = sweep.transpose(1, 0, 2)
+    fields = [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')] + ([('ring', '<u2')] if with_ring else [])
+    table = np.zeros(firings.shape[:2], fields)
+    table['x'], table['y'], table['z'] = firings[..., 0], firings[..., 1], firings[..., 2]
+    if with_ring:
+        table['ring'] = np.arange(firings.shape[1])[None, :]
+    return structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
+                                     field_class=types.PointField)
+
+
+@pytest.mark.parametrize('with_ring', [True, False], ids=['ring_field', 'layout_parameter'])
+def test_a_velodyne_like_transposed_cloud_gets_the_planes_of_the_organized_sweep(types, sweep, with_ring):
+    params = ExtractorParams(sensor='lidar')
+    organized = process_cloud(cloud(types, sweep), params, types).planes
+    msg = velodyne_like_cloud(types, sweep, with_ring=with_ring)
+    frame = process_cloud(msg, params if with_ring else params.replace(layout='columns_are_beams'), types)
+    assert frame.layout == 'columns_are_beams'
+    assert frame.planes.labels.shape == (720, 32)  # the input's height x width
+    np.testing.assert_array_equal(frame.planes.labels, organized.labels.T)
+    labeled = pointcloud2_to_structured(frame.labeled_points)
+    assert labeled.shape == (720, 32)
+    np.testing.assert_array_equal(labeled['label'], organized.labels.T)
+    # processed as it comes (rows_are_beams: the transposed grid itself) it gives the same planes too
+    as_is = process_cloud(msg, params.replace(layout='rows_are_beams'), types).planes
+    assert matched_label_agreement(as_is.labels, organized.labels.T) >= 0.999
 
 
 def test_empty_cloud_is_skipped(types):

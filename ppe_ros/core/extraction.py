@@ -2322,8 +2322,12 @@ def extract_planes(
     min_plane_points: int = PROFILE_DEFAULT,
     surface_tolerance: float | None = PROFILE_DEFAULT,
     connected_only: bool = PROFILE_DEFAULT,
+    rings: np.ndarray | None = None,
 ) -> PlaneSet | list[PlaneSet]:
     """Extract finite planes from an organized scan with PPE.
+
+    An unorganized ``(N, 3)`` cloud (with its ``rings``, optional) is put on a range image first and
+    its labels are ``(N,)``: see :func:`ppe_ros.core.projection.extract_planes_unorganized`.
 
     Args:
         points: organized ``(H, W, 3)`` endpoints in metres (any frame), NaN = no return.
@@ -2348,6 +2352,13 @@ def extract_planes(
         A PlaneSet when both thresholds are single values (or None), else a list of PlaneSets:
         one per e (in the given order), then one per n.
     """
+    if rings is not None or (np.ndim(points) == 2 and np.shape(points)[1] == 3):  # unorganized: project first
+        from ppe_ros.core.projection import extract_planes_unorganized
+        return extract_planes_unorganized(points, rings, origins=origins, sensor=sensor,
+                                          max_error_increment=max_error_increment, max_planes=max_planes,
+                                          max_neighbor_distance=max_neighbor_distance,
+                                          min_plane_points=min_plane_points, surface_tolerance=surface_tolerance,
+                                          connected_only=connected_only)
     profile = None if sensor is None else sensor_profile(sensor)
 
     def setting(name, value):

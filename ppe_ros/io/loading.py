@@ -1,15 +1,18 @@
-"""Scan files -> organized clouds: one entry point, :func:`load_scan`, for every supported format.
+"""Scan files -> clouds (organized grids, or lidar point lists): one entry point, :func:`load_scan`, for every format.
 
 Supported formats (chosen by the file suffix, case-insensitive):
 
-* ``.pcd`` — PCD v0.7, ``DATA ascii``, ``binary`` or ``binary_compressed`` (LZF); must be organized
-  (``HEIGHT > 1``). Fields ``x y z`` plus any others. Ground-truth labels come from a ``label``
+* ``.pcd`` — PCD v0.7, ``DATA ascii``, ``binary`` or ``binary_compressed`` (LZF); organized
+  (``HEIGHT > 1``) or unorganized (``HEIGHT 1``: a lidar's point list, with its beams in a ``ring``
+  field if the file has one). Fields ``x y z`` plus any others. Ground-truth labels come from a ``label``
   field, or from an ``intensity`` field of floats that are all whole numbers >= 0 (SynPEB stores
   the plane id there; ids >= 10 are planes; ``intensity_labels=False`` turns this off). A non-zero
   ``VIEWPOINT`` translation becomes the ray start (``origins``).
 * ``.npy`` — an organized ``(H, W, 3)`` float array (e.g. the Ouster sweeps), NaN = no return. If an
   Ouster sensor metadata ``*.json`` whose name is a prefix of the file name lies next to it, the
   per-pixel beam origins become ``origins`` (``(H, W, 3)``, metres; see :mod:`ppe_ros.io.ouster`).
+* ``.bin`` — a KITTI-style Velodyne file (float32 ``x y z reflectance``, no ring field): unorganized
+  (:mod:`ppe_ros.io.kitti`).
 * ``.png`` — a 16-bit depth image, back-projected with pinhole intrinsics into the camera frame
   (x right, y down, z forward). Intrinsics and depth scale come from the arguments or from a known
   calibration file next to the PNG (ICL-NUIM ``*.K``, Kinect ``calib_params.xml``; see
@@ -54,7 +57,7 @@ from ppe_ros.io.pcd import read_pcd
 UNIT_SCALES: dict[str, float] = {'m': 1.0, 'cm': 0.01, 'mm': 0.001}
 
 #: File suffix -> format name.
-FORMATS: dict[str, str] = {'.pcd': 'pcd', '.npy': 'npy', '.png': 'depth_png'}
+FORMATS: dict[str, str] = {'.pcd': 'pcd', '.npy': 'npy', '.png': 'depth_png', '.bin': 'kitti_bin'}
 
 #: Labels of this id and above are planes in SynPEB files (smaller ids are unlabelled points).
 SYNPEB_MIN_PLANE_LABEL = 10
@@ -62,19 +65,22 @@ SYNPEB_MIN_PLANE_LABEL = 10
 
 @dataclass(frozen=True, eq=False)
 class Scan:
-    """An organized scan read from a file.
+    """A scan read from a file: organized, or unorganized (a lidar's point list, ``H == 1``).
 
     Attributes:
         points: ``(H, W, 3)`` float64 endpoints in metres in the file's frame (sensor frame for
             laser scans, camera frame x right / y down / z forward for depth images); NaN = no return.
+            An unorganized scan is ``(1, N, 3)`` in the file's point order.
         labels: ``(H, W)`` int64 ground-truth plane labels, or None. The id convention depends on
             the data set: ``meta['min_plane_label']`` is the smallest id that denotes a plane
             (10 for SynPEB, 1 for label files where 0 = unlabelled).
         origins: ray starts in metres in the frame of ``points``: None (all rays start at the
             coordinate origin), ``(3,)`` (PCD VIEWPOINT) or ``(H, W, 3)`` (Ouster beam origins).
         path: the file read.
-        format: ``'pcd'``, ``'npy'`` or ``'depth_png'``.
+        format: ``'pcd'``, ``'npy'``, ``'depth_png'`` or ``'kitti_bin'``.
         meta: format details (encoding, fields, units, scale, intrinsics, label source...).
+        rings: ``(1, N)`` int64 beam number of each point of an unorganized scan (a PCD ``ring``
+            field), or None.
     """
 
     points: np.ndarray
@@ -83,6 +89,12 @@ class Scan:
     path: Path
     format: str
     meta: dict[str, Any] = field(default_factory=dict)
+    rings: np.ndarray | None = None
+
+    @property
+    def organized(self) -> bool:
+        """False for a point list (``H == 1``), which is put on a range image for the extraction."""
+        return self.points.shape[0] > 1
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -136,13 +148,15 @@ def _load_labels_file(path: Path, shape: tuple[int, int]) -> np.ndarray:
         raise FileNotFoundError(f'ground-truth labels file not found: {path}')
 
     def check(declared: tuple[int, ...], dtype: np.dtype) -> None:
+        if shape[0] == 1 and declared == (shape[1],):  # one label per point of an unorganized scan
+            declared = shape
         if declared != shape:
             raise ScanFileError(f'{path}: ground-truth labels have shape {declared}, the scan is {shape}')
         if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):
             raise ScanFileError(f'{path}: ground-truth labels must be integers; found dtype {dtype}')
 
     values = read_npy(path, check, what='ground-truth labels .npy (H x W integers)')
-    return _as_labels(values, str(path), shape)
+    return _as_labels(np.reshape(values, shape), str(path), shape)
 
 
 def _load_pcd(path: Path, scale: float | None, intensity_labels: bool | None, meta: dict[str, Any]):
@@ -153,11 +167,6 @@ def _load_pcd(path: Path, scale: float | None, intensity_labels: bool | None, me
         fields=list(header.fields),
         viewpoint=list(header.viewpoint),
     )
-    if not header.is_organized:
-        raise ScanFileError(
-            f'{path}: the cloud is not organized (HEIGHT {header.height}, WIDTH {header.width}); '
-            f'plane extraction needs an organized scan (a 2-D grid of rays, HEIGHT > 1)'
-        )
     names = cloud.data.dtype.names
     missing = [axis for axis in 'xyz' if axis not in names]
     if missing:
@@ -190,7 +199,24 @@ def _load_pcd(path: Path, scale: float | None, intensity_labels: bool | None, me
             meta.update(labels_source='field intensity (SynPEB plane ids)', min_plane_label=SYNPEB_MIN_PLANE_LABEL)
     elif intensity_labels:
         raise ScanFileError(f'{path}: intensity_labels=True but the file has no intensity field')
+    if not header.is_organized and 'ring' in names and cloud.data.dtype['ring'].shape == ():
+        rings = cloud.data['ring']
+        if not (np.issubdtype(rings.dtype, np.integer) or np.all(rings[np.isfinite(rings)] % 1 == 0)):
+            raise ScanFileError(f'{path}: the ring field must hold whole beam numbers')
+        meta.update(rings_source='field ring')
+        with np.errstate(invalid='ignore'):
+            meta['rings'] = np.where(np.isfinite(rings), rings, -1).astype(np.int64)
     return points, origins, labels
+
+
+def _load_kitti(path: Path, scale: float | None, meta: dict[str, Any]):
+    from ppe_ros.io.kitti import read_kitti_bin
+
+    points, _ = read_kitti_bin(path)
+    meta.update(fields=['x', 'y', 'z', 'reflectance'])
+    if scale is not None and scale != 1.0:
+        points *= scale
+    return points.reshape(1, -1, 3), None, None
 
 
 def _check_npy_scan(path: Path, shape: tuple[int, ...], dtype: np.dtype) -> None:
@@ -295,10 +321,10 @@ def load_scan(
     gt: str | os.PathLike[str] | None = None,
     intensity_labels: bool | None = None,
 ) -> Scan:
-    """Read an organized scan file (PCD, NPY or 16-bit depth PNG) into a :class:`Scan`.
+    """Read a scan file (PCD, NPY, 16-bit depth PNG or KITTI ``.bin``) into a :class:`Scan`.
 
     Args:
-        path: the scan file; the format follows the suffix (``.pcd``, ``.npy``, ``.png``).
+        path: the scan file; the format follows the suffix (``.pcd``, ``.npy``, ``.png``, ``.bin``).
         units: unit of the file's coordinates, ``'m'`` (default for PCD/NPY), ``'cm'`` or ``'mm'``;
             for a depth PNG the unit of one depth count (default: from the calibration file).
         intrinsics: ``(fx, fy, cx, cy)`` in pixels for a depth PNG (default: calibration file).
@@ -310,7 +336,7 @@ def load_scan(
 
     Raises:
         FileNotFoundError: the scan or the labels file does not exist.
-        ScanFileError: unknown format, malformed/truncated/corrupt data, unorganized cloud,
+        ScanFileError: unknown format, malformed/truncated/corrupt data,
             declared sizes beyond :mod:`ppe_ros.io.limits`, labels of the wrong shape, a damaged
             Ouster JSON or calibration file, depth PNG without intrinsics or scale.
         ValueError: bad argument values (unknown units, non-positive focal lengths...).
@@ -325,7 +351,8 @@ def load_scan(
     if fmt is None:
         raise ScanFileError(
             f'{file_path}: unknown scan format {file_path.suffix!r}; supported: '
-            f'.pcd (PCD v0.7), .npy (organized H x W x 3 array), .png (16-bit depth image)'
+            f'.pcd (PCD v0.7), .npy (organized H x W x 3 array), .png (16-bit depth image), '
+            f'.bin (KITTI: float32 x y z reflectance)'
         )
     if fmt != 'depth_png' and (intrinsics is not None or depth_scale is not None):
         raise ValueError(f'{file_path}: intrinsics and depth_scale apply to depth PNGs only')
@@ -334,6 +361,8 @@ def load_scan(
         points, origins, labels = _load_pcd(file_path, scale, intensity_labels, meta)
     elif fmt == 'npy':
         points, origins, labels = _load_npy(file_path, scale, meta)
+    elif fmt == 'kitti_bin':
+        points, origins, labels = _load_kitti(file_path, scale, meta)
     else:
         points, origins, labels = _load_depth_png(file_path, scale, intrinsics, depth_scale, meta)
     points = _clean_points(points)
@@ -346,4 +375,6 @@ def load_scan(
     elif sidecar.is_file():
         labels = _load_labels_file(sidecar, shape)
         meta.update(labels_source=str(sidecar), min_plane_label=1)
-    return Scan(points=points, labels=labels, origins=origins, path=file_path, format=fmt, meta=meta)
+    rings = meta.pop('rings', None)
+    return Scan(points=points, labels=labels, origins=origins, path=file_path, format=fmt, meta=meta,
+                rings=None if rings is None else rings.reshape(shape))

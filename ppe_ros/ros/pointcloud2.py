@@ -215,6 +215,36 @@ def pointcloud2_to_xyz(msg: Any, *, require_organized: bool = False, zero_is_no_
     return xyz
 
 
+#: Fields that give each point's beam, in the order they are looked for: ``ring`` (Velodyne, Ouster,
+#: Hesai, RoboSense) and ``line`` (Livox: its laser line, which does not make rows of a grid).
+BEAM_FIELDS: tuple[str, ...] = ('ring', 'line')
+
+
+def pointcloud2_field(msg: Any, name: str) -> np.ndarray | None:
+    """Field ``name`` of ``msg`` as an ``(height, width)`` array in native byte order, or None if the
+    cloud has no such field with count 1.
+
+    Raises:
+        PointCloudError: see :func:`pointcloud2_to_structured`.
+    """
+    cloud = pointcloud2_to_structured(msg)
+    if name not in (cloud.dtype.names or ()) or cloud.dtype[name].shape != ():
+        return None
+    base = cloud.dtype[name]
+    with np.errstate(invalid='ignore'):
+        return np.asarray(cloud[name]).astype(base.newbyteorder('='))
+
+
+def pointcloud2_beams(msg: Any) -> tuple[np.ndarray | None, str | None]:
+    """The first of :data:`BEAM_FIELDS` that ``msg`` has, as ``(height, width)`` values, and its name;
+    ``(None, None)`` without one."""
+    for name in BEAM_FIELDS:
+        values = pointcloud2_field(msg, name)
+        if values is not None:
+            return values, name
+    return None, None
+
+
 # --------------------------------------------------------------------------------------------
 # numpy -> PointCloud2
 # --------------------------------------------------------------------------------------------

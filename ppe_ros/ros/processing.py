@@ -35,6 +35,7 @@ from ppe_ros.ros.pointcloud2 import (
     FLOAT32,
     PointCloudError,
     label_colors,
+    pointcloud2_beams,
     pointcloud2_to_xyz,
     structured_to_pointcloud2,
     xyz_to_pointcloud2,
@@ -47,6 +48,11 @@ from ppe_ros.ros.pointcloud2 import (
 RELIABILITY_CHOICES = ('best_effort', 'reliable')
 #: Values of the sensor parameter ('none': no profile).
 SENSOR_CHOICES = ('none', 'lidar', 'depth_camera', 'paper')
+
+#: Values of the layout parameter: how an organized cloud's grid holds the beams.
+LAYOUT_CHOICES = ('auto', 'rows_are_beams', 'columns_are_beams')
+#: Values of the unorganized_rows parameter (ppe_ros.core.projection.ROW_METHODS).
+UNORGANIZED_ROWS_CHOICES = ('auto', 'rings', 'elevation', 'angular_grid')
 
 #: ROS parameters every node has or that configure QoS; a params file may contain them.
 ROS_BUILTIN_PARAMETERS = ('use_sim_time', 'start_type_description_service')
@@ -169,6 +175,25 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('min_output_rate_fraction', 'double', 0.5,
               'diagnostics say WARN when the output rate falls below this fraction of the input rate; 0 = never',
               low=0.0, high=1.0),
+    ParamSpec('layout', 'string', 'auto',
+              'organized clouds: rows_are_beams (Ouster), columns_are_beams (Velodyne and RoboSense organized: '
+              "width = lasers), or auto (columns_are_beams when the ring field changes along the width)",
+              choices=LAYOUT_CHOICES),
+    ParamSpec('unorganized_rows', 'string', 'auto',
+              'clouds of height 1 are put on a range image with one row per: rings (the ring field), elevation '
+              '(beams found in the elevation angles), angular_grid (a fixed grid, Livox); auto = rings with a ring '
+              'field, angular_grid with a line field, else elevation', choices=UNORGANIZED_ROWS_CHOICES),
+    ParamSpec('azimuth_bins', 'integer', 0,
+              'unorganized clouds: azimuth bins (columns) per revolution; 0 = estimated from the points',
+              low=0, high=1_000_000),
+    ParamSpec('azimuth_start', 'double', 180.0,
+              'unorganized clouds covering the full circle: azimuth (deg, counter-clockwise from x) where the range '
+              'image starts (planes are cut there); 180 = behind the sensor', low=-360.0, high=360.0),
+    ParamSpec('angular_resolution', 'double', 0.8,
+              'unorganized_rows angular_grid: cell size (deg) of the fixed grid', low=0.01, high=10.0),
+    ParamSpec('lost_point_tolerance', 'double', 0.0,
+              'unorganized clouds: a point that lost its range-image cell to a nearer return gets the cell\'s plane '
+              "within this distance (m) of it; 0 = the profile's surface_tolerance, or 0.05 m", low=0.0, high=10.0),
 )
 PARAM_SPEC_BY_NAME: dict[str, ParamSpec] = {spec.name: spec for spec in PARAM_SPECS}
 
@@ -200,6 +225,12 @@ class ExtractorParams:
     workers: int = 1
     process_without_subscribers: bool = False
     min_output_rate_fraction: float = 0.5
+    layout: str = 'auto'
+    unorganized_rows: str = 'auto'
+    azimuth_bins: int = 0
+    azimuth_start: float = 180.0
+    angular_resolution: float = 0.8
+    lost_point_tolerance: float = 0.0
 
     def __post_init__(self) -> None:
         for spec in PARAM_SPECS:
@@ -284,7 +315,9 @@ class FrameSkipped(ValueError):
     """An input frame the extractor cannot use; the node counts it, warns (throttled) and goes on.
 
     Attributes:
-        kind: short machine-readable cause: ``'empty'``, ``'unorganized'``, ``'too_large'``,
+        kind: short machine-readable cause: ``'empty'``, ``'unorganized'`` (a cloud of height 1 that
+            cannot be put on a range image: bad ring values, no ring field for
+            ``unorganized_rows: rings``), ``'too_large'``,
             ``'invalid_cloud'`` (missing x/y/z, unsupported datatype, inconsistent sizes) or
             ``'no_valid_points'``.
         reason: the full message.
@@ -425,7 +458,13 @@ class ProcessedFrame:
             decode with ``types.decode_markers``), or None if not built.
         plane_table: PointCloud2 of the plane table, or None if not built.
         timings: seconds spent in ``convert``, ``extract``, ``labeled_points``, ``markers``,
-            ``plane_table``.
+            ``plane_table`` (and ``projection``, the range image and the labels back, for an
+            unorganized cloud).
+        layout: ``'rows_are_beams'``, ``'columns_are_beams'`` (the grid was transposed for the
+            extraction and the labels back) or ``'unorganized'`` (``points`` is ``(1, N, 3)`` and
+            ``planes.labels`` ``(1, N)``, in the input's order).
+        grid_points, grid_planes: the range image ``(rows, columns, 3)`` of an unorganized cloud and
+            its planes (``labels`` on that grid): the markers' meshes are built on it; None otherwise.
         ray_origins: ``(3,)`` or ``(H, W, 3)`` ray starts the planes were extracted with (m, cloud frame).
         marker_stride: mesh stride of the markers (``marker_mesh_stride``, or larger to stay within
             ``marker_max_triangles``); 0 if no markers were built.
@@ -441,6 +480,9 @@ class ProcessedFrame:
     timings: dict[str, float] = field(default_factory=dict)
     ray_origins: np.ndarray | None = None
     marker_stride: int = 0
+    layout: str = 'rows_are_beams'
+    grid_points: np.ndarray | None = None
+    grid_planes: PlaneSet | None = None
 
     @property
     def overhead_s(self) -> float:
@@ -449,25 +491,18 @@ class ProcessedFrame:
 
 
 def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
-    """Validate an input cloud and return its ``(H, W, 3)`` float64 points (NaN = no return).
+    """Validate an input cloud and return its ``(H, W, 3)`` float64 points (NaN = no return); an
+    unorganized cloud gives ``(1, N, 3)``.
 
     No return: a point with a non-finite coordinate, or exactly at (0, 0, 0) (what many drivers
     publish for a pixel without a return; the file loaders of :mod:`ppe_ros.io` read it so too).
 
     Raises:
-        FrameSkipped: empty, unorganized, larger than ``params.max_points``, malformed, or no
-            finite point.
+        FrameSkipped: empty, larger than ``params.max_points``, malformed, or no finite point.
     """
     height, width = int(msg.height), int(msg.width)
     if height == 0 or width == 0:
         raise FrameSkipped('empty', f'empty cloud (height {height}, width {width}): nothing to extract')
-    if height == 1:
-        raise FrameSkipped(
-            'unorganized',
-            f'unorganized cloud (height 1, width {width}): plane extraction needs an organized cloud '
-            '(height = lidar rings or image rows, width = columns); '
-            "check the driver's organized-cloud option",
-        )
     if height * width > params.max_points:
         raise FrameSkipped(
             'too_large',
@@ -485,9 +520,134 @@ def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
     return points
 
 
+@dataclass(frozen=True)
+class DecodedCloud:
+    """An input cloud's points and how its beams lie.
+
+    Attributes:
+        points: ``(H, W, 3)`` float64 (m, cloud frame), NaN = no return; ``(1, N, 3)`` if unorganized.
+        layout: ``'rows_are_beams'``, ``'columns_are_beams'`` or ``'unorganized'``.
+        beams: ``(H, W)`` values of the cloud's beam field (``ring`` or ``line``), or None.
+        beam_field: that field's name, or None.
+    """
+
+    points: np.ndarray
+    layout: str
+    beams: np.ndarray | None = None
+    beam_field: str | None = None
+
+
+def decode_cloud(msg: Any, params: ExtractorParams) -> DecodedCloud:
+    """:func:`cloud_points` plus the beam field and the layout (``params.layout``; ``auto``: a cloud of
+    height 1 is unorganized; an organized cloud is ``columns_are_beams`` when neighbours along a row
+    share their ring less often than neighbours along a column, as in Velodyne's and RoboSense's
+    organized clouds, else ``rows_are_beams``).
+
+    Raises:
+        FrameSkipped: see :func:`cloud_points`.
+    """
+    points = cloud_points(msg, params)
+    try:
+        beams, beam_field = pointcloud2_beams(msg)
+    except PointCloudError as exc:  # pragma: no cover - cloud_points read the same layout
+        raise FrameSkipped('invalid_cloud', f'invalid PointCloud2: {exc}') from None
+    if points.shape[0] == 1:
+        return DecodedCloud(points, 'unorganized', beams, beam_field)
+    layout = params.layout
+    if layout == 'auto':
+        layout = 'rows_are_beams'
+        if beam_field == 'ring':
+            valid = ~np.isnan(points[..., 0])
+            along_row = valid[:, 1:] & valid[:, :-1]
+            along_column = valid[1:] & valid[:-1]
+            with np.errstate(invalid='ignore'):
+                same_in_row = np.mean((beams[:, 1:] == beams[:, :-1])[along_row]) if along_row.any() else 1.0
+                same_in_column = np.mean((beams[1:] == beams[:-1])[along_column]) if along_column.any() else 0.0
+            if same_in_row < same_in_column:
+                layout = 'columns_are_beams'
+    return DecodedCloud(points, layout, beams, beam_field)
+
+
+def _extraction_settings(params: ExtractorParams) -> dict[str, Any]:
+    """extract_planes's keyword arguments from the node parameters."""
+    from ppe_ros.core.extraction import PROFILE_DEFAULT
+
+    if params.sensor == 'none':
+        settings = {'max_error_increment': params.max_error_increment,
+                    'max_neighbor_distance': params.max_neighbor_distance}
+    else:  # the profile's e (in its units) and lmax
+        settings = {'sensor': params.sensor, 'surface_tolerance': params.surface_tolerance or PROFILE_DEFAULT}
+    return {**settings, 'origins': np.asarray(params.ray_origin, dtype=np.float64),
+            'max_planes': params.max_planes or None, 'min_plane_points': params.min_plane_points}
+
+
+def _extract_grid(points: np.ndarray, settings: dict[str, Any]) -> PlaneSet:
+    from ppe_ros.core.extraction import extract_planes
+
+    planes = extract_planes(points, **settings)
+    if isinstance(planes, list):  # both thresholds set: one cut each; stop at whichever comes first
+        planes = min(planes, key=lambda cut: cut.actions)
+    return planes
+
+
+def lost_point_tolerance(params: ExtractorParams) -> float:
+    """The distance (m) within which a point that lost its range-image cell joins the cell's plane."""
+    from ppe_ros.core.projection import DEFAULT_LOST_POINT_TOLERANCE
+    from ppe_ros.core.sensor import sensor_profile
+
+    if params.lost_point_tolerance > 0:
+        return params.lost_point_tolerance
+    if params.sensor != 'none':
+        tolerance = params.surface_tolerance or sensor_profile(params.sensor).surface_tolerance
+        if tolerance:
+            return float(tolerance)
+    return DEFAULT_LOST_POINT_TOLERANCE
+
+
+def _unorganized_method(cloud: DecodedCloud, params: ExtractorParams) -> str:
+    method = params.unorganized_rows
+    if method == 'auto':
+        return {'ring': 'rings', 'line': 'angular_grid'}.get(cloud.beam_field, 'elevation')
+    if method == 'rings' and cloud.beam_field != 'ring':
+        raise FrameSkipped('unorganized', f'unorganized cloud (height 1, width {cloud.points.shape[1]}) without a '
+                           'ring field, and unorganized_rows is rings (use auto or elevation)')
+    return method
+
+
+def _extract_unorganized(cloud: DecodedCloud, params: ExtractorParams, settings: dict[str, Any],
+                         timings: dict[str, float]) -> tuple[PlaneSet, np.ndarray, PlaneSet]:
+    """Planes of an unorganized cloud: its range image, PPE on it, labels back ``(1, N)``."""
+    from ppe_ros.core.projection import image_or_empty, planes_for_points, project_points
+
+    start = time.perf_counter()
+    points = cloud.points.reshape(-1, 3)
+    method = _unorganized_method(cloud, params)
+    rings = cloud.beams.reshape(-1) if method == 'rings' else None
+    try:
+        projection = project_points(points, rings, origins=settings['origins'], rows=method,
+                                    azimuth_bins=params.azimuth_bins or None,
+                                    angular_resolution=params.angular_resolution, azimuth_start=params.azimuth_start)
+    except ValueError as exc:
+        raise FrameSkipped('unorganized', f'unorganized cloud (height 1, width {len(points)}) cannot be put on a '
+                           f'range image ({method}): {exc}') from None
+    image = image_or_empty(projection, points)
+    timings['projection'] = time.perf_counter() - start
+    grid_planes = _extract_grid(image, settings)
+    mark = time.perf_counter()
+    planes = planes_for_points(projection, grid_planes, points, lost_point_tolerance(params))
+    planes = dataclasses.replace(planes, labels=planes.labels.reshape(1, -1))
+    timings['projection'] += time.perf_counter() - mark
+    return planes, image, grid_planes
+
+
 def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
                   outputs: OutputSelection | None = None, ray_origins: np.ndarray | None = None) -> ProcessedFrame:
     """Convert, validate, extract planes and build the selected outputs of one PointCloud2.
+
+    Organized clouds with the beams in columns are transposed for the extraction and their labels
+    transposed back; unorganized clouds (height 1) are put on a range image
+    (:mod:`ppe_ros.core.projection`) and get a label per point. Every output keeps the input's
+    ``height x width`` and point order.
 
     Args:
         msg: ``sensor_msgs/PointCloud2`` of either flavour.
@@ -498,31 +658,31 @@ def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
             (the node's from the Ouster driver's metadata).
 
     Raises:
-        FrameSkipped: the cloud cannot be used (see :func:`cloud_points`).
+        FrameSkipped: the cloud cannot be used (see :func:`cloud_points` and :func:`decode_cloud`).
     """
-    from ppe_ros.core.extraction import PROFILE_DEFAULT, extract_planes
-
     start = time.perf_counter()
-    points = cloud_points(msg, params)
+    cloud = decode_cloud(msg, params)
     timings = {'convert': (mark := time.perf_counter()) - start}
-    if params.sensor == 'none':
-        settings = {'max_error_increment': params.max_error_increment,
-                    'max_neighbor_distance': params.max_neighbor_distance}
-    else:  # the profile's e (in its units) and lmax
-        settings = {'sensor': params.sensor, 'surface_tolerance': params.surface_tolerance or PROFILE_DEFAULT}
-    origins = np.asarray(params.ray_origin if ray_origins is None else ray_origins, dtype=np.float64)
-    planes = extract_planes(
-        points,
-        origins=origins,
-        max_planes=params.max_planes or None,
-        min_plane_points=params.min_plane_points,
-        **settings,
-    )
-    if isinstance(planes, list):  # both thresholds set: one cut each; stop at whichever comes first
-        planes = min(planes, key=lambda cut: cut.actions)
-    timings['extract'] = time.perf_counter() - mark
-    frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=points,
-                           planes=planes, timings=timings, ray_origins=origins)
+    settings = _extraction_settings(params)
+    grid_points = grid_planes = None
+    if cloud.layout == 'unorganized':  # per-pixel ray starts belong to an organized grid: params' apply
+        planes, grid_points, grid_planes = _extract_unorganized(cloud, params, settings, timings)
+        timings['extract'] = time.perf_counter() - mark - timings['projection']
+    else:
+        if ray_origins is not None:
+            settings['origins'] = np.asarray(ray_origins, dtype=np.float64)
+        if cloud.layout == 'columns_are_beams':  # PPE's grid is symmetric under transposition: same planes
+            grid = dict(settings)
+            if grid['origins'].ndim == 3:
+                grid['origins'] = np.ascontiguousarray(grid['origins'].transpose(1, 0, 2))
+            planes = _extract_grid(np.ascontiguousarray(cloud.points.transpose(1, 0, 2)), grid)
+            planes = dataclasses.replace(planes, labels=np.ascontiguousarray(planes.labels.T))
+        else:
+            planes = _extract_grid(cloud.points, settings)
+        timings['extract'] = time.perf_counter() - mark
+    frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=cloud.points,
+                           planes=planes, timings=timings, ray_origins=settings['origins'], layout=cloud.layout,
+                           grid_points=grid_points, grid_planes=grid_planes)
     build_outputs(frame, params, types, OutputSelection.from_params(params) if outputs is None else outputs)
     return frame
 
@@ -536,10 +696,14 @@ def build_outputs(frame: ProcessedFrame, params: ExtractorParams, types: Message
         frame.labeled_points = labeled_points_message(points, planes, header, types)
         timings['labeled_points'] = (now := time.perf_counter()) - mark
         mark = now
-    if selection.markers:
-        origins = np.asarray(params.ray_origin) if frame.ray_origins is None else frame.ray_origins
+    if selection.markers:  # meshes on the grid the planes were extracted on
+        if frame.grid_points is None:
+            mesh_points, mesh_planes = points, planes
+            origins = np.asarray(params.ray_origin) if frame.ray_origins is None else frame.ray_origins
+        else:
+            mesh_points, mesh_planes, origins = frame.grid_points, frame.grid_planes, np.asarray(params.ray_origin)
         geometry, frame.marker_stride = budgeted_plane_geometry(
-            points, planes, ray_origin=origins, stride=params.marker_mesh_stride,
+            mesh_points, mesh_planes, ray_origin=origins, stride=params.marker_mesh_stride,
             max_triangles=params.marker_max_triangles)
         colors = label_palette(planes.num_planes)[1:]
         frame.markers = marker_array_cdr(geometry, planes, frame.stamped, colors=colors,
