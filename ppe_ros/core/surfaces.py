@@ -38,11 +38,8 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
         noise_factor = 0.0 if profile is None else profile.noise_factor
-        wrap = columns_wrap(unit_scan)
-        ids = consolidate_pieces(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only=connected_only,
-                                 noise_factor=noise_factor, wrap_columns=wrap)
-        ids = absorb_rays(unit_scan, ids, ray_sigmas, surface_tolerance, noise_factor=noise_factor,
-                          min_points=min_plane_points, wrap_columns=wrap)
+        ids = _consolidate(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor,
+                           min_plane_points)
     planes, _ = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
                                   actions=steps, **cut)
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
@@ -53,6 +50,32 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
         planes = replace(planes, covariances=planes.covariances + systematic_covariances(
             unit_scan, planes, _independent_sigmas(unit_scan, ray_sigmas, profile), profile.correlation_length))
     return planes
+
+
+def _consolidate(unit_scan: RayScan, ids: np.ndarray, ray_sigmas: np.ndarray, tau: float, connected_only: bool,
+                 noise_factor: float, min_points: int) -> np.ndarray:
+    """consolidate_pieces then absorb_rays, across the seam of a full revolution: in the columns (a
+    sweep with one row per beam) or in the rows (a transposed sweep, one column per beam), so that a
+    transposed grid gives the same surfaces."""
+    scan, order = unit_scan, None
+    wrap = columns_wrap(unit_scan)
+    if not wrap:
+        order = np.arange(unit_scan.size).reshape(unit_scan.height, unit_scan.width).T.reshape(-1)
+        transposed = replace(unit_scan, height=unit_scan.width, width=unit_scan.height,
+                             endpoints=unit_scan.endpoints[order], directions=unit_scan.directions[order],
+                             ranges=unit_scan.ranges[order], valid=unit_scan.valid[order])
+        if columns_wrap(transposed):
+            scan, ids, ray_sigmas, wrap = transposed, ids[order], ray_sigmas[order], True
+        else:
+            order = None
+    ids = consolidate_pieces(scan, ids, ray_sigmas, tau, connected_only=connected_only, noise_factor=noise_factor,
+                             wrap_columns=wrap)
+    ids = absorb_rays(scan, ids, ray_sigmas, tau, noise_factor=noise_factor, min_points=min_points, wrap_columns=wrap)
+    if order is None:
+        return ids
+    back = np.empty_like(ids)
+    back[order] = ids
+    return back
 
 
 def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: SensorProfile) -> np.ndarray:
