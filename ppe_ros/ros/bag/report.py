@@ -1,0 +1,150 @@
+"""The options of a run, what it did, and the summary printed at the end."""
+
+from __future__ import annotations
+
+import math
+import signal
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ppe_ros.ros.bag.errors import EXIT_DAMAGED, EXIT_OK
+from ppe_ros.ros.bag.output import DEFAULT_STORAGE
+from ppe_ros.ros.processing import ExtractorParams
+
+
+@dataclass
+class BagOptions:
+    """What to do: the command line as values.
+
+    Attributes:
+        input, output: IN and OUT.
+        topics: input topics to process; empty = every PointCloud2 topic.
+        params: extractor parameters (the node's; see ``ExtractorParams.from_yaml``).
+        params_source: where they came from, for the report and the output's metadata.
+        copy_input: also copy the input topics.
+        jobs: worker processes; 1 = in this process.
+        storage: ``'mcap'`` or ``'sqlite3'``.
+        force: replace an existing OUT.
+        progress: show a progress bar: True, False or None (when stderr is a terminal).
+    """
+
+    input: Path
+    output: Path
+    topics: tuple[str, ...] = ()
+    params: ExtractorParams = field(default_factory=ExtractorParams)
+    params_source: str = 'defaults'
+    copy_input: bool = False
+    jobs: int = 1
+    storage: str = DEFAULT_STORAGE
+    force: bool = False
+    progress: bool | None = None
+    params_warnings: tuple[str, ...] = ()
+
+
+@dataclass
+class TopicReport:
+    """Counts of one input topic."""
+
+    input_topic: str
+    outputs: dict[str, str]
+    expected: int | None
+    read: int = 0
+    processed: int = 0
+    copied: int = 0
+    skipped: Counter[str] = field(default_factory=Counter)
+    reasons: dict[str, str] = field(default_factory=dict)
+    planes: list[int] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)
+
+    @property
+    def skipped_total(self) -> int:
+        return sum(self.skipped.values())
+
+
+@dataclass
+class BagReport:
+    """What a run did (returned by :func:`process_bag`, printed by :func:`format_report`)."""
+
+    options: BagOptions
+    input_description: str = ''
+    topics: dict[str, TopicReport] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    messages_written: int = 0
+    wall_seconds: float = 0.0
+    input_error: str | None = None
+    worker_error: str | None = None
+    output_error: str | None = None
+    interrupted_by: int | None = None
+    dropped_in_flight: int = 0
+    output_path: Path | None = None
+
+    @property
+    def frames_read(self) -> int:
+        return sum(t.read for t in self.topics.values())
+
+    @property
+    def frames_processed(self) -> int:
+        return sum(t.processed for t in self.topics.values())
+
+    @property
+    def frames_skipped(self) -> int:
+        return sum(t.skipped_total for t in self.topics.values())
+
+    @property
+    def frames_per_second(self) -> float:
+        done = self.frames_processed + self.frames_skipped
+        return done / self.wall_seconds if self.wall_seconds > 0 else 0.0
+
+    @property
+    def exit_code(self) -> int:
+        if self.interrupted_by is not None:
+            return 128 + int(self.interrupted_by)
+        if self.input_error or self.worker_error or self.output_error:
+            return EXIT_DAMAGED
+        return EXIT_OK
+
+
+def _mean(values: Sequence[float]) -> float:
+    return math.fsum(values) / len(values) if values else math.nan
+
+
+def format_report(report: BagReport) -> str:
+    """The summary: a markdown table per input topic, skip reasons, and the outcome."""
+    lines = [
+        '| input topic | frames | processed | skipped | planes/frame mean (min-max) | s/frame mean (max) |',
+        '|---|---:|---:|---:|---|---|',
+    ]
+    for entry in report.topics.values():
+        if entry.planes:
+            planes = f'{_mean(entry.planes):.1f} ({min(entry.planes)}-{max(entry.planes)})'
+            seconds = f'{_mean(entry.seconds):.3f} ({max(entry.seconds):.3f})'
+        else:
+            planes = seconds = '-'
+        lines.append(f'| {entry.input_topic} | {entry.read} | {entry.processed} | {entry.skipped_total} | '
+                     f'{planes} | {seconds} |')
+    for entry in report.topics.values():
+        for kind, count in entry.skipped.most_common():
+            lines.append(f'skipped on {entry.input_topic}: {count} x {kind}, e.g. {entry.reasons[kind]}')
+    done = report.frames_processed + report.frames_skipped
+    jobs = report.options.jobs
+    rate = f'{report.frames_per_second:.2f} frames/s with {jobs} job{"s" * (jobs != 1)}'
+    if report.output_path is not None:
+        lines.append(f'wrote {report.output_path} ({report.options.storage}): {report.messages_written} messages; '
+                     f'{done} frames in {report.wall_seconds:.1f} s ({rate})')
+    return '\n'.join(lines)
+
+
+def report_problems(report: BagReport) -> list[str]:
+    """One line per reason the run did not complete normally."""
+    problems = []
+    if report.interrupted_by is not None:
+        name = signal.Signals(report.interrupted_by).name
+        dropped = (f'; {report.dropped_in_flight} frame{"s" * (report.dropped_in_flight != 1)} in flight dropped'
+                   if report.dropped_in_flight else '')
+        problems.append(f'interrupted ({name}) after {report.frames_read} frames{dropped}')
+    for problem in (report.input_error, report.worker_error, report.output_error):
+        if problem:
+            problems.append(problem)
+    return problems
