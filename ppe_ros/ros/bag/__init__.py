@@ -40,19 +40,39 @@ Modules, one concern each: :mod:`.inputs` (opening any input kind), :mod:`.salva
 storage files; the one place that uses rosbags internals), :mod:`.compression`, :mod:`.frames`
 (one frame), :mod:`.executors` (inline or worker processes), :mod:`.signals` (Ctrl-C),
 :mod:`.output` (the output bag and path checks), :mod:`.report` (options, counts, summary),
-:mod:`.runner` (:func:`process_bag`), :mod:`.cli` (the command line).
+:mod:`.runner` (:func:`process_bag`, :func:`process_bags`), :mod:`.discovery` (several inputs),
+:mod:`.ray_executor` (``--executor ray``), :mod:`.cli` (the command line).
 """
 
 from __future__ import annotations
 
-from ppe_ros.ros.bag.cli import add_arguments, build_parser, main, options_from_args, read_params_file, run
+from ppe_ros.ros.bag.cli import (
+    add_arguments,
+    build_parser,
+    main,
+    options_from_args,
+    read_params_file,
+    run,
+    runs_from_args,
+)
+from ppe_ros.ros.bag.discovery import expand_inputs, output_paths
 from ppe_ros.ros.bag.errors import EXIT_DAMAGED, EXIT_OK, EXIT_USAGE, BagError, describe_read_error
-from ppe_ros.ros.bag.executors import InlineExecutor, PoolExecutor, default_numba_threads
+from ppe_ros.ros.bag.executors import FrameExecutor, InlineExecutor, PoolExecutor, TaskFailed, default_numba_threads
 from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult, ros1_cloud_as_ros2
 from ppe_ros.ros.bag.inputs import InputBag, InputTopic, open_input_bag, select_topics
 from ppe_ros.ros.bag.output import DEFAULT_STORAGE, STORAGES, OutputBag, check_paths
-from ppe_ros.ros.bag.report import BagOptions, BagReport, TopicReport, format_report, report_problems
-from ppe_ros.ros.bag.runner import process_bag
+from ppe_ros.ros.bag.ray_executor import RayExecutor
+from ppe_ros.ros.bag.report import (
+    BagOptions,
+    BagReport,
+    BagsReport,
+    TopicReport,
+    describe_completion,
+    format_report,
+    format_summary,
+    report_problems,
+)
+from ppe_ros.ros.bag.runner import process_bag, process_bags
 from ppe_ros.ros.bag.salvage import SalvageMcapReader, SalvageRos1Reader, SalvageSqliteReader
 from ppe_ros.ros.bag.signals import StopRequests
 from ppe_ros.ros.bag.topics import MARKER_ARRAY, OUTPUT_MSGTYPES, OUTPUT_SUFFIXES, POINTCLOUD2, output_topics
@@ -70,6 +90,8 @@ __all__ = [
     'BagError',
     'BagOptions',
     'BagReport',
+    'BagsReport',
+    'FrameExecutor',
     'FrameProcessor',
     'FrameResult',
     'InlineExecutor',
@@ -77,25 +99,33 @@ __all__ = [
     'InputTopic',
     'OutputBag',
     'PoolExecutor',
+    'RayExecutor',
     'SalvageMcapReader',
     'SalvageRos1Reader',
     'SalvageSqliteReader',
     'StopRequests',
+    'TaskFailed',
     'TopicReport',
     'add_arguments',
     'build_parser',
     'check_paths',
     'default_numba_threads',
+    'describe_completion',
     'describe_read_error',
+    'expand_inputs',
     'format_report',
+    'format_summary',
     'main',
     'open_input_bag',
     'options_from_args',
+    'output_paths',
     'output_topics',
     'process_bag',
+    'process_bags',
     'read_params_file',
     'report_problems',
     'ros1_cloud_as_ros2',
     'run',
+    'runs_from_args',
     'select_topics',
 ]

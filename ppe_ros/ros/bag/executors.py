@@ -1,4 +1,10 @@
-"""Where frames are processed: inline (``--jobs 1``) or in worker processes (``--jobs N``)."""
+"""Where frames are processed: inline (``--jobs 1``), in worker processes (``--jobs N``) or on Ray.
+
+Every executor takes frames with ``submit`` (a :class:`~concurrent.futures.Future` of the
+:class:`FrameResult` per frame), holds at most ``capacity`` of them in flight, sends what it
+buffers on ``flush`` and ends with ``shutdown``; ``abandon`` drops what is in flight (a second
+Ctrl-C, a dead worker) and leaves the executor usable for the next input.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +12,7 @@ import contextlib
 import os
 import signal
 from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Protocol
 
 from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult
 from ppe_ros.ros.bag.signals import StopRequests
@@ -18,7 +25,26 @@ IN_FLIGHT_PER_JOB = 2
 _WORKER_PROCESSOR: FrameProcessor | None = None
 
 
+class TaskFailed(Exception):
+    """A task of frames that failed on the executor (after its retries): the frames are lost, the run stops."""
+
+
+class FrameExecutor(Protocol):
+    """What :func:`~ppe_ros.ros.bag.runner.process_bag` needs of an executor."""
+
+    capacity: int
+
+    def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future: ...
+
+    def flush(self) -> None: ...
+
+    def abandon(self) -> None: ...
+
+    def shutdown(self, *, abandon: bool) -> None: ...
+
+
 def set_numba_threads(count: int) -> None:
+    """Threads of numba's parallel kernels in this process (0: leave numba's default)."""
     if count > 0:
         import numba
 
@@ -44,6 +70,7 @@ class InlineExecutor:
     def __init__(self, processor: FrameProcessor, stops: StopRequests) -> None:
         self._processor = processor
         self._stops = stops
+        self.capacity = IN_FLIGHT_PER_JOB
 
     def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future:
         future: Future = Future()
@@ -60,6 +87,12 @@ class InlineExecutor:
             future.set_result(result)
         return future
 
+    def flush(self) -> None:
+        pass
+
+    def abandon(self) -> None:
+        pass
+
     def shutdown(self, *, abandon: bool) -> None:
         pass
 
@@ -68,22 +101,42 @@ class PoolExecutor:
     """``--jobs N``: frames go to N worker processes (forkserver, or spawn where there is none)."""
 
     def __init__(self, jobs: int, params: ExtractorParams, numba_threads: int) -> None:
+        self.capacity = IN_FLIGHT_PER_JOB * jobs
+        self._jobs = jobs
+        self._initargs = (params, numba_threads)
+        self._pool: ProcessPoolExecutor | None = None
+        self._start()
+
+    def _start(self) -> None:
         import multiprocessing
 
         methods = multiprocessing.get_all_start_methods()
         context = multiprocessing.get_context('forkserver' if 'forkserver' in methods else 'spawn')
-        self._pool = ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker,
-                                         initargs=(params, numba_threads))
+        self._pool = ProcessPoolExecutor(max_workers=self._jobs, mp_context=context, initializer=_init_worker,
+                                         initargs=self._initargs)
 
     def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future:
+        if self._pool is None:  # abandoned by the previous input
+            self._start()
+        assert self._pool is not None
         return self._pool.submit(_process_in_worker, raw, encoding, convert_copy)
 
+    def flush(self) -> None:
+        pass
+
+    def abandon(self) -> None:
+        """Stop the workers (the frames in flight are dropped); the next submit starts new ones."""
+        self.shutdown(abandon=True)
+
     def shutdown(self, *, abandon: bool) -> None:
-        if not abandon:
-            self._pool.shutdown(wait=True)
+        if self._pool is None:
             return
-        processes = list(getattr(self._pool, '_processes', {}).values())  # the workers this run started
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        pool, self._pool = self._pool, None
+        if not abandon:
+            pool.shutdown(wait=True)
+            return
+        processes = list(getattr(pool, '_processes', {}).values())  # the workers this run started
+        pool.shutdown(wait=False, cancel_futures=True)
         for process in processes:
             with contextlib.suppress(Exception):
                 process.terminate()

@@ -89,16 +89,22 @@ def _shares_a_file(input_path: Path, output_path: Path) -> bool:
     return False
 
 
+def overlaps(input_path: Path, output_path: Path) -> bool:
+    """Whether writing ``output_path`` could touch the input: it is, holds or lies inside it, or shares a file."""
+    source = input_path.resolve()
+    target = output_path.resolve()
+    return (target == source or source.is_relative_to(target) or target.is_relative_to(source)
+            or _shares_a_file(input_path, output_path))
+
+
 def check_paths(input_path: Path, output_path: Path, force: bool) -> None:
     """Refuse outputs that would overwrite the input or an existing path without ``force``.
 
     Raises:
         BagError: with the reason.
     """
-    source = input_path.resolve()
     target = output_path.resolve()
-    if (target == source or source.is_relative_to(target) or target.is_relative_to(source)
-            or _shares_a_file(input_path, output_path)):
+    if overlaps(input_path, output_path):
         raise BagError(f'refusing to write {output_path}: it is, contains or lies inside the input {input_path}')
     if output_path.exists() or output_path.is_symlink():
         if not force:

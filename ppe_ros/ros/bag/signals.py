@@ -7,17 +7,28 @@ import threading
 from typing import Any
 
 
+class Interrupted(KeyboardInterrupt):
+    """A signal that stopped the command at once (``signum``: SIGINT or SIGTERM)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
 class StopRequests:
     """SIGINT / SIGTERM during a run: the first stops reading, a second drops the frames in flight.
 
     The handlers only count (writing the output is never interrupted halfway); a second signal
-    raises KeyboardInterrupt only while an inline frame is being processed (``abortable``).
+    raises KeyboardInterrupt only while an inline frame is being processed (``abortable``). Outside
+    the writing of an output (opening and scanning an input, between inputs) a signal raises
+    KeyboardInterrupt at once (``interruptible``): nothing is being written that it could cut.
     """
 
     def __init__(self) -> None:
         self.count = 0
         self.first_signal: int | None = None
         self.abortable = False
+        self.interruptible = False
         self._previous: dict[int, Any] = {}
 
     def install(self) -> None:
@@ -35,6 +46,8 @@ class StopRequests:
         self.count += 1
         if self.first_signal is None:
             self.first_signal = signum
+        if self.interruptible:
+            raise Interrupted(signum)
         if self.count > 1 and self.abortable:
             raise KeyboardInterrupt
 
