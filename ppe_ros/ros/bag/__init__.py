@@ -26,6 +26,15 @@ where ``<ns>`` is the input topic without its last element, as for the node, whi
 ``<input topic>/planes/...`` instead. ``publish_*: false`` in the params file leaves that output
 out. ``--copy-input`` also copies the input topics (ROS 1 messages converted to ROS 2).
 
+Several inputs (``process_bag IN [IN ...] OUT``, or a directory of bags as IN): OUT is a
+directory with one output bag per input, named after it (``runs/a.mcap`` -> ``OUT/a``), each
+byte for byte what a single run on that input writes, and a summary table over all inputs at the
+end; an input that cannot be used is reported and the others go on. ``--executor ray`` sends the
+frames, ``--task-frames`` at a time, to Ray tasks (a local Ray of ``--jobs`` CPUs, or the cluster
+at ``--ray-address``); this process still reads the inputs and writes the outputs, in input
+order, so the outputs are the local run's bytes. A task whose worker dies is retried
+(``--task-retries``), then that input is reported incomplete.
+
 Safety: the input is only read. The output is written to a hidden staging directory next to OUT
 and renamed to OUT when complete; an existing OUT is replaced only with ``--force``. A message that
 does not decode or a frame the extractor cannot use is skipped, logged and counted. A read error in

@@ -132,6 +132,8 @@ def options_from_args(args: argparse.Namespace) -> BagOptions:
                             f'params file?); known: {sorted(PARAM_SPEC_BY_NAME)}')
     if args.executor != 'ray' and (args.ray_address is not None):
         raise BagError('--ray-address needs --executor ray')
+    if args.ray_address is not None and args.jobs != 1:
+        warnings.append(f'--jobs {args.jobs} is ignored with --ray-address: the tasks use the CPUs of the cluster')
     return BagOptions(input=Path(args.inputs[0]), output=Path(args.output), topics=tuple(args.topics or ()),
                       params=params, params_source=source, copy_input=args.copy_input, jobs=args.jobs,
                       storage=args.storage, force=args.force, progress=args.progress,

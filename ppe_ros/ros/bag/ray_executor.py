@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
@@ -61,6 +62,24 @@ def _import_ray() -> Any:
     return ray
 
 
+#: Seconds to wait for a cluster's address to accept a connection (ray.init itself retries for minutes).
+CONNECT_TIMEOUT_S = 10.0
+
+
+def check_reachable(address: str) -> None:
+    """BagError unless ``host:port`` (or ``ray://host:port``) accepts a TCP connection ('auto' is Ray's to find)."""
+    if address == 'auto':
+        return
+    host, _, port = address.removeprefix('ray://').rpartition(':')
+    if not host or not port.isdigit():
+        raise BagError(f"--ray-address {address!r} is not 'auto', HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host.strip('[]'), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise BagError(f'cannot connect to the Ray cluster at {address}: {exc.strerror or exc} (is Ray running '
+                       'there? `ray start --head` starts one)') from None
+
+
 def start_ray(address: str | None, local_cpus: int) -> bool:
     """Join the Ray cluster at ``address`` or (None) start a local one of ``local_cpus`` CPUs on 127.0.0.1.
 
@@ -73,6 +92,8 @@ def start_ray(address: str | None, local_cpus: int) -> bool:
     ray = _import_ray()
     if ray.is_initialized():
         return False
+    if address is not None:
+        check_reachable(address)
     on_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGTERM) if on_main_thread else None
     try:
