@@ -83,7 +83,8 @@ def check_reachable(address: str) -> None:
 def start_ray(address: str | None, local_cpus: int) -> bool:
     """Join the Ray cluster at ``address`` or (None) start a local one of ``local_cpus`` CPUs on 127.0.0.1.
 
-    Returns whether this call started Ray (False: it was running in this process already).
+    Returns whether this call started Ray (False: this process is connected to a Ray already, which
+    is then used whatever ``address`` says).
     Keeps this process's SIGTERM handler (ray.init replaces it with one that exits at once).
 
     Raises:
