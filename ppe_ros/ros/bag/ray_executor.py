@@ -15,7 +15,7 @@ import signal
 import socket
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
 from ppe_ros.ros.bag.errors import BagError
@@ -172,20 +172,23 @@ class RayExecutor:
             ref.future().add_done_callback(lambda done, future=future: self._deliver(done, future, task, len(batch)))
 
     def _deliver(self, done: Future, future: Future, task: int, frames: int) -> None:
-        if future.done():
-            return
+        """Pass a frame's Ray result (or the task's failure as :class:`TaskFailed`) to its future."""
         try:
             result = done.result()
         except Exception as exc:
             reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            future.set_exception(TaskFailed(
-                f'Ray task {task} ({frames} frame{"s" * (frames != 1)}) failed after {self._retries} '
-                f'retr{"ies" if self._retries != 1 else "y"}: {type(exc).__name__}: {reason}'))
-            return
-        if isinstance(result, FrameResult):
-            future.set_result(result)
+            what = f'Ray task {task} ({frames} frame{"s" * (frames != 1)}) failed'
+            if not isinstance(exc, self._ray.exceptions.RayTaskError):  # a dead worker: retried by Ray
+                what += f' after {self._retries} retr{"ies" if self._retries != 1 else "y"}'
+            outcome: Any = TaskFailed(f'{what}: {type(exc).__name__}: {reason}')
         else:
-            future.set_exception(TaskFailed(f'Ray task {task} returned {type(result).__name__}, not a FrameResult'))
+            outcome = result if isinstance(result, FrameResult) else TaskFailed(
+                f'Ray task {task} returned {type(result).__name__}, not a FrameResult')
+        with contextlib.suppress(InvalidStateError):  # dropped meanwhile (abandon)
+            if isinstance(outcome, TaskFailed):
+                future.set_exception(outcome)
+            else:
+                future.set_result(outcome)
 
     def abandon(self) -> None:
         """Cancel the tasks in flight (second Ctrl-C, or a task that failed): their frames are dropped."""
