@@ -30,6 +30,7 @@ from ppe_ros.core.synthetic import plane_scan
 from ppe_ros.io import load_scan
 from ppe_ros.ros import bag as bag_module
 from ppe_ros.ros.bag import BagOptions, main, output_topics, process_bag
+from ppe_ros.ros.bag import frames as bag_frames
 from ppe_ros.ros.messages import rosbags_message_types
 from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2, xyz_to_pointcloud2
 from ppe_ros.ros.processing import ExtractorParams, process_cloud
@@ -588,14 +589,14 @@ def test_a_second_ctrl_c_drops_the_frame_in_progress(tmp_path, scans, monkeypatc
 
 
 def test_a_frame_that_fails_is_skipped_and_the_run_goes_on(tmp_path, mcap_bag, expected, monkeypatch, capsys):
-    original = bag_module.process_cloud
+    original = bag_frames.process_cloud
 
     def fail_on_the_second_frame(msg, params, types, *, outputs=None):
         if msg.header.stamp.sec == stamp_of(1)[0]:
             raise RuntimeError('kernel exploded')
         return original(msg, params, types, outputs=outputs)
 
-    monkeypatch.setattr(bag_module, 'process_cloud', fail_on_the_second_frame)
+    monkeypatch.setattr(bag_frames, 'process_cloud', fail_on_the_second_frame)
     assert run_cli([mcap_bag, tmp_path / 'out']) == 0
     captured = capsys.readouterr()
     assert '(failed): processing failed: RuntimeError: kernel exploded' in captured.err
@@ -862,7 +863,7 @@ def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, 
     messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, scans[i % 3]))) for i in range(6)]
     frames = [process_cloud(cloud(JAZZY, i, scans[i % 3]), ExtractorParams(), TYPES) for i in range(6)]
     source = write_rosbag2(tmp_path / 'in', messages)
-    original = bag_module.process_cloud
+    original = bag_frames.process_cloud
     calls = []
 
     def interrupted_in_the_kernel(msg, params, types, *, outputs=None):
@@ -876,7 +877,7 @@ def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, 
                                   'set') from exc
         return original(msg, params, types, outputs=outputs)
 
-    monkeypatch.setattr(bag_module, 'process_cloud', interrupted_in_the_kernel)
+    monkeypatch.setattr(bag_frames, 'process_cloud', interrupted_in_the_kernel)
     assert run_cli([source, tmp_path / 'out']) == code
     err = capsys.readouterr().err
     assert 'SystemError' not in err and '(failed)' not in err
