@@ -300,7 +300,7 @@ def test_bench_real_ppe_settings_and_bad_arguments(capsys):
     assert kwargs == {'max_error_increment': 0.01, 'max_neighbor_distance': math.inf, 'min_plane_points': 20}
     kwargs, _ = bench.ppe_settings('none', True, 'depth_camera')
     assert kwargs == {'max_error_increment': 0.0484, 'max_neighbor_distance': 0.18, 'min_plane_points': 20}
-    assert bench.ppe_settings('auto', False, 'depth_camera')[0] == {'sensor': 'depth_camera', 'min_plane_points': 20}
+    assert bench.ppe_settings('auto', False, 'depth_camera')[0] == {'sensor': 'depth_camera'}
     assert bench.ppe_settings('lidar', False, 'depth_camera')[0]['sensor'] == 'lidar'
     assert bench.main(['--methods', 'ppe,nosuch']) == 2
     assert 'nosuch' in capsys.readouterr().err

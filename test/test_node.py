@@ -286,7 +286,7 @@ def test_runtime_parameter_changes_are_validated_and_applied(ros_context, execut
     node = harness.node
     rejected = {
         'marker_alpha': (2.0, 'out of range'),
-        'max_error_increment': (0.0, 'max_error_increment must be in (0.0'),
+        'max_error_increment': (-1.0, 'max_error_increment out of range'),
         'input_reliability': ('sometimes', "one of 'best_effort', 'reliable'"),
         'ray_origin': ([0.0, 0.0], 'ray_origin must be a list of 3'),
         'min_plane_points': (1.5, 'Wrong parameter type'),
@@ -341,8 +341,8 @@ def test_numba_threads_parameter(ros_context, executor, namespace, scan_points):
 def test_invalid_start_parameters_raise_a_clear_error(ros_context):
     with pytest.raises(ValueError, match=r"invalid parameter 'marker_alpha'.*out of range"):
         ExtractorNode(context=ros_context, parameter_overrides=[Parameter('marker_alpha', value=3.0)])
-    with pytest.raises(ValueError, match=r"invalid parameter 'max_error_increment'.*\(0.0"):
-        ExtractorNode(context=ros_context, parameter_overrides=[Parameter('max_error_increment', value=0.0)])
+    with pytest.raises(ValueError, match=r"invalid parameter 'max_error_increment'.*out of range"):
+        ExtractorNode(context=ros_context, parameter_overrides=[Parameter('max_error_increment', value=-1.0)])
 
 
 def test_params_file_is_loaded(tmp_path):

@@ -42,6 +42,7 @@ ROSDEP_KEYS = {
     'diagnostic_msgs': 'diagnostic_msgs',
     'launch': 'launch',
     'launch_ros': 'launch_ros',
+    'ray': None,  # optional, for process_bag --executor ray only: pip (requirements-workspace.txt), no rosdep key
 }
 #: exec_depends without an import: message packages inside the outputs (MarkerArray holds geometry_msgs/Point,
 #: every header builtin_interfaces/Time; the markers are serialized to CDR directly).

@@ -89,10 +89,10 @@ def test_config_yaml_holds_every_parameter_with_the_code_defaults():
 
 
 @pytest.mark.parametrize(('name', 'value', 'message'), [
-    ('max_error_increment', 0.0, r'max_error_increment must be in \(0.0'),
+    ('max_error_increment', -0.5, r'max_error_increment must be in \[0.0'),
     ('max_error_increment', math.nan, 'must be a number'),
     ('max_neighbor_distance', -1.0, 'max_neighbor_distance'),
-    ('min_plane_points', 0, 'min_plane_points must be in'),
+    ('min_plane_points', -1, 'min_plane_points must be in'),
     ('min_plane_points', 2.5, 'min_plane_points must be an integer'),
     ('ray_origin', [0.0, 0.0], 'ray_origin must be a list of 3 finite numbers'),
     ('ray_origin', [0.0, math.inf, 0.0], 'ray_origin'),

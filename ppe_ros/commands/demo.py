@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ppe_ros.commands.extract import DEFAULT_MAX_ERROR_INCREMENT, DEFAULT_MAX_NEIGHBOR_DISTANCE, write_planes
+from ppe_ros.commands.extract import DEFAULT_PROFILE, write_planes
 from ppe_ros.io.files import write_files_atomically
 
 
@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from ppe_ros.io import save_pcd
     from ppe_ros.render import save_segmentation_png
 
+    e, lmax = DEFAULT_PROFILE.max_error_increment, DEFAULT_PROFILE.max_neighbor_distance
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print(f'generating a 500 x 500 room scan (seed {args.seed}, radial noise {args.noise * 1000:g} mm) ...')
@@ -42,15 +43,15 @@ def run(args: argparse.Namespace) -> int:
     print('extracting planes (the first run compiles the numba kernels; later runs use the cache) ...')
     start = time.perf_counter()
     hierarchy = extract_plane_hierarchy(scan.points, origins=scan.origins,
-                                        max_neighbor_distance=DEFAULT_MAX_NEIGHBOR_DISTANCE,
-                                        max_error_increment=DEFAULT_MAX_ERROR_INCREMENT)
-    steps = hierarchy.steps_for_error(DEFAULT_MAX_ERROR_INCREMENT)
+                                        max_neighbor_distance=lmax,
+                                        max_error_increment=e)
+    steps = hierarchy.steps_for_error(e)
     planes, residuals = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), min_plane_points=4,
-                                          max_error_increment=DEFAULT_MAX_ERROR_INCREMENT, actions=steps)
+                                          max_error_increment=e, actions=steps)
     wall = time.perf_counter() - start
     score = score_segmentation(planes.labels, scan.labels, gt_min_label=10, residuals=residuals)
     meta = {'input': 'generated', 'seed': args.seed, 'radial_sigma': args.noise,
-            'max_error_increment': DEFAULT_MAX_ERROR_INCREMENT, 'max_neighbor_distance': DEFAULT_MAX_NEIGHBOR_DISTANCE}
+            'max_error_increment': e, 'max_neighbor_distance': lmax}
     write_planes(out / 'planes.npz', planes, scan.points, meta=meta, force=True)
     save_pcd(out / 'scan.pcd', scan.points, extra_fields={'intensity': scan.labels.astype(np.float32)},
              overwrite=True)
@@ -58,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     lines = [
         'ppe_ros demo: PPE on a generated SynPEB-style scan',
         f'input: 500 x 500 rays, seed {args.seed}, radial noise {args.noise * 1000:g} mm, angular noise 1 mdeg',
-        f'parameters: e = {DEFAULT_MAX_ERROR_INCREMENT} m^2, lmax = {DEFAULT_MAX_NEIGHBOR_DISTANCE} m',
+        f'parameters: e = {e} m^2, lmax = {lmax} m',
         f'planes extracted: {planes.num_planes} (ground truth: {score.n_gt} planes)',
         f'time: {wall:.2f} s (extraction {hierarchy.seconds:.2f} s incl. any first-call JIT compilation)',
         f'score: f = {score.f:.1%} correct planes, k = {score.k:.1%} of labelled points, '

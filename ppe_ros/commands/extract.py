@@ -14,7 +14,7 @@ from ppe_ros.commands._options import add_ppe_options, add_scan_options, positiv
 from ppe_ros.core.extraction import PROFILE_DEFAULT, extract_plane_hierarchy, extract_planes
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.projection import extract_planes_unorganized
-from ppe_ros.core.sensor import SensorProfile, sensor_profile
+from ppe_ros.core.sensor import PROFILES, SensorProfile, sensor_profile
 from ppe_ros.io.files import (
     check_output_targets,
     refuse_overwriting_inputs,
@@ -24,9 +24,9 @@ from ppe_ros.io.files import (
 from ppe_ros.io.loading import Scan, scan_input_files
 
 #: Defaults of the command line (tuned on SynPEB by the reference: sqrt(e) = 0.22 m, lmax = 0.18 m).
-DEFAULT_MAX_ERROR_INCREMENT = 0.0484
-DEFAULT_MAX_NEIGHBOR_DISTANCE = 0.18
-DEFAULT_MIN_PLANE_POINTS = 4
+#: Without --sensor, ppe extract takes its defaults from the paper profile (e 0.0484 m^2, lmax
+#: 0.18 m, 4 points: the reference implementation's setting tuned on SynPEB) and runs the paper's model.
+DEFAULT_PROFILE = PROFILES['paper']
 OUTPUT_SUFFIXES = ('.npz', '.pcd')
 
 
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError('--surface-tolerance needs --sensor (a sensor profile)')
     min_points = args.min_plane_points
     if min_points is None:
-        min_points = DEFAULT_MIN_PLANE_POINTS if profile is None else profile.min_plane_points
+        min_points = (DEFAULT_PROFILE if profile is None else profile).min_plane_points
     if min_points < 1:
         raise ValueError(f'--min-plane-points must be >= 1; got {min_points}')
     e_list = args.max_error_increment
@@ -198,10 +198,10 @@ def run(args: argparse.Namespace) -> int:
     if n_list is not None and any(n < 1 for n in n_list):
         raise ValueError(f'-n/--max-planes must be >= 1; got {n_list}')
     if e_list is None and n_list is None:
-        e_list = [DEFAULT_MAX_ERROR_INCREMENT if profile is None else profile.max_error_increment]
+        e_list = [(DEFAULT_PROFILE if profile is None else profile).max_error_increment]
     lmax = args.max_neighbor_distance
     if lmax is None:
-        lmax = DEFAULT_MAX_NEIGHBOR_DISTANCE if profile is None else profile.max_neighbor_distance
+        lmax = (DEFAULT_PROFILE if profile is None else profile).max_neighbor_distance
     # every output is checked (inputs by device and inode, collisions, existing files) before anything runs
     plan = planned_outputs(output, png, _snapshot_requests(e_list, n_list))
     targets = [path for pair in plan for path in pair if path is not None]

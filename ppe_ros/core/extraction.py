@@ -47,7 +47,7 @@ from ppe_ros.core.fitting import (
 )
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan, make_ray_scan
-from ppe_ros.core.sensor import NoiseModel, SensorProfile, sensor_profile
+from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, sensor_profile
 from ppe_ros.core.surfaces import whole_surfaces
 
 KIND_CREATE = 0
@@ -2308,7 +2308,7 @@ class _ProfileDefault:
 
 PROFILE_DEFAULT = _ProfileDefault()
 #: extract_planes's defaults without a sensor profile (sensor=None).
-_NO_PROFILE_DEFAULTS = {'max_error_increment': 0.01, 'max_neighbor_distance': np.inf, 'min_plane_points': 4}
+_NO_PROFILE_DEFAULTS = PROFILES['none']
 
 
 def extract_planes(
@@ -2332,9 +2332,9 @@ def extract_planes(
     Args:
         points: organized ``(H, W, 3)`` endpoints in metres (any frame), NaN = no return.
         origins: ray starts in the same frame: None (the frame origin), ``(3,)`` or ``(H, W, 3)``.
-        sensor: None (the paper's model with the defaults e 0.01 m^2, lmax inf, 4 points: the
-            results of earlier versions), or a sensor profile: ``'lidar'``, ``'depth_camera'``,
-            ``'paper'`` or a :class:`~ppe_ros.core.sensor.SensorProfile`. A profile sets the range
+        sensor: None or ``'none'`` (the paper's model with the defaults e 0.01 m^2, lmax inf, 4
+            points: the results of earlier versions), or a sensor profile: ``'lidar'``,
+            ``'depth_camera'``, ``'paper'`` or a :class:`~ppe_ros.core.sensor.SensorProfile`. A profile sets the range
             noise model and the defaults of the arguments below; arguments given explicitly win.
         max_error_increment: the paper's e: a snapshot is the state before the first action whose
             error increment exceeds it (m^2 in the paper's model; dimensionless, in units of the
@@ -2360,12 +2360,14 @@ def extract_planes(
                                           min_plane_points=min_plane_points, surface_tolerance=surface_tolerance,
                                           connected_only=connected_only)
     profile = None if sensor is None else sensor_profile(sensor)
+    if profile == _NO_PROFILE_DEFAULTS:  # 'none': the paper's model, as sensor=None
+        profile = None
 
     def setting(name, value):
         if value is not PROFILE_DEFAULT:
             return value
         if profile is None:
-            return _NO_PROFILE_DEFAULTS.get(name)
+            return getattr(_NO_PROFILE_DEFAULTS, name, None)
         return getattr(profile, name)
 
     max_error_increment = setting('max_error_increment', max_error_increment)

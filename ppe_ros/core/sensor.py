@@ -205,8 +205,12 @@ KINECT_V1_NOISE = NoiseModel(constant=0.001, depth_quadratic=1.43e-3)
 #: Intel RealSense D435-class stereo: about 2 % of depth at 2 m (sigma_z = 5e-3 z^2).
 REALSENSE_NOISE = NoiseModel(constant=0.001, depth_quadratic=5e-3)
 
-#: The built-in profiles (see docs/algorithm.md for how their defaults were chosen).
+#: The built-in profiles, the one source of every default (see docs/parameters.md; docs/algorithm.md
+#: for how they were chosen). 'none' is the paper's model without a distance limit: the defaults of
+#: extract_planes(sensor=None) and of the node; 'paper' the paper's setting, the defaults of ppe extract.
 PROFILES: dict[str, SensorProfile] = {
+    'none': SensorProfile(name='none', noise=None, max_error_increment=0.01, max_neighbor_distance=np.inf,
+                          min_plane_points=4),
     'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
                            min_plane_points=4),
     'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,

@@ -127,17 +127,19 @@ class ParamSpec:
 
 #: Every parameter of the extractor node, in the order of config/extractor.yaml.
 PARAM_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec('max_error_increment', 'double', 0.01,
-              "PPE's threshold e (m^2): stop before the first merge whose error increment exceeds it",
-              low=0.0, high=1.0e6, low_exclusive=True),
+    ParamSpec('max_error_increment', 'double', 0.0,
+              "PPE's threshold e: stop before the first action whose error increment exceeds it (m^2 with sensor "
+              "none, else in units of the profile's noise variance); 0 = the sensor profile's",
+              low=0.0, high=1.0e6),
     ParamSpec('max_planes', 'integer', 0,
               'stop once at most this many planes (atomic rays included) remain; 0 = no limit',
               low=0, high=2**31 - 1),
-    ParamSpec('max_neighbor_distance', 'double', math.inf,
-              'largest distance (m) between neighbouring points that may join one plane; .inf = no limit',
-              low=0.0, high=math.inf, low_exclusive=True),
-    ParamSpec('min_plane_points', 'integer', 20,
-              'planes with fewer points are reported as no plane (label 0)', low=1, high=2**31 - 1),
+    ParamSpec('max_neighbor_distance', 'double', 0.0,
+              'largest distance (m) between neighbouring points that may join one plane; .inf = no limit; '
+              "0 = the sensor profile's", low=0.0, high=math.inf),
+    ParamSpec('min_plane_points', 'integer', 0,
+              "planes with fewer points are reported as no plane (label 0); 0 = the sensor profile's",
+              low=0, high=2**31 - 1),
     ParamSpec('sensor', 'string', 'none',
               "sensor profile: none (the paper's model with the parameters above), lidar or depth_camera (a noise "
               'model and whole surfaces; e and lmax are then the profile\'s, see docs/algorithm.md), or paper',
@@ -206,10 +208,10 @@ class ExtractorParams:
     values. Use :meth:`replace` for a changed copy and :meth:`from_yaml` for a ROS params file.
     """
 
-    max_error_increment: float = 0.01
+    max_error_increment: float = 0.0
     max_planes: int = 0
-    max_neighbor_distance: float = math.inf
-    min_plane_points: int = 20
+    max_neighbor_distance: float = 0.0
+    min_plane_points: int = 0
     sensor: str = 'none'
     surface_tolerance: float = 0.0
     ray_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -569,16 +571,16 @@ def decode_cloud(msg: Any, params: ExtractorParams) -> DecodedCloud:
 
 
 def _extraction_settings(params: ExtractorParams) -> dict[str, Any]:
-    """extract_planes's keyword arguments from the node parameters."""
+    """extract_planes's keyword arguments from the node parameters: 0 (e, lmax, min_plane_points,
+    surface_tolerance) leaves a setting to the sensor profile (sensor none: extract_planes's own)."""
     from ppe_ros.core.extraction import PROFILE_DEFAULT
 
-    if params.sensor == 'none':
-        settings = {'max_error_increment': params.max_error_increment,
-                    'max_neighbor_distance': params.max_neighbor_distance}
-    else:  # the profile's e (in its units) and lmax
-        settings = {'sensor': params.sensor, 'surface_tolerance': params.surface_tolerance or PROFILE_DEFAULT}
+    settings = {name: getattr(params, name) or PROFILE_DEFAULT
+                for name in ('max_error_increment', 'max_neighbor_distance', 'min_plane_points')}
+    if params.sensor != 'none':
+        settings.update(sensor=params.sensor, surface_tolerance=params.surface_tolerance or PROFILE_DEFAULT)
     return {**settings, 'origins': np.asarray(params.ray_origin, dtype=np.float64),
-            'max_planes': params.max_planes or None, 'min_plane_points': params.min_plane_points}
+            'max_planes': params.max_planes or None}
 
 
 def _extract_grid(points: np.ndarray, settings: dict[str, Any]) -> PlaneSet:
