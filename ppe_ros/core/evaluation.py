@@ -200,6 +200,7 @@ class _OverlapTable:
 
 
 def _overlap_table(gt_flat: np.ndarray, gt_min_label: int, regions: _Regions) -> _OverlapTable:
+    """Overlaps O_mn of the GT and extracted regions as the fractions fms and fgt of each pair."""
     n_pred = len(regions.pred_values)
     both = (gt_flat >= gt_min_label) & (regions.pred_flat > 0)
     gt_index = np.searchsorted(regions.gt_values, gt_flat[both])
