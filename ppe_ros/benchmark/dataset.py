@@ -156,6 +156,67 @@ class DatasetScan:
         return f'{self.split}/{self.level}/{self.path.stem}'
 
 
+def _check_synpeb_levels(sigmas: Sequence[float], n_train: int, n_test: int,
+                         angular_sigma_deg: float) -> tuple[list[float], list[str]]:
+    """The noise levels (radial sigmas, metres) and their folder names; checks the scan counts and the jitter."""
+    levels = [float(s) for s in sigmas]
+    if not levels or any(not (math.isfinite(s) and s >= 0.0) for s in levels):
+        raise ValueError(f'sigmas must be a non-empty list of finite noise levels >= 0 (metres); got {sigmas}')
+    names = [level_name(s) for s in levels]
+    if len(set(names)) != len(names):
+        raise ValueError(f'noise levels must differ by at least 0.1 mm; got {sigmas}')
+    for count, what in ((n_train, 'n_train'), (n_test, 'n_test')):
+        if isinstance(count, bool) or int(count) != count or count < 0:
+            raise ValueError(f'{what} must be a non-negative integer; got {count!r}')
+    if n_train + n_test == 0:
+        raise ValueError('the data set needs at least one scan (n_train + n_test >= 1)')
+    if not (math.isfinite(angular_sigma_deg) and angular_sigma_deg >= 0.0):
+        raise ValueError(f'angular_sigma_deg must be finite and >= 0; got {angular_sigma_deg}')
+    return levels, names
+
+
+def _new_dataset_directory(directory: str | os.PathLike[str]) -> Path:
+    """Create the data set directory; refuse one that already holds a data set (nothing is overwritten)."""
+    root = Path(directory)
+    if (root / MANIFEST_NAME).exists() or any((root / split).exists() for split in SPLITS):
+        raise FileExistsError(f'{root} already holds a data set; choose a new directory')
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def _write_synpeb_scan(root: Path, split: str, index: int, level: str, scan, compressed: bool) -> Path:
+    """Write one scan as ``root/split/level/pc_NN.pcd`` (SynPEB format, label in ``intensity``)."""
+    from ppe_ros.io import save_pcd
+
+    folder = root / split / level
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f'pc_{index + 1:02d}.pcd'
+    points = np.where(np.isfinite(scan.points), scan.points, np.nan)
+    save_pcd(path, points, extra_fields={'intensity': scan.labels.astype(np.float32)}, compressed=compressed)
+    return path
+
+
+def _synpeb_manifest(*, seed: int, rows: int, cols: int, angular_sigma_deg: float, n_objects: int, n_train: int,
+                     n_test: int, levels: list[float], names: list[str], min_region: int, entries: list[dict]) -> dict:
+    """The ``dataset.json`` content of a SynPEB-style data set."""
+    return {
+        'format': FORMAT_NAME,
+        'seed': int(seed),
+        'rows': int(rows),
+        'cols': int(cols),
+        'angular_sigma_deg': float(angular_sigma_deg),
+        'n_objects': int(n_objects),
+        'n_train': int(n_train),
+        'n_test': int(n_test),
+        'levels': [{'name': name, 'radial_sigma': sigma, 'variance_cm2': round((sigma * 100.0) ** 2, 6)}
+                   for sigma, name in zip(levels, names, strict=True)],
+        'min_region_pixels': min_region,
+        'labels': 'PCD field intensity: ground-truth plane id (>= 10); 3 = visible but no GT plane (a face piece '
+                  f'smaller than {min_region} px); 0 = no return (NaN point)',
+        'scans': entries,
+    }
+
+
 def make_dataset(
     directory: str | os.PathLike[str],
     *,
@@ -206,31 +267,13 @@ def make_dataset(
                                     cols=cols, n_objects=n_objects, lidar_models=lidar_models, progress=progress)
     rows = 500 if rows is None else rows
     cols = 500 if cols is None else cols
-    levels = [float(s) for s in sigmas]
-    if not levels or any(not (math.isfinite(s) and s >= 0.0) for s in levels):
-        raise ValueError(f'sigmas must be a non-empty list of finite noise levels >= 0 (metres); got {sigmas}')
-    names = [level_name(s) for s in levels]
-    if len(set(names)) != len(names):
-        raise ValueError(f'noise levels must differ by at least 0.1 mm; got {sigmas}')
-    for count, what in ((n_train, 'n_train'), (n_test, 'n_test')):
-        if isinstance(count, bool) or int(count) != count or count < 0:
-            raise ValueError(f'{what} must be a non-negative integer; got {count!r}')
-    if n_train + n_test == 0:
-        raise ValueError('the data set needs at least one scan (n_train + n_test >= 1)')
-    if not (math.isfinite(angular_sigma_deg) and angular_sigma_deg >= 0.0):
-        raise ValueError(f'angular_sigma_deg must be finite and >= 0; got {angular_sigma_deg}')
+    levels, names = _check_synpeb_levels(sigmas, n_train, n_test, angular_sigma_deg)
     grid = synpeb_grid(rows, cols)
-    root = Path(directory)
-    if (root / MANIFEST_NAME).exists() or any((root / split).exists() for split in SPLITS):
-        raise FileExistsError(f'{root} already holds a data set; choose a new directory')
-    root.mkdir(parents=True, exist_ok=True)
-
-    from ppe_ros.io import save_pcd
-
+    root = _new_dataset_directory(directory)
     min_region = min_region_pixels(rows, cols)
-
     if isinstance(n_objects, bool) or int(n_objects) != n_objects or n_objects < 0:
         raise ValueError(f'n_objects must be a non-negative integer; got {n_objects!r}')
+
     entries = []
     total = (n_train + n_test) * len(levels)
     done = 0
@@ -243,12 +286,7 @@ def make_dataset(
             for sigma, name in zip(levels, names, strict=True):
                 scan = generate_scan(scene, seed=scene_seed, grid=grid, sensor_pose=pose, radial_sigma=sigma,
                                      angular_sigma_deg=angular_sigma_deg, min_region_pixels=min_region)
-                folder = root / split / name
-                folder.mkdir(parents=True, exist_ok=True)
-                path = folder / f'pc_{index + 1:02d}.pcd'
-                points = np.where(np.isfinite(scan.points), scan.points, np.nan)
-                save_pcd(path, points, extra_fields={'intensity': scan.labels.astype(np.float32)},
-                         compressed=compressed)
+                path = _write_synpeb_scan(root, split, index, name, scan, compressed)
                 entries.append({
                     'file': path.relative_to(root).as_posix(),
                     'split': split,
@@ -261,25 +299,11 @@ def make_dataset(
                 done += 1
                 if progress is not None:
                     progress(done, total)
-    manifest = {
-        'format': FORMAT_NAME,
-        'seed': int(seed),
-        'rows': int(rows),
-        'cols': int(cols),
-        'angular_sigma_deg': float(angular_sigma_deg),
-        'n_objects': int(n_objects),
-        'n_train': int(n_train),
-        'n_test': int(n_test),
-        'levels': [{'name': name, 'radial_sigma': sigma, 'variance_cm2': round((sigma * 100.0) ** 2, 6)}
-                   for sigma, name in zip(levels, names, strict=True)],
-        'min_region_pixels': min_region,
-        'labels': 'PCD field intensity: ground-truth plane id (>= 10); 3 = visible but no GT plane (a face piece '
-                  f'smaller than {min_region} px); 0 = no return (NaN point)',
-        'scans': entries,
-    }
+    manifest = _synpeb_manifest(seed=seed, rows=rows, cols=cols, angular_sigma_deg=angular_sigma_deg,
+                                n_objects=n_objects, n_train=n_train, n_test=n_test, levels=levels, names=names,
+                                min_region=min_region, entries=entries)
     (root / MANIFEST_NAME).write_text(json.dumps(manifest, indent=1) + '\n')
     return manifest
-
 
 def sensor_scene_seed(split: str, index: int, *, seed: int = 0) -> int:
     """Scene seed of scan ``index`` of a split of a ``lidar`` / ``depth_camera`` data set.

@@ -133,6 +133,207 @@ def _group_sum(index: np.ndarray, weights: np.ndarray, size: int) -> np.ndarray:
     return np.bincount(index, weights=weights, minlength=size).astype(np.float64)
 
 
+def _check_score_inputs(
+    pred_labels: np.ndarray,
+    gt_labels: np.ndarray,
+    residuals: np.ndarray | None,
+    valid: np.ndarray | None,
+    threshold: float,
+    gt_angles: Sequence[tuple[int, int, float]] | None,
+    pred_normals,
+    min_pred_points: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Validated ``(pred, gt, residuals, valid)``: int64 label images, float64 residuals, bool mask."""
+    pred = _as_label_image(pred_labels, 'pred_labels')
+    gt = _as_label_image(gt_labels, 'gt_labels')
+    if pred.shape != gt.shape:
+        raise ValueError(f'pred_labels {pred.shape} and gt_labels {gt.shape} must have the same shape')
+    if np.any(pred < 0):
+        raise ValueError('pred_labels must be >= 0 (0 = no plane)')
+    if not (0.0 <= threshold < 1.0):
+        raise ValueError(f'threshold must be in [0, 1); got {threshold}')
+    if int(min_pred_points) != min_pred_points or min_pred_points < 1:
+        raise ValueError(f'min_pred_points must be a positive integer; got {min_pred_points}')
+    if valid is not None:
+        valid = np.asarray(valid)
+        if valid.shape != gt.shape or valid.dtype != np.bool_:
+            raise ValueError(f'valid must be a bool array of shape {gt.shape}; got {valid.dtype} {valid.shape}')
+    if residuals is not None:
+        residuals = np.asarray(residuals, dtype=np.float64)
+        if residuals.shape != gt.shape:
+            raise ValueError(f'residuals must have shape {gt.shape}; got {residuals.shape}')
+    if gt_angles and pred_normals is None:
+        raise ValueError('gt_angles need pred_normals (the normals of the extracted planes)')
+    return pred, gt, residuals, valid
+
+
+@dataclass(frozen=True)
+class _Regions:
+    """The scored regions: sorted labels and pixel counts of the GT and the kept extracted regions."""
+
+    pred_flat: np.ndarray  # flattened predicted labels, regions below min_pred_points set to 0
+    pred_values: np.ndarray
+    pred_counts: np.ndarray
+    gt_values: np.ndarray
+    gt_counts: np.ndarray
+
+
+def _find_regions(pred_flat: np.ndarray, gt_flat: np.ndarray, gt_min_label: int, min_pred_points: int) -> _Regions:
+    """GT regions (labels >= gt_min_label) and extracted regions (dropping those below min_pred_points)."""
+    pred_values, pred_counts = np.unique(pred_flat[pred_flat > 0], return_counts=True)
+    keep = pred_counts >= min_pred_points
+    if not np.all(keep):
+        pred_flat = np.where(np.isin(pred_flat, pred_values[~keep]), 0, pred_flat)
+        pred_values, pred_counts = pred_values[keep], pred_counts[keep]
+    gt_values, gt_counts = np.unique(gt_flat[gt_flat >= gt_min_label], return_counts=True)
+    return _Regions(pred_flat, pred_values, pred_counts, gt_values, gt_counts)
+
+
+@dataclass(frozen=True)
+class _OverlapTable:
+    """Sparse Hoover overlap table over the (GT m, extracted n) pairs that share pixels, sorted by (m, n)."""
+
+    pair_m: np.ndarray  # GT region index of each pair
+    pair_n: np.ndarray  # extracted region index of each pair
+    fms: np.ndarray  # O_mn / |S_n|
+    fgt: np.ndarray  # O_mn / |G_m|
+
+
+def _overlap_table(gt_flat: np.ndarray, gt_min_label: int, regions: _Regions) -> _OverlapTable:
+    """Overlaps O_mn of the GT and extracted regions as the fractions fms and fgt of each pair."""
+    n_pred = len(regions.pred_values)
+    both = (gt_flat >= gt_min_label) & (regions.pred_flat > 0)
+    gt_index = np.searchsorted(regions.gt_values, gt_flat[both])
+    pred_index = np.searchsorted(regions.pred_values, regions.pred_flat[both])
+    codes, overlaps = np.unique(gt_index * max(n_pred, 1) + pred_index, return_counts=True)
+    pair_m = codes // max(n_pred, 1)
+    pair_n = codes % max(n_pred, 1)
+    overlap = overlaps.astype(np.float64)
+    fms = overlap / regions.pred_counts[pair_n]
+    fgt = overlap / regions.gt_counts[pair_m]
+    return _OverlapTable(pair_m, pair_n, fms, fgt)
+
+
+@dataclass(frozen=True)
+class _Classification:
+    """Exclusive Hoover classes: per pair (correct), per GT region and per extracted region."""
+
+    correct: np.ndarray  # per pair: a correct detection
+    over: np.ndarray  # per GT region: over-segmented
+    under: np.ndarray  # per extracted region: under-segmented
+    missed: np.ndarray  # per GT region
+    noise: np.ndarray  # per extracted region
+    correct_per_m: np.ndarray  # per GT region: number of correct pairs
+    correct_per_n: np.ndarray  # per extracted region: number of correct pairs
+    overcause: np.ndarray  # per extracted region: over-segmented GT regions it is part of
+    undercause: np.ndarray  # per GT region: under-segmented extracted regions it is part of
+
+
+def _classify(table: _OverlapTable, n_gt: int, n_pred: int, t: float) -> _Classification:
+    """Raw classes, average scores and the exclusive classification, exactly as ``segcompeval.m``."""
+    pair_m, pair_n, fms, fgt = table.pair_m, table.pair_n, table.fms, table.fgt
+    in_ms = fms > t  # [fms_mn > T]
+    in_gt = fgt > t  # [fgt_mn > T]
+
+    count_ms_per_m = np.bincount(pair_m[in_ms], minlength=n_gt)
+    count_gt_per_n = np.bincount(pair_n[in_gt], minlength=n_pred)
+    f_over = _group_sum(pair_m, fgt * in_ms, n_gt) * (count_ms_per_m >= 2)
+    f_under = _group_sum(pair_n, fms * in_gt, n_pred) * (count_gt_per_n >= 2)
+    correct_raw = in_ms & in_gt
+    over_raw = f_over > t
+    under_raw = f_under > t
+
+    acorr = (fms * correct_raw + fgt * correct_raw) / 2
+    aover = (_group_sum(pair_m, fms * in_ms, n_gt) + f_over * over_raw) / (count_ms_per_m + 1) * over_raw
+    aunder = (_group_sum(pair_n, fgt * in_gt, n_pred) + f_under * under_raw) / (count_gt_per_n + 1) * under_raw
+    aovercause = _group_sum(pair_n, in_ms * over_raw[pair_m] * fms, n_pred)
+    aundercause = _group_sum(pair_m, in_gt * under_raw[pair_n] * fgt, n_gt)
+
+    # Exclusive classification (uses the pre-exclusion acorr, as the reference does).
+    correct = (acorr > aover[pair_m]) & (acorr > aunder[pair_n])
+    over = (aover > _group_sum(pair_m, acorr, n_gt)) & (aover > aundercause)
+    under = (aunder > _group_sum(pair_n, acorr, n_pred)) & (aunder > aovercause)
+    overcause = np.bincount(pair_n[in_ms & over[pair_m]], minlength=n_pred)  # counts, as the reference
+    undercause = np.bincount(pair_m[in_gt & under[pair_n]], minlength=n_gt)
+    correct_per_m = np.bincount(pair_m[correct], minlength=n_gt)
+    correct_per_n = np.bincount(pair_n[correct], minlength=n_pred)
+    missed = (correct_per_m == 0) & ~over & (undercause == 0)
+    noise = (correct_per_n == 0) & ~under & (overcause == 0)
+    return _Classification(correct, over, under, missed, noise, correct_per_m, correct_per_n, overcause, undercause)
+
+
+def _class_names(classes: _Classification) -> tuple[tuple[str, ...], tuple[str, ...], bool]:
+    """Class names per GT region and per extracted region ('+'-joined if several), and consistency."""
+    gt_flags = np.stack([classes.correct_per_m > 0, classes.over, classes.undercause > 0, classes.missed], axis=1)
+    pred_flags = np.stack([classes.correct_per_n > 0, classes.under, classes.overcause > 0, classes.noise], axis=1)
+    gt_classes = tuple('+'.join(n for n, flag in zip(GT_CLASSES, row, strict=True) if flag) for row in gt_flags)
+    pred_classes = tuple('+'.join(n for n, flag in zip(PRED_CLASSES, row, strict=True) if flag) for row in pred_flags)
+    consistent = bool(
+        np.all(classes.correct_per_m + classes.over + classes.undercause + classes.missed == 1)
+        and np.all(classes.correct_per_n + classes.under + classes.overcause + classes.noise == 1)
+    )
+    return gt_classes, pred_classes, consistent
+
+
+def _score_result(
+    gt: np.ndarray,
+    valid: np.ndarray | None,
+    residuals: np.ndarray | None,
+    regions: _Regions,
+    table: _OverlapTable,
+    classes: _Classification,
+    gt_angles: Sequence[tuple[int, int, float]] | None,
+    pred_normals,
+    t: float,
+) -> SegmentationScore:
+    """The :class:`SegmentationScore` of a classified segmentation (f, k, rmse, alpha and the counts)."""
+    gt_values, gt_counts = regions.gt_values, regions.gt_counts
+    pred_values, pred_counts = regions.pred_values, regions.pred_counts
+    n_gt, n_pred = len(gt_values), len(pred_values)
+    gt_classes, pred_classes, consistent = _class_names(classes)
+    correct = classes.correct
+
+    n_correct = int(np.count_nonzero(correct))
+    correct_pairs = np.stack(
+        [gt_values[table.pair_m[correct]], pred_values[table.pair_n[correct]]], axis=1
+    ).astype(np.int64)
+    correct_points = float(np.sum(gt_counts * (classes.correct_per_m > 0)))
+    labelled_points = float(np.sum(gt_counts))
+    n_valid = gt.size if valid is None else int(np.count_nonzero(valid))
+
+    rmse, rmse_sse, rmse_points, n_dropped = _pooled_rmse(regions.pred_flat, pred_values, residuals)
+    angle_sum, angle_count = _angle_differences(correct_pairs, gt_angles, pred_normals)
+
+    return SegmentationScore(
+        f=n_correct / n_gt if n_gt else math.nan,
+        k=correct_points / labelled_points if labelled_points else math.nan,
+        k_all_rays=correct_points / n_valid if n_valid else math.nan,
+        rmse=rmse,
+        n_gt=n_gt,
+        n_pred=n_pred,
+        n_correct=n_correct,
+        n_over=int(np.count_nonzero(classes.over)),
+        n_under=int(np.count_nonzero(classes.under)),
+        n_missed=int(np.count_nonzero(classes.missed)),
+        n_noise=int(np.count_nonzero(classes.noise)),
+        alpha=angle_sum / angle_count if angle_count else math.nan,
+        angle_diff_sum=angle_sum,
+        angle_count=angle_count,
+        rmse_sse=rmse_sse,
+        rmse_points=rmse_points,
+        n_rmse_dropped=n_dropped,
+        gt_labels=gt_values.astype(np.int64),
+        gt_sizes=gt_counts.astype(np.int64),
+        gt_classes=gt_classes,
+        pred_labels=pred_values.astype(np.int64),
+        pred_sizes=pred_counts.astype(np.int64),
+        pred_classes=pred_classes,
+        correct_pairs=correct_pairs.reshape(-1, 2),
+        consistent=consistent,
+        threshold=t,
+    )
+
+
 def score_segmentation(
     pred_labels: np.ndarray,
     gt_labels: np.ndarray,
@@ -173,124 +374,15 @@ def score_segmentation(
         ValueError: mismatched shapes, negative predicted labels, bad threshold, or gt_angles
             without pred_normals.
     """
-    pred = _as_label_image(pred_labels, 'pred_labels')
-    gt = _as_label_image(gt_labels, 'gt_labels')
-    if pred.shape != gt.shape:
-        raise ValueError(f'pred_labels {pred.shape} and gt_labels {gt.shape} must have the same shape')
-    if np.any(pred < 0):
-        raise ValueError('pred_labels must be >= 0 (0 = no plane)')
-    if not (0.0 <= threshold < 1.0):
-        raise ValueError(f'threshold must be in [0, 1); got {threshold}')
-    if int(min_pred_points) != min_pred_points or min_pred_points < 1:
-        raise ValueError(f'min_pred_points must be a positive integer; got {min_pred_points}')
-    if valid is not None:
-        valid = np.asarray(valid)
-        if valid.shape != gt.shape or valid.dtype != np.bool_:
-            raise ValueError(f'valid must be a bool array of shape {gt.shape}; got {valid.dtype} {valid.shape}')
-    if residuals is not None:
-        residuals = np.asarray(residuals, dtype=np.float64)
-        if residuals.shape != gt.shape:
-            raise ValueError(f'residuals must have shape {gt.shape}; got {residuals.shape}')
-    if gt_angles and pred_normals is None:
-        raise ValueError('gt_angles need pred_normals (the normals of the extracted planes)')
-
-    pred_flat = pred.ravel()
+    pred, gt, residuals, valid = _check_score_inputs(
+        pred_labels, gt_labels, residuals, valid, threshold, gt_angles, pred_normals, min_pred_points
+    )
     gt_flat = gt.ravel()
-
-    # Extracted regions (dropping those below min_pred_points) and GT regions.
-    pred_values, pred_counts = np.unique(pred_flat[pred_flat > 0], return_counts=True)
-    keep = pred_counts >= min_pred_points
-    if not np.all(keep):
-        pred_flat = np.where(np.isin(pred_flat, pred_values[~keep]), 0, pred_flat)
-        pred_values, pred_counts = pred_values[keep], pred_counts[keep]
-    gt_values, gt_counts = np.unique(gt_flat[gt_flat >= gt_min_label], return_counts=True)
-    n_gt, n_pred = len(gt_values), len(pred_values)
-
-    # Sparse overlap table over the (GT, extracted) pairs that share pixels, sorted by (m, n).
-    both = (gt_flat >= gt_min_label) & (pred_flat > 0)
-    gt_index = np.searchsorted(gt_values, gt_flat[both])
-    pred_index = np.searchsorted(pred_values, pred_flat[both])
-    codes, overlaps = np.unique(gt_index * max(n_pred, 1) + pred_index, return_counts=True)
-    pair_m = codes // max(n_pred, 1)
-    pair_n = codes % max(n_pred, 1)
-    overlap = overlaps.astype(np.float64)
-    fms = overlap / pred_counts[pair_n]
-    fgt = overlap / gt_counts[pair_m]
+    regions = _find_regions(pred.ravel(), gt_flat, gt_min_label, min_pred_points)
+    table = _overlap_table(gt_flat, gt_min_label, regions)
     t = float(threshold)
-    in_ms = fms > t  # [fms_mn > T]
-    in_gt = fgt > t  # [fgt_mn > T]
-
-    count_ms_per_m = np.bincount(pair_m[in_ms], minlength=n_gt)
-    count_gt_per_n = np.bincount(pair_n[in_gt], minlength=n_pred)
-    f_over = _group_sum(pair_m, fgt * in_ms, n_gt) * (count_ms_per_m >= 2)
-    f_under = _group_sum(pair_n, fms * in_gt, n_pred) * (count_gt_per_n >= 2)
-    correct_raw = in_ms & in_gt
-    over_raw = f_over > t
-    under_raw = f_under > t
-
-    acorr = (fms * correct_raw + fgt * correct_raw) / 2
-    aover = (_group_sum(pair_m, fms * in_ms, n_gt) + f_over * over_raw) / (count_ms_per_m + 1) * over_raw
-    aunder = (_group_sum(pair_n, fgt * in_gt, n_pred) + f_under * under_raw) / (count_gt_per_n + 1) * under_raw
-    aovercause = _group_sum(pair_n, in_ms * over_raw[pair_m] * fms, n_pred)
-    aundercause = _group_sum(pair_m, in_gt * under_raw[pair_n] * fgt, n_gt)
-
-    # Exclusive classification (uses the pre-exclusion acorr, as the reference does).
-    correct = (acorr > aover[pair_m]) & (acorr > aunder[pair_n])
-    over = (aover > _group_sum(pair_m, acorr, n_gt)) & (aover > aundercause)
-    under = (aunder > _group_sum(pair_n, acorr, n_pred)) & (aunder > aovercause)
-    overcause = np.bincount(pair_n[in_ms & over[pair_m]], minlength=n_pred)  # counts, as the reference
-    undercause = np.bincount(pair_m[in_gt & under[pair_n]], minlength=n_gt)
-    correct_per_m = np.bincount(pair_m[correct], minlength=n_gt)
-    correct_per_n = np.bincount(pair_n[correct], minlength=n_pred)
-    missed = (correct_per_m == 0) & ~over & (undercause == 0)
-    noise = (correct_per_n == 0) & ~under & (overcause == 0)
-
-    gt_flags = np.stack([correct_per_m > 0, over, undercause > 0, missed], axis=1)
-    pred_flags = np.stack([correct_per_n > 0, under, overcause > 0, noise], axis=1)
-    gt_classes = tuple('+'.join(c for c, flag in zip(GT_CLASSES, row, strict=True) if flag) for row in gt_flags)
-    pred_classes = tuple('+'.join(c for c, flag in zip(PRED_CLASSES, row, strict=True) if flag) for row in pred_flags)
-    consistent = bool(
-        np.all(correct_per_m + over + undercause + missed == 1)
-        and np.all(correct_per_n + under + overcause + noise == 1)
-    )
-
-    n_correct = int(np.count_nonzero(correct))
-    correct_pairs = np.stack([gt_values[pair_m[correct]], pred_values[pair_n[correct]]], axis=1).astype(np.int64)
-    correct_points = float(np.sum(gt_counts * (correct_per_m > 0)))
-    labelled_points = float(np.sum(gt_counts))
-    n_valid = gt.size if valid is None else int(np.count_nonzero(valid))
-
-    rmse, rmse_sse, rmse_points, n_dropped = _pooled_rmse(pred_flat, pred_values, residuals)
-    angle_sum, angle_count = _angle_differences(correct_pairs, gt_angles, pred_normals)
-
-    return SegmentationScore(
-        f=n_correct / n_gt if n_gt else math.nan,
-        k=correct_points / labelled_points if labelled_points else math.nan,
-        k_all_rays=correct_points / n_valid if n_valid else math.nan,
-        rmse=rmse,
-        n_gt=n_gt,
-        n_pred=n_pred,
-        n_correct=n_correct,
-        n_over=int(np.count_nonzero(over)),
-        n_under=int(np.count_nonzero(under)),
-        n_missed=int(np.count_nonzero(missed)),
-        n_noise=int(np.count_nonzero(noise)),
-        alpha=angle_sum / angle_count if angle_count else math.nan,
-        angle_diff_sum=angle_sum,
-        angle_count=angle_count,
-        rmse_sse=rmse_sse,
-        rmse_points=rmse_points,
-        n_rmse_dropped=n_dropped,
-        gt_labels=gt_values.astype(np.int64),
-        gt_sizes=gt_counts.astype(np.int64),
-        gt_classes=gt_classes,
-        pred_labels=pred_values.astype(np.int64),
-        pred_sizes=pred_counts.astype(np.int64),
-        pred_classes=pred_classes,
-        correct_pairs=correct_pairs.reshape(-1, 2),
-        consistent=consistent,
-        threshold=t,
-    )
+    classes = _classify(table, len(regions.gt_values), len(regions.pred_values), t)
+    return _score_result(gt, valid, residuals, regions, table, classes, gt_angles, pred_normals, t)
 
 
 def _pooled_rmse(

@@ -1184,6 +1184,118 @@ def _check_sigma(value: float, name: str) -> float:
     return value
 
 
+def _check_scan_setup(
+    scene: Scene | None,
+    seed: int,
+    grid: ScanGrid | None,
+    sensor_pose: SensorPose | None,
+    radial_sigma: float,
+    angular_sigma_deg: float,
+    max_range: float | None,
+    n_objects: int,
+    min_region_pixels: int,
+) -> tuple[Scene, int, ScanGrid, SensorPose, float, float]:
+    """Validated ``(scene, seed, grid, pose, radial_sigma, angular_sigma_deg)`` of :func:`generate_scan`.
+
+    Fills in the defaults; builds the random room (world frame) when ``scene`` is None.
+    """
+    seed = _check_seed(seed)
+    radial_sigma = _check_sigma(radial_sigma, 'radial_sigma')
+    angular_sigma_deg = _check_sigma(angular_sigma_deg, 'angular_sigma_deg')
+    if max_range is not None and not (float(max_range) > 0.0):
+        raise ValueError(f'max_range must be positive (metres) or None; got {max_range}')
+    if isinstance(min_region_pixels, bool) or int(min_region_pixels) != min_region_pixels or min_region_pixels < 1:
+        raise ValueError(f'min_region_pixels must be an integer >= 1; got {min_region_pixels!r}')
+    grid = ScanGrid.synpeb() if grid is None else grid
+    if not isinstance(grid, ScanGrid):
+        raise ValueError(f'grid must be a ScanGrid; got {type(grid).__name__}')
+    pose = DEFAULT_SENSOR_POSE if sensor_pose is None else sensor_pose
+    if not isinstance(pose, SensorPose):
+        raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
+    if scene is None:
+        scene = make_room_scene(seed, n_objects=n_objects, keep_clear=pose.position[:2], view_yaw_deg=pose.yaw_deg)
+    elif not isinstance(scene, Scene):
+        raise ValueError(f'scene must be a Scene or None; got {type(scene).__name__}')
+    return scene, seed, grid, pose, radial_sigma, angular_sigma_deg
+
+
+def _ray_starts(ray_origins: np.ndarray | None, height: int, width: int) -> np.ndarray:
+    """``(H, W, 3)`` ray starts in the sensor frame (metres) from None, ``(3,)`` or ``(H, W, 3)``."""
+    if ray_origins is None:
+        return np.zeros((height, width, 3))
+    starts = np.asarray(ray_origins, dtype=np.float64)
+    if starts.shape == (3,):
+        starts = np.broadcast_to(starts, (height, width, 3))
+    elif starts.shape != (height, width, 3):
+        raise ValueError(f'ray_origins must be None, (3,) or {(height, width, 3)}; got shape {starts.shape}')
+    if not np.all(np.isfinite(starts)):
+        raise ValueError('ray_origins must be finite')
+    return np.array(starts)
+
+
+def _jittered_directions(
+    grid: ScanGrid, nominal: np.ndarray, angular_noise: np.ndarray, angular_sigma_deg: float
+) -> np.ndarray:
+    """``(H, W, 3)`` unit cast directions: the nominal ones jittered in their tangent plane.
+
+    ``angular_noise`` ``(H, W, 2)`` holds standard normal draws along the unit azimuth and
+    elevation directions, scaled by ``angular_sigma_deg`` (degrees).
+    """
+    azimuth = np.radians(grid.azimuth_deg)[None, :]
+    elevation = np.radians(grid.elevation_deg)[:, None]
+    east = np.stack(np.broadcast_arrays(-np.sin(azimuth), np.cos(azimuth), np.zeros_like(azimuth + elevation)), -1)
+    up = np.stack(
+        np.broadcast_arrays(
+            -np.sin(elevation) * np.cos(azimuth), -np.sin(elevation) * np.sin(azimuth), np.cos(elevation)
+        ),
+        -1,
+    )
+    sigma_rad = math.radians(angular_sigma_deg)
+    cast_directions = nominal + sigma_rad * (angular_noise[..., :1] * east + angular_noise[..., 1:] * up)
+    cast_directions /= np.linalg.norm(cast_directions, axis=-1, keepdims=True)
+    return cast_directions
+
+
+def _cast_in_sensor_frame(
+    scene: Scene, pose: SensorPose, starts: np.ndarray, cast_directions: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, W)`` hit distances (metres, NaN = no hit) and int64 face labels (0 = no hit).
+
+    Casts in the sensor frame: transforms the faces, not the rays.
+    """
+    height, width = starts.shape[:2]
+    sensor_scene = Scene(
+        faces=tuple(
+            Face(vertices=pose.world_to_sensor(face.vertices), label=face.label, name=face.name) for face in scene.faces
+        )
+    )
+    distances, labels = cast_rays(sensor_scene, starts.reshape(-1, 3), cast_directions.reshape(-1, 3))
+    return distances.reshape(height, width), labels.reshape(height, width).astype(np.int64)
+
+
+def _measure_ranges(
+    distances: np.ndarray,
+    labels: np.ndarray,
+    radial_noise: np.ndarray,
+    radial_sigma: float,
+    max_range: float | None,
+) -> np.ndarray:
+    """The range error model: ``(H, W)`` measured ranges (metres, NaN = no return).
+
+    Hits beyond ``max_range`` become no-returns (in place: their ``distances`` NaN, ``labels`` 0),
+    then the radial noise is added; a measured range that is not positive is a no-return too.
+    """
+    if max_range is not None:
+        beyond = distances > float(max_range)
+        distances[beyond] = np.nan
+        labels[beyond] = 0
+    measured = distances + radial_sigma * radial_noise
+    negative = ~(measured > 0.0)
+    measured[negative] = np.nan
+    labels[negative] = 0
+    return measured
+
+
 def generate_scan(
     scene: Scene | None = None,
     *,
@@ -1219,73 +1331,20 @@ def generate_scan(
     Returns:
         The scan; ``origins`` is the ``(H, W, 3)`` array of ray starts if any is non-zero.
     """
-    seed = _check_seed(seed)
-    radial_sigma = _check_sigma(radial_sigma, 'radial_sigma')
-    angular_sigma_deg = _check_sigma(angular_sigma_deg, 'angular_sigma_deg')
-    if max_range is not None and not (float(max_range) > 0.0):
-        raise ValueError(f'max_range must be positive (metres) or None; got {max_range}')
-    if isinstance(min_region_pixels, bool) or int(min_region_pixels) != min_region_pixels or min_region_pixels < 1:
-        raise ValueError(f'min_region_pixels must be an integer >= 1; got {min_region_pixels!r}')
-    grid = ScanGrid.synpeb() if grid is None else grid
-    if not isinstance(grid, ScanGrid):
-        raise ValueError(f'grid must be a ScanGrid; got {type(grid).__name__}')
-    pose = DEFAULT_SENSOR_POSE if sensor_pose is None else sensor_pose
-    if not isinstance(pose, SensorPose):
-        raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
-    if scene is None:
-        scene = make_room_scene(seed, n_objects=n_objects, keep_clear=pose.position[:2], view_yaw_deg=pose.yaw_deg)
-    elif not isinstance(scene, Scene):
-        raise ValueError(f'scene must be a Scene or None; got {type(scene).__name__}')
+    scene, seed, grid, pose, radial_sigma, angular_sigma_deg = _check_scan_setup(
+        scene, seed, grid, sensor_pose, radial_sigma, angular_sigma_deg, max_range, n_objects, min_region_pixels
+    )
     height, width = grid.shape
-
-    if ray_origins is None:
-        starts = np.zeros((height, width, 3))
-    else:
-        starts = np.asarray(ray_origins, dtype=np.float64)
-        if starts.shape == (3,):
-            starts = np.broadcast_to(starts, (height, width, 3))
-        elif starts.shape != (height, width, 3):
-            raise ValueError(f'ray_origins must be None, (3,) or {(height, width, 3)}; got shape {starts.shape}')
-        if not np.all(np.isfinite(starts)):
-            raise ValueError('ray_origins must be finite')
-        starts = np.array(starts)
+    starts = _ray_starts(ray_origins, height, width)
 
     nominal = grid.directions()
     rng = np.random.default_rng([seed, 1])
     radial_noise = rng.standard_normal((height, width))
     angular_noise = rng.standard_normal((height, width, 2))
+    cast_directions = _jittered_directions(grid, nominal, angular_noise, angular_sigma_deg)
 
-    # Jitter the beam direction in its tangent plane (unit azimuth and elevation directions).
-    azimuth = np.radians(grid.azimuth_deg)[None, :]
-    elevation = np.radians(grid.elevation_deg)[:, None]
-    east = np.stack(np.broadcast_arrays(-np.sin(azimuth), np.cos(azimuth), np.zeros_like(azimuth + elevation)), -1)
-    up = np.stack(
-        np.broadcast_arrays(
-            -np.sin(elevation) * np.cos(azimuth), -np.sin(elevation) * np.sin(azimuth), np.cos(elevation)
-        ),
-        -1,
-    )
-    sigma_rad = math.radians(angular_sigma_deg)
-    cast_directions = nominal + sigma_rad * (angular_noise[..., :1] * east + angular_noise[..., 1:] * up)
-    cast_directions /= np.linalg.norm(cast_directions, axis=-1, keepdims=True)
-
-    # Cast in the sensor frame: transform the faces, not the rays.
-    sensor_scene = Scene(
-        faces=tuple(
-            Face(vertices=pose.world_to_sensor(face.vertices), label=face.label, name=face.name) for face in scene.faces
-        )
-    )
-    distances, labels = cast_rays(sensor_scene, starts.reshape(-1, 3), cast_directions.reshape(-1, 3))
-    distances = distances.reshape(height, width)
-    labels = labels.reshape(height, width).astype(np.int64)
-    if max_range is not None:
-        beyond = distances > float(max_range)
-        distances[beyond] = np.nan
-        labels[beyond] = 0
-    measured = distances + radial_sigma * radial_noise
-    negative = ~(measured > 0.0)
-    measured[negative] = np.nan
-    labels[negative] = 0
+    distances, labels = _cast_in_sensor_frame(scene, pose, starts, cast_directions)
+    measured = _measure_ranges(distances, labels, radial_noise, radial_sigma, max_range)
     points = starts + nominal * measured[..., None]
     origins = starts if np.any(starts != 0.0) else None
     regions, region_faces = label_regions(labels, min_region_pixels=int(min_region_pixels))
@@ -1314,7 +1373,6 @@ def generate_scan(
         face_labels=labels,
         region_faces=region_faces,
     )
-
 
 def plane_scan(
     n_planes: int = 3,

@@ -1464,6 +1464,122 @@ KINECT_INTRINSICS = (575.0, 575.0, 319.5, 239.5)
 _SENSOR_FROM_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
+def _check_depth_setup(scene, seed, width, height, intrinsics, sensor_pose, errors, sensor_seed, noise_seed,
+                       min_surface_pixels):
+    """Validated set-up of :func:`generate_depth_scan` with the defaults filled in.
+
+    Returns ``(scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy) in
+    pixels, pose, min_pixels)``; builds the indoor scene (world frame) when ``scene`` is None.
+    """
+    seed = _check_seed(seed)
+    sensor_seed = seed if sensor_seed is None else _check_seed(sensor_seed)
+    noise_seed = seed if noise_seed is None else _check_seed(noise_seed)
+    errors = DepthErrorModel() if errors is None else errors
+    if not isinstance(errors, DepthErrorModel):
+        raise ValueError(f'errors must be a DepthErrorModel; got {type(errors).__name__}')
+    width, height = _check_count(width, 'width', 2), _check_count(height, 'height', 2)
+    if intrinsics is None:
+        scale = width / KINECT_WIDTH
+        fx, fy = KINECT_INTRINSICS[0] * scale, KINECT_INTRINSICS[1] * scale
+        cx, cy = (width - 1) / 2, (height - 1) / 2
+    else:
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
+        if not (fx > 0 and fy > 0 and all(math.isfinite(v) for v in (cx, cy))):
+            raise ValueError(f'intrinsics must be (fx > 0, fy > 0, cx, cy) in pixels; got {intrinsics}')
+    pose = DEFAULT_SENSOR_POSE if sensor_pose is None else sensor_pose
+    if not isinstance(pose, SensorPose):
+        raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
+    if scene is None:
+        scene = make_indoor_scene(seed, sensor_pose=pose)
+    elif not isinstance(scene, SurfaceScene):
+        raise ValueError(f'scene must be a SurfaceScene or None; got {type(scene).__name__}')
+    min_pixels = default_min_surface_pixels(height, width, reference_pixels=500 * 500) \
+        if min_surface_pixels is None else _check_count(min_surface_pixels, 'min_surface_pixels')
+    return scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy), pose, min_pixels
+
+
+def _pixel_rays(intrinsics: tuple[float, float, float, float], lateral: np.ndarray,
+                lateral_sigma_px: float) -> np.ndarray:
+    """``(H, W, 3)`` unit ray directions in the optical frame through the pixels, each pixel position
+    jittered by ``lateral_sigma_px`` times the standard normal draws ``lateral`` ``(H, W, 2)`` (u, v)."""
+    fx, fy, cx, cy = intrinsics
+    height, width = lateral.shape[:2]
+    u = np.arange(width, dtype=np.float64)[None, :] + lateral_sigma_px * lateral[..., 0]
+    v = np.arange(height, dtype=np.float64)[:, None] + lateral_sigma_px * lateral[..., 1]
+    rays = np.stack(np.broadcast_arrays((u - cx) / fx, (v - cy) / fy, np.ones((height, width))), axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    return rays
+
+
+def _projector_shadow(scene: SurfaceScene, projector_offset: float, position: np.ndarray, rotation: np.ndarray,
+                      world_starts: np.ndarray, world_directions: np.ndarray, distances: np.ndarray,
+                      hit: np.ndarray) -> np.ndarray:
+    """Flat bool mask of the hits the projector (``projector_offset`` metres along the camera's
+    optical x axis) does not see: the ray from the projector to the hit point is blocked first."""
+    shadowed = np.zeros(hit.shape, dtype=bool)
+    if projector_offset > 0.0 and hit.any():
+        projector = position + rotation @ np.array([projector_offset, 0.0, 0.0])
+        targets = world_starts[hit] + world_directions[hit] * distances[hit, None]
+        towards = targets - projector
+        length = np.linalg.norm(towards, axis=1)
+        blocked, _ = _Caster.of(scene).cast(np.broadcast_to(projector, towards.shape), towards / length[:, None])
+        shadowed[np.flatnonzero(hit)] = blocked < length - np.maximum(1e-3, 1e-4 * length)
+    return shadowed
+
+
+def _disparity_depth(depth: np.ndarray, errors: DepthErrorModel, principal_point: tuple[float, float],
+                     band_phase: float, sigma_d: float, disparity_noise: np.ndarray) -> np.ndarray:
+    """``(H, W)`` measured depth (metres; non-finite where the disparity is not usable) from the
+    depth of the undulated surfaces: low-frequency distortion (fixed per sensor), then disparity
+    noise (``sigma_d`` px times the standard normal draws) and quantisation."""
+    cx, cy = principal_point
+    height, width = depth.shape
+    uu = np.arange(width, dtype=np.float64)[None, :]
+    vv = np.arange(height, dtype=np.float64)[:, None]
+    rho2 = ((uu - cx) ** 2 + (vv - cy) ** 2) / (cx**2 + cy**2)
+    pattern = errors.radial_weight * (rho2 - 0.5) + errors.band_weight * np.cos(2 * np.pi * uu / errors.band_period_px
+                                                                                  + band_phase)
+    distorted = depth + errors.distortion_coefficient * depth**2 * pattern
+    focal_baseline = errors.focal_px * errors.baseline
+    with np.errstate(divide='ignore', invalid='ignore'):
+        disparity = focal_baseline / distorted + sigma_d * disparity_noise
+        if errors.disparity_step_px > 0.0:
+            disparity = np.round(disparity / errors.disparity_step_px) * errors.disparity_step_px
+        measured = focal_baseline / disparity
+    return measured
+
+
+def _depth_edges(true_depth: np.ndarray, edge_draw: np.ndarray, errors: DepthErrorModel) -> np.ndarray:
+    """``(H, W)`` bool mask of the depth-edge dropouts: pixels next to a jump of the true depth by more
+    than ``edge_jump_fraction`` of the nearer depth, each dropped with ``edge_dropout_probability``
+    (``edge_draw``: uniform draws in [0, 1))."""
+    edge = np.zeros(true_depth.shape, dtype=bool)
+    if errors.edge_dropout_probability > 0.0:
+        filled = np.where(np.isfinite(true_depth), true_depth, np.inf)
+        for axis in (0, 1):
+            jump = np.abs(np.diff(filled, axis=axis))
+            limit = errors.edge_jump_fraction * np.minimum(np.take(filled, range(filled.shape[axis] - 1), axis=axis),
+                                                           np.take(filled, range(1, filled.shape[axis]), axis=axis))
+            big = ~(jump <= limit)
+            if axis == 0:
+                edge[:-1] |= big
+                edge[1:] |= big
+            else:
+                edge[:, :-1] |= big
+                edge[:, 1:] |= big
+        edge &= edge_draw < errors.edge_dropout_probability
+    return edge
+
+
+def _camera_points(measured: np.ndarray, intrinsics: tuple[float, float, float, float]) -> np.ndarray:
+    """``(H, W, 3)`` points in the optical frame (metres) of the measured depth along the nominal pixel rays."""
+    fx, fy, cx, cy = intrinsics
+    height, width = measured.shape
+    cols_ray = (np.arange(width, dtype=np.float64) - cx) / fx
+    rows_ray = (np.arange(height, dtype=np.float64) - cy) / fy
+    return np.stack(np.broadcast_arrays(measured * cols_ray[None, :], measured * rows_ray[:, None], measured), -1)
+
+
 def generate_depth_scan(
     scene: SurfaceScene | None = None,
     *,
@@ -1495,30 +1611,9 @@ def generate_depth_scan(
         A :class:`SensorScan` with ``points`` in the optical frame (``frame='camera'``), ``origins``
         None (every ray starts at the camera centre), ``intrinsics`` and ``true_depth`` set.
     """
-    seed = _check_seed(seed)
-    sensor_seed = seed if sensor_seed is None else _check_seed(sensor_seed)
-    noise_seed = seed if noise_seed is None else _check_seed(noise_seed)
-    errors = DepthErrorModel() if errors is None else errors
-    if not isinstance(errors, DepthErrorModel):
-        raise ValueError(f'errors must be a DepthErrorModel; got {type(errors).__name__}')
-    width, height = _check_count(width, 'width', 2), _check_count(height, 'height', 2)
-    if intrinsics is None:
-        scale = width / KINECT_WIDTH
-        fx, fy = KINECT_INTRINSICS[0] * scale, KINECT_INTRINSICS[1] * scale
-        cx, cy = (width - 1) / 2, (height - 1) / 2
-    else:
-        fx, fy, cx, cy = (float(v) for v in intrinsics)
-        if not (fx > 0 and fy > 0 and all(math.isfinite(v) for v in (cx, cy))):
-            raise ValueError(f'intrinsics must be (fx > 0, fy > 0, cx, cy) in pixels; got {intrinsics}')
-    pose = DEFAULT_SENSOR_POSE if sensor_pose is None else sensor_pose
-    if not isinstance(pose, SensorPose):
-        raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
-    if scene is None:
-        scene = make_indoor_scene(seed, sensor_pose=pose)
-    elif not isinstance(scene, SurfaceScene):
-        raise ValueError(f'scene must be a SurfaceScene or None; got {type(scene).__name__}')
-    min_pixels = default_min_surface_pixels(height, width, reference_pixels=500 * 500) \
-        if min_surface_pixels is None else _check_count(min_surface_pixels, 'min_surface_pixels')
+    scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy), pose, min_pixels = \
+        _check_depth_setup(scene, seed, width, height, intrinsics, sensor_pose, errors, sensor_seed, noise_seed,
+                           min_surface_pixels)
     sigma_d = errors.disparity_sigma() if errors.axial_noise_coefficient > 0 else 0.0
 
     rng = np.random.default_rng([noise_seed, 2])
@@ -1529,10 +1624,7 @@ def generate_depth_scan(
     calibration = np.random.default_rng([sensor_seed, 4])
     band_phase = float(calibration.uniform(0.0, 2 * np.pi))
 
-    u = np.arange(width, dtype=np.float64)[None, :] + errors.lateral_sigma_px * lateral[..., 0]
-    v = np.arange(height, dtype=np.float64)[:, None] + errors.lateral_sigma_px * lateral[..., 1]
-    rays = np.stack(np.broadcast_arrays((u - cx) / fx, (v - cy) / fy, np.ones((height, width))), axis=-1)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays = _pixel_rays((fx, fy, cx, cy), lateral, errors.lateral_sigma_px)
     rotation = pose.rotation() @ _SENSOR_FROM_CAMERA  # camera -> world
     position = np.asarray(pose.position)
     world_directions = rays.reshape(-1, 3) @ rotation.T
@@ -1543,54 +1635,17 @@ def generate_depth_scan(
     true_depth = distances.reshape(height, width) * ray_z
     depth = undulated.reshape(height, width) * ray_z
 
-    # Projector shadow: the projector must see the hit point too.
-    shadowed = np.zeros(hit.shape, dtype=bool)
-    if errors.projector_offset > 0.0 and hit.any():
-        projector = position + rotation @ np.array([errors.projector_offset, 0.0, 0.0])
-        targets = world_starts[hit] + world_directions[hit] * distances[hit, None]
-        towards = targets - projector
-        length = np.linalg.norm(towards, axis=1)
-        blocked, _ = _Caster.of(scene).cast(np.broadcast_to(projector, towards.shape), towards / length[:, None])
-        shadowed[np.flatnonzero(hit)] = blocked < length - np.maximum(1e-3, 1e-4 * length)
-    shadowed = shadowed.reshape(height, width)
-
-    # Low-frequency depth distortion (fixed per sensor), then disparity noise and quantisation.
-    uu = np.arange(width, dtype=np.float64)[None, :]
-    vv = np.arange(height, dtype=np.float64)[:, None]
-    rho2 = ((uu - cx) ** 2 + (vv - cy) ** 2) / (cx**2 + cy**2)
-    pattern = errors.radial_weight * (rho2 - 0.5) + errors.band_weight * np.cos(2 * np.pi * uu / errors.band_period_px
-                                                                                  + band_phase)
-    distorted = depth + errors.distortion_coefficient * depth**2 * pattern
-    focal_baseline = errors.focal_px * errors.baseline
-    with np.errstate(divide='ignore', invalid='ignore'):
-        disparity = focal_baseline / distorted + sigma_d * disparity_noise
-        if errors.disparity_step_px > 0.0:
-            disparity = np.round(disparity / errors.disparity_step_px) * errors.disparity_step_px
-        measured = focal_baseline / disparity
-
-    # Depth-edge dropouts (next to a jump of the true depth), random dropouts, range limits.
-    edge = np.zeros((height, width), dtype=bool)
-    if errors.edge_dropout_probability > 0.0:
-        filled = np.where(np.isfinite(true_depth), true_depth, np.inf)
-        for axis in (0, 1):
-            jump = np.abs(np.diff(filled, axis=axis))
-            limit = errors.edge_jump_fraction * np.minimum(np.take(filled, range(filled.shape[axis] - 1), axis=axis),
-                                                           np.take(filled, range(1, filled.shape[axis]), axis=axis))
-            big = ~(jump <= limit)
-            if axis == 0:
-                edge[:-1] |= big
-                edge[1:] |= big
-            else:
-                edge[:, :-1] |= big
-                edge[:, 1:] |= big
-        edge &= edge_draw < errors.edge_dropout_probability
+    # The error model: projector shadow, distorted and noisy disparity, then the dropouts (next to
+    # a jump of the true depth, at random) and the range limits.
+    shadowed = _projector_shadow(scene, errors.projector_offset, position, rotation, world_starts, world_directions,
+                                 distances, hit).reshape(height, width)
+    measured = _disparity_depth(depth, errors, (cx, cy), band_phase, sigma_d, disparity_noise)
+    edge = _depth_edges(true_depth, edge_draw, errors)
     returned = (hit.reshape(height, width) & ~shadowed & ~edge & (dropout_draw >= errors.dropout_rate)
                 & np.isfinite(measured) & (measured >= errors.min_depth) & (measured <= errors.max_depth)
                 & (true_depth <= errors.max_depth))
     measured = np.where(returned, measured, np.nan)
-    cols_ray = (np.arange(width, dtype=np.float64) - cx) / fx
-    rows_ray = (np.arange(height, dtype=np.float64) - cy) / fy
-    points = np.stack(np.broadcast_arrays(measured * cols_ray[None, :], measured * rows_ray[:, None], measured), -1)
+    points = _camera_points(measured, (fx, fy, cx, cy))
     face_image = face_labels.reshape(height, width).astype(np.int64)
     labels = _ground_truth(face_image, returned, scene.clutter_labels, min_pixels)
     params = {
