@@ -1076,6 +1076,7 @@ def _strip_logs(points, bounds, **kwargs):
 
 @pytest.mark.parametrize('noise', [None, 'lidar'])
 def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(noise):
+    from ppe_ros.core.extraction import _placed_borders, _tile_bounds
     from ppe_ros.core.sensor import sensor_profile
 
     points = medium_scan().sensor_points  # ray starts at the origin: the strips share the internal frame
@@ -1083,13 +1084,14 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
     e = 0.05 if noise is None else 16.0
     kwargs = {'max_error_increment': e, 'noise': model}
     tiled = extract_plane_hierarchy(points, tiles=3, threads=1, **kwargs)
-    logs = _strip_logs(points, [0, 20, 40, 60], **kwargs)
-    strip_of = np.minimum(tiled.actions['a'] % 60 // 20, 2)
+    ok_right, _ = _edge_masks(make_ray_scan(points), np.inf)
+    bounds = _placed_borders(_tile_bounds(60, 3), ok_right, 40, 60)
+    assert bounds[0] == 0 and bounds[-1] == 60 and len(bounds) == 4
+    logs = _strip_logs(points, bounds, **kwargs)
+    strip_of = np.searchsorted(bounds, tiled.actions['a'] % 60, side='right') - 1
     assert len(tiled.actions) == sum(len(log) for log in logs) > 500
     for t, log in enumerate(logs):
         assert tiled.actions[strip_of == t].tobytes() == log.tobytes()
-    running = np.concatenate([np.maximum.accumulate(log['increment']) for log in logs])
-    assert np.all(np.diff(np.sort(running)) >= 0)
     joint_running = np.empty(len(tiled.actions))
     for t in range(3):
         joint_running[strip_of == t] = np.maximum.accumulate(tiled.actions['increment'][strip_of == t])
@@ -1098,17 +1100,33 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
     for cut in (e / 100, e / 10, e):
         ids = tiled.plane_ids(tiled.steps_for_error(cut)).reshape(points.shape[:2])
         for t, log in enumerate(logs):
+            c0, c1 = bounds[t], bounds[t + 1]
             over = np.flatnonzero(log['increment'] > cut)
             steps = int(over[0]) if len(over) else len(log)
-            own = extract_plane_hierarchy(np.ascontiguousarray(points[:, 20 * t:20 * t + 20]), **kwargs)
-            strip_ids = own.plane_ids(steps).reshape(points.shape[0], 20)
-            translated = np.where(strip_ids >= 0, strip_ids // 20 * 60 + 20 * t + strip_ids % 20, -1)
-            assert np.array_equal(ids[:, 20 * t:20 * t + 20], translated)
+            own = extract_plane_hierarchy(np.ascontiguousarray(points[:, c0:c1]), **kwargs)
+            strip_ids = own.plane_ids(steps).reshape(points.shape[0], c1 - c0)
+            translated = np.where(strip_ids >= 0, strip_ids // (c1 - c0) * 60 + c0 + strip_ids % (c1 - c0), -1)
+            assert np.array_equal(ids[:, c0:c1], translated)
     # no plane crosses a border
     ids = tiled.plane_ids(len(tiled.actions)).reshape(points.shape[:2])
     for t in range(3):
-        inside = ids[:, 20 * t:20 * t + 20]
-        assert np.all((inside < 0) | (inside % 60 // 20 == t))
+        inside = ids[:, bounds[t]:bounds[t + 1]]
+        assert np.all((inside < 0) | (np.searchsorted(bounds, inside % 60, side='right') - 1 == t))
+
+
+def test_tile_borders_move_to_the_columns_that_fewest_edges_cross():
+    from ppe_ros.core.extraction import _placed_borders
+
+    height, width = 6, 64
+    ok_right = np.ones((height, width), bool)
+    ok_right[:, -1] = False
+    ok_right[:, 19] = False  # nothing joins columns 19 and 20: a border at 20 cuts no edge
+    ok_right[:4, 34] = False  # 2 edges cross between columns 34 and 35
+    ok_right[:, 40] = False  # beyond the slack (a quarter of the 16-column strips) of every border
+    assert _placed_borders([0, 16, 32, 48, 64], ok_right.reshape(-1), height, width) == [0, 20, 35, 48, 64]
+    ok_right[:] = True
+    assert _placed_borders([0, 16, 32, 48, 64], ok_right.reshape(-1), height, width) == [0, 16, 32, 48, 64]
+    assert _placed_borders([0, 64], ok_right.reshape(-1), height, width) == [0, 64]
 
 
 def test_tiled_results_do_not_depend_on_the_thread_count():

@@ -2225,8 +2225,9 @@ def extract_plane_hierarchy(
         tiles: 1 (the exact greedy of the whole grid), a count, or 'auto' (one per AUTO_TILE_COLUMNS
             columns): the grid is cut into that many vertical strips (azimuth sectors of a sweep) that
             are extracted independently, no plane crossing a border (join the pieces afterwards, as
-            extract_planes's consolidation does). Needs max_planes None. The log's cut at e is the
-            union of the strips' cuts at e.
+            extract_planes's consolidation does). Each inner border moves by up to TILE_BORDER_SLACK of
+            a strip's width to the column that the fewest admissible grid edges cross. Needs max_planes
+            None. The log's cut at e is the union of the strips' cuts at e.
         threads: strips extracted at once, one thread each (None: numba's thread count of the calling
             thread); the result does not depend on it.
     """
@@ -2262,6 +2263,7 @@ def extract_plane_hierarchy(
              float(merge_loop_growth), bool(defer_merges), pool_capacity)
     start = time.perf_counter()
     ok_right, ok_down = _edge_masks(scan, lmax)
+    tile_columns = _placed_borders(tile_columns, ok_right, scan.height, scan.width)
     for column in tile_columns[1:-1]:  # no seed or join crosses a tile border
         ok_right[column - 1::scan.width] = False
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
@@ -2341,6 +2343,30 @@ def _tile_bounds(width: int, tiles: int | str) -> list[int]:
         count = int(tiles)
     count = max(1, min(count, width // 8))
     return [round(i * width / count) for i in range(count + 1)]
+
+
+#: A tile border may move by this fraction of the strip width to where the fewest grid edges cross it.
+TILE_BORDER_SLACK = 0.25
+
+
+def _placed_borders(bounds: list[int], ok_right: np.ndarray, height: int, width: int) -> list[int]:
+    """The inner borders moved (each within TILE_BORDER_SLACK of a strip's width) to the column between c - 1
+    and c that the fewest admissible grid edges cross (ties: the nearest to the nominal border, then the
+    left one): a border there cuts fewest surfaces (it falls on depth jumps, no-returns, edges of objects).
+    """
+    if len(bounds) <= 2:
+        return bounds
+    crossing = ok_right.reshape(height, width).sum(axis=0)  # crossing[c - 1]: edges between columns c - 1, c
+    slack = int(TILE_BORDER_SLACK * width / (len(bounds) - 1))
+    placed = [0]
+    for nominal in bounds[1:-1]:
+        candidates = np.arange(max(nominal - slack, placed[-1] + 8), min(nominal + slack, width - 8) + 1)
+        if len(candidates) == 0:
+            placed.append(nominal)
+            continue
+        order = np.lexsort((candidates, np.abs(candidates - nominal), crossing[candidates - 1]))
+        placed.append(int(candidates[order[0]]))
+    return [*placed, width]
 
 
 _tile_pool_lock = threading.Lock()
