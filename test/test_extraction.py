@@ -1154,18 +1154,22 @@ def test_one_tile_is_the_exact_greedy_and_the_default_without_consolidation():
         extract_plane_hierarchy(scan.points, max_error_increment=0.05).actions.tobytes()  # 60 columns: 1 tile
 
 
-@pytest.mark.parametrize(('width', 'tiles', 'bounds'), [
-    (1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),
-    (640, 'auto', [0, 128, 256, 384, 512, 640]),
-    (100, 'auto', [0, 100]),
-    (60, 4, [0, 15, 30, 45, 60]),
-    (20, 8, [0, 10, 20]),  # strips of at least 8 columns
-    (5, 3, [0, 5]),
+@pytest.mark.parametrize(('height', 'width', 'tiles', 'bounds'), [
+    (128, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),  # a sweep: 128-column sectors
+    (32, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),
+    (480, 640, 'auto', [0, 320, 640]),  # an image: strips of about 256 columns
+    (513, 633, 'auto', [0, 316, 633]),
+    (500, 500, 'auto', [0, 250, 500]),
+    (100, 200, 'auto', [0, 200]),
+    (10, 100, 'auto', [0, 100]),
+    (10, 60, 4, [0, 15, 30, 45, 60]),
+    (10, 20, 8, [0, 10, 20]),  # strips of at least 8 columns
+    (10, 5, 3, [0, 5]),
 ])
-def test_tile_bounds(width, tiles, bounds):
+def test_tile_bounds(height, width, tiles, bounds):
     from ppe_ros.core.extraction import _tile_bounds
 
-    assert _tile_bounds(width, tiles) == bounds
+    assert _tile_bounds(width, tiles, height) == bounds
 
 
 def test_the_consolidation_joins_a_surface_that_the_tile_borders_cut():

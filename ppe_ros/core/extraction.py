@@ -2223,10 +2223,11 @@ def extract_plane_hierarchy(
             the squared residuals divided by sigma_k^2, and increments (and max_error_increment) are
             dimensionless; None: the paper's model (increments in m^2).
         tiles: 1 (the exact greedy of the whole grid), a count, or 'auto' (one per AUTO_TILE_COLUMNS
-            columns): the grid is cut into that many vertical strips (azimuth sectors of a sweep) that
-            are extracted independently, no plane crossing a border (join the pieces afterwards, as
-            extract_planes's consolidation does). Each inner border moves by up to TILE_BORDER_SLACK of
-            a strip's width to the column that the fewest admissible grid edges cross. Needs max_planes
+            columns of a sweep, twice that of an image, see _tile_bounds): the grid is cut into that
+            many vertical strips (azimuth sectors of a sweep) that are extracted independently, no
+            plane crossing a border (join the pieces afterwards, as extract_planes's consolidation
+            does). Each inner border moves by up to TILE_BORDER_SLACK of a strip's width to the
+            column that the fewest admissible grid edges cross. Needs max_planes
             None. The log's cut at e is the union of the strips' cuts at e.
         threads: strips extracted at once, one thread each (None: numba's thread count of the calling
             thread); the result does not depend on it.
@@ -2254,7 +2255,7 @@ def extract_plane_hierarchy(
     stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
     if max_planes is None and max_error_increment is None:
         stop_count = -1
-    tile_columns = _tile_bounds(scan.width, tiles)
+    tile_columns = _tile_bounds(scan.width, tiles, scan.height)
     if threads is not None and (isinstance(threads, bool) or int(threads) != threads or int(threads) < 1):
         raise ValueError(f"threads must be a count >= 1 or None (numba's thread count); got {threads!r}")
     if tiles != 1 and max_planes is not None:
@@ -2324,19 +2325,24 @@ def _greedy(inputs: tuple, height: int, width: int, knobs: tuple, stop_increment
             raise RuntimeError(f'the greedy needs work pools of {capacity.max()} rows (2^31 or more)')
 
 
-#: Columns per tile that extract_planes aims at with a sensor profile (tiles='auto').
+#: Columns per tile of tiles='auto' on a sweep (a grid at least 4 times as wide as high: 45 deg sectors
+#: of a 1024-column spinning lidar); images get twice as wide strips (measured: 128-column strips of
+#: ICL-NUIM's 640 x 480 frames lost 6-8 points of k in the depth-camera profile's consolidation,
+#: 320-column ones none).
 AUTO_TILE_COLUMNS = 128
 
 
-def _tile_bounds(width: int, tiles: int | str) -> list[int]:
+def _tile_bounds(width: int, tiles: int | str, height: int = 1) -> list[int]:
     """Column bounds [0, c1, ..., width] of ``tiles`` vertical strips of near-equal width.
 
-    'auto': one strip per AUTO_TILE_COLUMNS columns (at least 1). Strips are at least 8 columns wide.
+    'auto': one strip per AUTO_TILE_COLUMNS columns on a grid at least 4 times as wide as high, per
+    2 AUTO_TILE_COLUMNS otherwise (at least 1). Strips are at least 8 columns wide.
     """
     if isinstance(tiles, str):
         if tiles != 'auto':
             raise ValueError(f"tiles must be a count >= 1 or 'auto'; got {tiles!r}")
-        count = max(1, round(width / AUTO_TILE_COLUMNS))
+        columns = AUTO_TILE_COLUMNS if width >= 4 * height else 2 * AUTO_TILE_COLUMNS
+        count = max(1, round(width / columns))
     else:
         if isinstance(tiles, bool) or int(tiles) != tiles or int(tiles) < 1:
             raise ValueError(f"tiles must be a count >= 1 or 'auto'; got {tiles!r}")
@@ -2507,7 +2513,7 @@ def extract_planes(
         connected_only: consolidate only pieces that touch in the grid (not across occluders).
         tiles: vertical strips (azimuth sectors of a sweep) whose greedies run independently and in
             parallel (see extract_plane_hierarchy); the consolidation joins the pieces a border cut.
-            Default: 'auto' (a strip per AUTO_TILE_COLUMNS columns) when the pieces are consolidated
+            Default: 'auto' (128-column strips of a sweep, 256 of an image) when the pieces are consolidated
             (a surface_tolerance and a single max_error_increment, no max_planes), else 1 (the exact
             greedy: sensor=None and the 'paper' profile give the results of earlier versions).
         threads: strips extracted at once (None: numba's thread count of the calling thread). The
