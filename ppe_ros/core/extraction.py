@@ -2385,8 +2385,8 @@ def _tile_executor(workers: int):
 
     with _tile_pool_lock:
         if not _tile_pool or _tile_pool[0]._max_workers < workers:
-            if _tile_pool:
-                _tile_pool[0].shutdown(wait=False)
+            # a smaller pool is replaced, not shut down: a caller may still submit to it; its idle
+            # threads end when it is no longer referenced
             _tile_pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-tile')]
         return _tile_pool[0]
 
@@ -2441,7 +2441,8 @@ def _tiled_greedy(inputs: tuple, height: int, width: int, bounds: list[int], kno
                     return done
                 done.append((t, run(t)))
 
-        futures = [_tile_executor(threads - 1).submit(drain) for _ in range(threads - 1)]
+        pool = _tile_executor(threads - 1)
+        futures = [pool.submit(drain) for _ in range(threads - 1)]
         pairs = drain()
         for future in futures:
             pairs += future.result()
