@@ -6,10 +6,17 @@ layout) in turn at ``--rate`` Hz for ``--seconds`` seconds through its subscript
 directly so that the input's DDS transport (6.3 MB per cloud) does not compete for the cores; a probe
 node subscribes to the plane table (``planes``), so the node builds and publishes it. Faster input
 than the node can take is the point: the table shows how many frames it finishes per second, how
-many it drops, its mean time per frame (from taking a cloud to publishing it) and whether the
-outputs kept the input order.
+many it drops, its mean time per frame (from taking a cloud to publishing it), the median latency
+(from handing the cloud to the node to the probe receiving its plane table) and whether the outputs
+kept the input order.
+
+``--sensor lidar`` runs the node with the lidar profile (the real-sensor path); ``--compare-tiles``
+runs every worker count twice, alternated: with the exact greedy of the whole sweep (one tile, the
+path before the tiles) and with extract_planes's default tiles, so that both are measured under the
+same load.
 
     .venv/bin/python benchmarks/bench_node_workers.py [--workers 1 2] [--seconds 15] [--rate 20]
+    .venv/bin/python benchmarks/bench_node_workers.py --sensor lidar --rate 10 --seconds 30 --compare-tiles
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ def ouster_clouds(types):
     return [driver_message(np.load(OUSTER / name).astype(np.float64), types) for name in FRAMES]
 
 
-def run(workers: int, seconds: float, rate: float, clouds) -> dict:
+def run(workers: int, seconds: float, rate: float, clouds, sensor: str = 'none') -> dict:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -42,10 +49,17 @@ def run(workers: int, seconds: float, rate: float, clouds) -> dict:
     rclpy.init(context=context, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '77')))
     executor = SingleThreadedExecutor(context=context)
     node = ExtractorNode(context=context, namespace=f'/bench_{os.getpid()}_{workers}',
-                         parameter_overrides=[Parameter('workers', value=workers)])
+                         parameter_overrides=[Parameter('workers', value=workers), Parameter('sensor', value=sensor)])
     probe = rclpy.create_node('probe', context=context, namespace=node.get_namespace())
     stamps: list[int] = []
-    probe.create_subscription(node._types.PointCloud2, 'planes', lambda m: stamps.append(m.header.stamp.sec),
+    sent_at: dict[int, float] = {}
+    latencies: list[float] = []
+
+    def received(msg) -> None:
+        stamps.append(msg.header.stamp.sec)
+        latencies.append(time.monotonic() - sent_at[msg.header.stamp.sec])
+
+    probe.create_subscription(node._types.PointCloud2, 'planes', received,
                               QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
     executor.add_node(node)
     executor.add_node(probe)
@@ -66,6 +80,7 @@ def run(workers: int, seconds: float, rate: float, clouds) -> dict:
                 data=template.data, is_dense=template.is_dense)
             msg.header.frame_id = template.header.frame_id
             msg.header.stamp.sec = sent + 1
+            sent_at[sent + 1] = time.monotonic()
             node._on_cloud(msg)
             sent += 1
             next_at = start + sent / rate
@@ -83,6 +98,7 @@ def run(workers: int, seconds: float, rate: float, clouds) -> dict:
         return dict(workers=workers, sent=sent, processed=counts['processed'], dropped=counts['dropped'],
                     failed=counts['failed'] + counts['skipped'], rate_out=counts['processed'] / elapsed,
                     mean_ms=float(status['processing_time_mean_ms']), in_order=stamps == sorted(stamps),
+                    median_latency_ms=1000 * float(np.median(latencies)) if latencies else float('nan'),
                     peak=status['frames_in_progress_peak'])
     finally:
         executor.remove_node(probe)
@@ -98,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--workers', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--seconds', type=float, default=15.0)
     parser.add_argument('--rate', type=float, default=20.0, help='input clouds per second')
+    parser.add_argument('--sensor', default='none', help="the node's sensor parameter (default none; e.g. lidar)")
+    parser.add_argument('--compare-tiles', action='store_true',
+                        help='each worker count with one tile (the exact greedy) and with the default tiles')
     args = parser.parse_args(argv)
     if not all((OUSTER / name).is_file() for name in FRAMES):
         print(f'needs the Ouster sweeps {FRAMES} in {OUSTER}', file=sys.stderr)
@@ -107,17 +126,27 @@ def main(argv: list[str] | None = None) -> int:
     from ppe_ros.ros.messages import rclpy_message_types
 
     clouds = ouster_clouds(rclpy_message_types())
-    print(f'machine: {machine_description()}; command: python benchmarks/bench_node_workers.py --workers '
-          f'{" ".join(map(str, args.workers))} --seconds {args.seconds:g} --rate {args.rate:g}; '
-          f'{time.strftime("%Y-%m-%d %H:%M")}\n')
-    print('| workers | clouds in | frames out | dropped | failed or skipped | frames/s out | mean ms per frame '
-          '| most at once | outputs in input order |')
-    print('|---:|---:|---:|---:|---:|---:|---:|---:|---|')
+    from ppe_ros.core import extraction
+
+    command = ' '.join(['python benchmarks/bench_node_workers.py', *(argv if argv is not None else sys.argv[1:])])
+    print(f'machine: {machine_description()}; command: {command}; {time.strftime("%Y-%m-%d %H:%M")}\n')
+    print('| workers | sensor | tiles | clouds in | frames out | dropped | failed or skipped | frames/s out '
+          '| mean ms per frame | median latency ms | most at once | outputs in input order |')
+    print('|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|')
+    auto_columns = extraction.AUTO_TILE_COLUMNS
     for workers in args.workers:
-        r = run(workers, args.seconds, args.rate, clouds)
-        print(f"| {r['workers']} | {r['sent']} | {r['processed']} | {r['dropped']} | {r['failed']} | "
-              f"{r['rate_out']:.2f} | {r['mean_ms']:.0f} | {r['peak']} | {'yes' if r['in_order'] else 'NO'} |",
-              flush=True)
+        for one_tile in ((True, False) if args.compare_tiles else (False,)):
+            # one tile: 'auto' then means one strip of the whole width (the exact greedy)
+            extraction.AUTO_TILE_COLUMNS = 2**31 if one_tile else auto_columns
+            try:
+                r = run(workers, args.seconds, args.rate, clouds, args.sensor)
+            finally:
+                extraction.AUTO_TILE_COLUMNS = auto_columns
+            tiles = '1' if one_tile or args.sensor == 'none' else 'default'
+            dropped = f"{r['dropped']} ({100 * r['dropped'] / max(r['sent'], 1):.0f} %)"
+            print(f"| {r['workers']} | {args.sensor} | {tiles} | {r['sent']} | {r['processed']} | {dropped} | "
+                  f"{r['failed']} | {r['rate_out']:.2f} | {r['mean_ms']:.0f} | {r['median_latency_ms']:.0f} | "
+                  f"{r['peak']} | {'yes' if r['in_order'] else 'NO'} |", flush=True)
     return 0
 
 

@@ -9,6 +9,7 @@ where exact ties do occur. Everything is seeded.
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numba as nb
 import numpy as np
@@ -534,6 +535,11 @@ def test_a_single_plane_gives_one_plane():
         (None, {'max_planes': [5, 0]}, 'max_planes'),
         (None, {'max_planes': 2.5}, 'max_planes'),
         (None, {'min_plane_points': 0}, 'min_plane_points'),
+        (None, {'tiles': 0}, 'tiles'),
+        (None, {'tiles': 1.5}, 'tiles'),
+        (None, {'tiles': 'many'}, 'tiles'),
+        (None, {'tiles': 2, 'max_planes': 5}, 'tiles > 1 needs'),
+        (None, {'threads': 0}, 'threads'),
     ],
     ids=lambda value: repr(value)[:40] if not isinstance(value, np.ndarray) else f'array{value.shape}{value.dtype}',
 )
@@ -1047,3 +1053,139 @@ def test_partial_merge_loops_of_large_planes_keep_the_segmentation():
     # start at one row and run out again and again give the same log
     tiny = extract_plane_hierarchy(scan.points, origins=scan.origins, pool_capacity=1, **settings)
     assert np.array_equal(tiny.actions, partial.actions)
+
+
+# --------------------------------------------------------------------------------------------
+# tiles: vertical strips extracted independently (and in parallel), joined by the consolidation
+# --------------------------------------------------------------------------------------------
+
+
+def _strip_logs(points, bounds, **kwargs):
+    """The action log of each strip extracted alone, in the whole grid's pixel ids."""
+    width = points.shape[1]
+    logs = []
+    for c0, c1 in itertools.pairwise(bounds):
+        log = extract_plane_hierarchy(np.ascontiguousarray(points[:, c0:c1]), **kwargs).actions.copy()
+        strip = c1 - c0
+        log['a'] = log['a'] // strip * width + c0 + log['a'] % strip
+        pixel = log['kind'] != KIND_CREATE
+        log['b'][pixel] = log['b'][pixel] // strip * width + c0 + log['b'][pixel] % strip
+        logs.append(log)
+    return logs
+
+
+@pytest.mark.parametrize('noise', [None, 'lidar'])
+def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(noise):
+    from ppe_ros.core.extraction import _placed_borders, _tile_bounds
+    from ppe_ros.core.sensor import sensor_profile
+
+    points = medium_scan().sensor_points  # ray starts at the origin: the strips share the internal frame
+    model = None if noise is None else sensor_profile(noise).noise
+    e = 0.05 if noise is None else 16.0
+    kwargs = {'max_error_increment': e, 'noise': model}
+    tiled = extract_plane_hierarchy(points, tiles=3, threads=1, **kwargs)
+    ok_right, _ = _edge_masks(make_ray_scan(points), np.inf)
+    bounds = _placed_borders(_tile_bounds(60, 3), ok_right, 40, 60)
+    assert bounds[0] == 0 and bounds[-1] == 60 and len(bounds) == 4
+    logs = _strip_logs(points, bounds, **kwargs)
+    strip_of = np.searchsorted(bounds, tiled.actions['a'] % 60, side='right') - 1
+    assert len(tiled.actions) == sum(len(log) for log in logs) > 500
+    for t, log in enumerate(logs):
+        assert tiled.actions[strip_of == t].tobytes() == log.tobytes()
+    joint_running = np.empty(len(tiled.actions))
+    for t in range(3):
+        joint_running[strip_of == t] = np.maximum.accumulate(tiled.actions['increment'][strip_of == t])
+    assert np.all(np.diff(joint_running) >= 0), 'the joint log is ordered by each strip\'s running maximum'
+    # the cut at any e is the union of the strips' own cuts at e
+    for cut in (e / 100, e / 10, e):
+        ids = tiled.plane_ids(tiled.steps_for_error(cut)).reshape(points.shape[:2])
+        for t, log in enumerate(logs):
+            c0, c1 = bounds[t], bounds[t + 1]
+            over = np.flatnonzero(log['increment'] > cut)
+            steps = int(over[0]) if len(over) else len(log)
+            own = extract_plane_hierarchy(np.ascontiguousarray(points[:, c0:c1]), **kwargs)
+            strip_ids = own.plane_ids(steps).reshape(points.shape[0], c1 - c0)
+            translated = np.where(strip_ids >= 0, strip_ids // (c1 - c0) * 60 + c0 + strip_ids % (c1 - c0), -1)
+            assert np.array_equal(ids[:, c0:c1], translated)
+    # no plane crosses a border
+    ids = tiled.plane_ids(len(tiled.actions)).reshape(points.shape[:2])
+    for t in range(3):
+        inside = ids[:, bounds[t]:bounds[t + 1]]
+        assert np.all((inside < 0) | (np.searchsorted(bounds, inside % 60, side='right') - 1 == t))
+
+
+def test_tile_borders_move_to_the_columns_that_fewest_edges_cross():
+    from ppe_ros.core.extraction import _placed_borders
+
+    height, width = 6, 64
+    ok_right = np.ones((height, width), bool)
+    ok_right[:, -1] = False
+    ok_right[:, 19] = False  # nothing joins columns 19 and 20: a border at 20 cuts no edge
+    ok_right[:4, 34] = False  # 2 edges cross between columns 34 and 35
+    ok_right[:, 40] = False  # beyond the slack (a quarter of the 16-column strips) of every border
+    assert _placed_borders([0, 16, 32, 48, 64], ok_right.reshape(-1), height, width) == [0, 20, 35, 48, 64]
+    ok_right[:] = True
+    assert _placed_borders([0, 16, 32, 48, 64], ok_right.reshape(-1), height, width) == [0, 16, 32, 48, 64]
+    assert _placed_borders([0, 64], ok_right.reshape(-1), height, width) == [0, 64]
+
+
+def test_tiled_results_do_not_depend_on_the_thread_count():
+    scan = medium_scan()
+    logs = [extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=0.05, tiles=5,
+                                    threads=threads).actions.tobytes() for threads in (1, 2, 3, 5)]
+    assert logs[0] == logs[1] == logs[2] == logs[3]
+    planes = [extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=4, threads=threads)
+              for threads in (1, 2)]
+    assert planes[0].labels.tobytes() == planes[1].labels.tobytes()
+    assert planes[0].normals.tobytes() == planes[1].normals.tobytes()
+
+
+def test_one_tile_is_the_exact_greedy_and_the_default_without_consolidation():
+    scan = medium_scan()
+    exact = extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=0.05)
+    one = extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=0.05, tiles=1, threads=2)
+    assert exact.actions.tobytes() == one.actions.tobytes()
+    # sensor=None and the paper profile (no consolidation) keep one tile; auto is one tile per 128 columns
+    for sensor in (None, 'paper'):
+        default = extract_planes(scan.points, origins=scan.origins, sensor=sensor)
+        single = extract_planes(scan.points, origins=scan.origins, sensor=sensor, tiles=1)
+        assert default.labels.tobytes() == single.labels.tobytes()
+    assert extract_plane_hierarchy(scan.points, max_error_increment=0.05, tiles='auto').actions.tobytes() == \
+        extract_plane_hierarchy(scan.points, max_error_increment=0.05).actions.tobytes()  # 60 columns: 1 tile
+
+
+@pytest.mark.parametrize(('height', 'width', 'tiles', 'bounds'), [
+    (128, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),  # a sweep: 128-column sectors
+    (32, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),
+    (480, 640, 'auto', [0, 320, 640]),  # an image: strips of about 256 columns
+    (513, 633, 'auto', [0, 316, 633]),
+    (500, 500, 'auto', [0, 250, 500]),
+    (100, 200, 'auto', [0, 200]),
+    (10, 100, 'auto', [0, 100]),
+    (10, 60, 4, [0, 15, 30, 45, 60]),
+    (10, 20, 8, [0, 10, 20]),  # strips of at least 8 columns
+    (10, 5, 3, [0, 5]),
+])
+def test_tile_bounds(height, width, tiles, bounds):
+    from ppe_ros.core.extraction import _tile_bounds
+
+    assert _tile_bounds(width, tiles, height) == bounds
+
+
+def test_the_consolidation_joins_a_surface_that_the_tile_borders_cut():
+    from ppe_ros.core.sensor import LIDAR_NOISE
+
+    scan = plane_scan(n_planes=3, rows=40, cols=96, radial_sigma=0.01, seed=3)
+    whole = extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=1)
+    tiled = extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=6)
+    pieces = extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=16.0, tiles=6,
+                                     noise=LIDAR_NOISE)
+    ids = pieces.plane_ids(len(pieces.actions))
+    assert len(np.unique(ids[ids >= 0])) >= 6 * 3 // 2  # the borders cut the faces into pieces
+    assert tiled.num_planes == whole.num_planes == 3
+    truth = scan.labels.reshape(-1)
+    for planes in (whole, tiled):
+        labels = planes.labels.reshape(-1)
+        for face in np.unique(truth[truth >= 10]):
+            on_face = labels[truth == face]
+            assert np.mean(on_face == np.bincount(on_face[on_face > 0]).argmax()) > 0.95

@@ -103,3 +103,33 @@ def test_concurrent_extractions_match_sequential_ones(room):
         assert errors == []
         assert results[0].tobytes() == expected[0].tobytes()
         assert results[1].tobytes() == expected[1].tobytes()
+
+
+def test_concurrent_tiled_extractions_with_different_thread_counts_match_sequential_ones():
+    """Callers asking the shared strip pool for 1, 2, 3 and 4 threads at once (the pool grows while
+    others use it) get exactly the logs of one-at-a-time runs."""
+    grid = ScanGrid.uniform(60, 160, azimuth_fov_deg=120.0, elevation_fov_deg=40.0)
+    scan = generate_scan(seed=4, grid=grid, radial_sigma=0.02)
+
+    def tiled(threads):
+        return extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=0.0484, tiles=6,
+                                       threads=threads).actions.tobytes()
+
+    expected = tiled(1)
+    results: dict = {}
+    errors: list = []
+
+    def work(threads):
+        try:
+            results[threads] = [tiled(threads) for _ in range(3)]
+        except BaseException as exc:  # reported below, not lost in the thread
+            errors.append(exc)
+
+    workers = [threading.Thread(target=work, args=(threads,)) for threads in (1, 2, 3, 4)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    assert errors == []
+    assert sorted(results) == [1, 2, 3, 4]
+    assert all(log == expected for logs in results.values() for log in logs)

@@ -2186,6 +2186,8 @@ def extract_plane_hierarchy(
     defer_merges: bool = True,
     pool_capacity: int | None = None,
     noise: NoiseModel | None = None,
+    tiles: int | str = 1,
+    threads: int | None = None,
 ) -> PlaneHierarchy:
     """Run PPE and return its action log.
 
@@ -2220,6 +2222,15 @@ def extract_plane_hierarchy(
         noise: the rays' range noise (:class:`~ppe_ros.core.sensor.NoiseModel`): the greedy minimises
             the squared residuals divided by sigma_k^2, and increments (and max_error_increment) are
             dimensionless; None: the paper's model (increments in m^2).
+        tiles: 1 (the exact greedy of the whole grid), a count, or 'auto' (one per AUTO_TILE_COLUMNS
+            columns of a sweep, twice that of an image, see _tile_bounds): the grid is cut into that
+            many vertical strips (azimuth sectors of a sweep) that are extracted independently, no
+            plane crossing a border (join the pieces afterwards, as extract_planes's consolidation
+            does). Each inner border moves by up to TILE_BORDER_SLACK of a strip's width to the
+            column that the fewest admissible grid edges cross. Needs max_planes
+            None. The log's cut at e is the union of the strips' cuts at e.
+        threads: strips extracted at once, one thread each (None: numba's thread count of the calling
+            thread); the result does not depend on it.
     """
     import time
 
@@ -2244,8 +2255,18 @@ def extract_plane_hierarchy(
     stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
     if max_planes is None and max_error_increment is None:
         stop_count = -1
+    tile_columns = _tile_bounds(scan.width, tiles, scan.height)
+    if threads is not None and (isinstance(threads, bool) or int(threads) != threads or int(threads) < 1):
+        raise ValueError(f"threads must be a count >= 1 or None (numba's thread count); got {threads!r}")
+    if tiles != 1 and max_planes is not None:
+        raise ValueError('tiles > 1 needs a max_error_increment stop without max_planes (a plane count is global)')
+    knobs = (int(exact_plane_size), int(exact_merge_size), float(relinearisation_drift), float(refined_merge_growth),
+             float(merge_loop_growth), bool(defer_merges), pool_capacity)
     start = time.perf_counter()
     ok_right, ok_down = _edge_masks(scan, lmax)
+    tile_columns = _placed_borders(tile_columns, ok_right, scan.height, scan.width)
+    for column in tile_columns[1:-1]:  # no seed or join crosses a tile border
+        ok_right[column - 1::scan.width] = False
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
     seed_best = _reusable('seed_best', scan.size, np.int32)
     seed_key = _reusable('seed_key', scan.size, np.float64)
@@ -2255,25 +2276,13 @@ def extract_plane_hierarchy(
     _seed_errors(scan.endpoints, scan.directions, columns[:3], columns[3:], ok_right, ok_down, scan.height,
                  scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key,
                  _run_cutoff(stop_increment, stop_count, scan.size))
-    # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
-    # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
-    # again (np.empty only reserves memory: rows that are never used cost no RAM)
-    capacity = np.array([2, 4, 8]) * max(scan.size, 256) if pool_capacity is None else np.full(3, int(pool_capacity))
-    while True:
-        work = _work_buffers(*_work_sizes(scan.size, int(capacity[0]), int(capacity[1]), int(capacity[2])))
-        kinds, a_ids, b_ids, incs, stats, overflow = _ppe_kernel(
-            scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, scan.height, scan.width,
-            TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, int(exact_plane_size), int(exact_merge_size),
-            float(relinearisation_drift),
-            stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, float(refined_merge_growth),
-            float(merge_loop_growth), bool(defer_merges),
-            int(capacity[0]), int(capacity[1]), int(capacity[2]), *work,
-        )
-        if not overflow.any():
-            break
-        capacity = np.maximum(capacity, overflow)
-        if capacity.max() >= 2**31:  # pool rows are 32-bit plane fields
-            raise RuntimeError(f'the greedy needs work pools of {capacity.max()} rows (2^31 or more)')
+    inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, seed_sse, seed_best, seed_key)
+    if len(tile_columns) == 2:
+        kinds, a_ids, b_ids, incs, stats = _greedy(inputs, scan.height, scan.width, knobs, stop_increment,
+                                                   stop_count)
+    else:
+        kinds, a_ids, b_ids, incs, stats = _tiled_greedy(inputs, scan.height, scan.width, tile_columns, knobs,
+                                                         stop_increment, stop_count, threads)
     seconds = time.perf_counter() - start
     actions = np.empty(len(kinds), ACTION_DTYPE)
     actions['kind'] = kinds
@@ -2287,6 +2296,164 @@ def extract_plane_hierarchy(
     return PlaneHierarchy(scan=scan, actions=actions, plane_counts=plane_counts, initial_plane_count=n_valid,
                           complete=complete, seconds=seconds,
                           stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)), sigmas=sigmas)
+
+
+def _greedy(inputs: tuple, height: int, width: int, knobs: tuple, stop_increment: float, stop_count: int) -> tuple:
+    """The greedy on one grid: action log (kinds, a, b, increments) and stats, in the calling thread's work memory.
+
+    inputs: endpoints, directions, valid, ok_right, ok_down, seed_sse, seed_best, seed_key of the grid.
+    """
+    endpoints, directions, valid, ok_right, ok_down, seed_sse, seed_best, seed_key = inputs
+    exact_plane_size, exact_merge_size, drift, refined_growth, loop_growth, defer, pool_capacity = knobs
+    n_pixels = height * width
+    # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
+    # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
+    # again (np.empty only reserves memory: rows that are never used cost no RAM)
+    capacity = np.array([2, 4, 8]) * max(n_pixels, 256) if pool_capacity is None else np.full(3, int(pool_capacity))
+    while True:
+        work = _work_buffers(*_work_sizes(n_pixels, int(capacity[0]), int(capacity[1]), int(capacity[2])))
+        kinds, a_ids, b_ids, incs, stats, overflow = _ppe_kernel(
+            endpoints, directions, valid, ok_right, ok_down, height, width,
+            TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, exact_plane_size, exact_merge_size, drift,
+            stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, refined_growth,
+            loop_growth, defer, int(capacity[0]), int(capacity[1]), int(capacity[2]), *work,
+        )
+        if not overflow.any():
+            return kinds, a_ids, b_ids, incs, stats
+        capacity = np.maximum(capacity, overflow)
+        if capacity.max() >= 2**31:  # pool rows are 32-bit plane fields
+            raise RuntimeError(f'the greedy needs work pools of {capacity.max()} rows (2^31 or more)')
+
+
+#: Columns per tile of tiles='auto' on a sweep (a grid at least 4 times as wide as high: 45 deg sectors
+#: of a 1024-column spinning lidar); images get twice as wide strips (measured: 128-column strips of
+#: ICL-NUIM's 640 x 480 frames lost 6-8 points of k in the depth-camera profile's consolidation,
+#: 320-column ones none).
+AUTO_TILE_COLUMNS = 128
+
+
+def _tile_bounds(width: int, tiles: int | str, height: int = 1) -> list[int]:
+    """Column bounds [0, c1, ..., width] of ``tiles`` vertical strips of near-equal width.
+
+    'auto': one strip per AUTO_TILE_COLUMNS columns on a grid at least 4 times as wide as high, per
+    2 AUTO_TILE_COLUMNS otherwise (at least 1). Strips are at least 8 columns wide.
+    """
+    if isinstance(tiles, str):
+        if tiles != 'auto':
+            raise ValueError(f"tiles must be a count >= 1 or 'auto'; got {tiles!r}")
+        columns = AUTO_TILE_COLUMNS if width >= 4 * height else 2 * AUTO_TILE_COLUMNS
+        count = max(1, round(width / columns))
+    else:
+        if isinstance(tiles, bool) or int(tiles) != tiles or int(tiles) < 1:
+            raise ValueError(f"tiles must be a count >= 1 or 'auto'; got {tiles!r}")
+        count = int(tiles)
+    count = max(1, min(count, width // 8))
+    return [round(i * width / count) for i in range(count + 1)]
+
+
+#: A tile border may move by this fraction of the strip width to where the fewest grid edges cross it.
+TILE_BORDER_SLACK = 0.25
+
+
+def _placed_borders(bounds: list[int], ok_right: np.ndarray, height: int, width: int) -> list[int]:
+    """The inner borders moved (each within TILE_BORDER_SLACK of a strip's width) to the column between c - 1
+    and c that the fewest admissible grid edges cross (ties: the nearest to the nominal border, then the
+    left one): a border there cuts fewest surfaces (it falls on depth jumps, no-returns, edges of objects).
+    """
+    if len(bounds) <= 2:
+        return bounds
+    crossing = ok_right.reshape(height, width).sum(axis=0)  # crossing[c - 1]: edges between columns c - 1, c
+    slack = int(TILE_BORDER_SLACK * width / (len(bounds) - 1))
+    placed = [0]
+    for nominal in bounds[1:-1]:
+        candidates = np.arange(max(nominal - slack, placed[-1] + 8), min(nominal + slack, width - 8) + 1)
+        if len(candidates) == 0:
+            placed.append(nominal)
+            continue
+        order = np.lexsort((candidates, np.abs(candidates - nominal), crossing[candidates - 1]))
+        placed.append(int(candidates[order[0]]))
+    return [*placed, width]
+
+
+_tile_pool_lock = threading.Lock()
+_tile_pool: list = []
+
+
+def _tile_executor(workers: int):
+    """A process-wide pool of at least ``workers`` threads for tiles (its threads keep their work memory)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with _tile_pool_lock:
+        if not _tile_pool or _tile_pool[0]._max_workers < workers:
+            # a smaller pool is replaced, not shut down: a caller may still submit to it; its idle
+            # threads end when it is no longer referenced
+            _tile_pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-tile')]
+        return _tile_pool[0]
+
+
+def _tile_inputs(inputs: tuple, height: int, width: int, c0: int, c1: int) -> tuple:
+    """The inputs of _greedy for columns c0:c1, copied (row-major, tile-local pixel ids) into work memory."""
+    out = []
+    for index, array in enumerate(inputs):
+        trailing = array.shape[1:]
+        tile = array.reshape((height, width, *trailing))[:, c0:c1]
+        buffer = _reusable(f'tile{index}_{array.dtype.str}', tile.size, array.dtype).reshape(tile.shape)
+        np.copyto(buffer, tile)
+        out.append(buffer.reshape((-1, *trailing)))
+    return tuple(out)
+
+
+def _tiled_greedy(inputs: tuple, height: int, width: int, bounds: list[int], knobs: tuple, stop_increment: float,
+                  stop_count: int, threads: int | None) -> tuple:
+    """The greedy on each column strip separately (up to ``threads`` at once), as one action log.
+
+    The strips' grid edges across a border were cut before the seeds, so each strip is an independent
+    problem; its log is translated to the whole grid's pixel ids (a tile's row-major order is the
+    grid's, so "a merge keeps the smaller id" still holds). The logs are interleaved by each strip's
+    running maximum increment (stable: strip order breaks ties), so that for every e the cut at e of
+    the joint log is the union of every strip's own cut at e. The result does not depend on threads.
+    """
+    n_tiles = len(bounds) - 1
+
+    def run(t: int) -> tuple:
+        c0, c1 = bounds[t], bounds[t + 1]
+        local = _tile_inputs(inputs, height, width, c0, c1)
+        kinds, a_ids, b_ids, incs, stats = _greedy(local, height, c1 - c0, knobs, stop_increment, stop_count)
+        tile_width = c1 - c0
+        a_ids = (a_ids // tile_width) * width + c0 + a_ids % tile_width
+        b_global = (b_ids // tile_width) * width + c0 + b_ids % tile_width
+        b_ids = np.where(kinds == KIND_CREATE, b_ids, b_global)
+        return kinds, a_ids, b_ids, incs, stats
+
+    threads = min(nb.get_num_threads() if threads is None else int(threads), n_tiles)
+    if threads == 1:
+        results = [run(t) for t in range(n_tiles)]
+    else:
+        tickets = iter(range(n_tiles))  # next() on a range iterator is atomic under the GIL
+        ticket_lock = threading.Lock()
+
+        def drain() -> list:
+            done = []
+            while True:
+                with ticket_lock:
+                    t = next(tickets, None)
+                if t is None:
+                    return done
+                done.append((t, run(t)))
+
+        pool = _tile_executor(threads - 1)
+        futures = [pool.submit(drain) for _ in range(threads - 1)]
+        pairs = drain()
+        for future in futures:
+            pairs += future.result()
+        results = [r for _, r in sorted(pairs, key=lambda pair: pair[0])]
+    kinds = np.concatenate([r[0] for r in results])
+    running_max = np.concatenate([np.maximum.accumulate(r[3]) if len(r[3]) else r[3] for r in results])
+    order = np.argsort(running_max, kind='stable')
+    stats = np.sum([r[4] for r in results], axis=0)
+    stats[_ST_HEAP_PEAK] = max(int(r[4][_ST_HEAP_PEAK]) for r in results)
+    return (kinds[order], np.concatenate([r[1] for r in results])[order],
+            np.concatenate([r[2] for r in results])[order], np.concatenate([r[3] for r in results])[order], stats)
 
 
 def _noise_scaled(scan: RayScan, noise: NoiseModel) -> tuple[RayScan, np.ndarray]:
@@ -2323,6 +2490,8 @@ def extract_planes(
     surface_tolerance: float | None = PROFILE_DEFAULT,
     connected_only: bool = PROFILE_DEFAULT,
     rings: np.ndarray | None = None,
+    tiles: int | str = PROFILE_DEFAULT,
+    threads: int | None = None,
 ) -> PlaneSet | list[PlaneSet]:
     """Extract finite planes from an organized scan with PPE.
 
@@ -2347,6 +2516,13 @@ def extract_planes(
             their common plane by at most tau RMS) are merged (ppe_ros.core.consolidation); None:
             no consolidation.
         connected_only: consolidate only pieces that touch in the grid (not across occluders).
+        tiles: vertical strips (azimuth sectors of a sweep) whose greedies run independently and in
+            parallel (see extract_plane_hierarchy); the consolidation joins the pieces a border cut.
+            Default: 'auto' (128-column strips of a sweep, 256 of an image) when the pieces are consolidated
+            (a surface_tolerance and a single max_error_increment, no max_planes), else 1 (the exact
+            greedy: sensor=None and the 'paper' profile give the results of earlier versions).
+        threads: strips extracted at once (None: numba's thread count of the calling thread). The
+            result does not depend on it.
 
     Returns:
         A PlaneSet when both thresholds are single values (or None), else a list of PlaneSets:
@@ -2382,6 +2558,8 @@ def extract_planes(
     if surface_tolerance is not None and not (np.isfinite(float(surface_tolerance)) and surface_tolerance > 0):
         raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
     noise = None if profile is None else profile.noise_for(points, origins)
+    if tiles is PROFILE_DEFAULT:
+        tiles = 'auto' if surface_tolerance is not None and e_list and not n_list else 1
     hierarchy = extract_plane_hierarchy(
         points,
         origins=origins,
@@ -2389,6 +2567,8 @@ def extract_planes(
         max_error_increment=max(e_list) if e_list else None,
         max_planes=min(n_list) if n_list else None,
         noise=noise,
+        tiles=tiles,
+        threads=threads,
     )
     cut_kwargs = [{'max_error_increment': e} for e in e_list or []] + [{'max_planes': n} for n in n_list or []]
     if surface_tolerance is None and profile is None:
