@@ -1,6 +1,6 @@
 """Pictures of segmentations (PNG via Pillow): distinct colours per plane, no plane black.
 
-Pure numpy + Pillow; no ROS import. Colours come from :func:`ppe_ros.ros.pointcloud2.label_colors`,
+Pure numpy + Pillow; no ROS import. Colours come from :func:`ppe_ros.core.colors.label_colors`,
 the same stable colour per label that the node publishes for RViz.
 """
 
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ppe_ros.core.colors import label_colors
 from ppe_ros.io.files import write_file_atomically
-from ppe_ros.ros.pointcloud2 import label_colors
 
 
 def label_image(labels: np.ndarray, *, background: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:

@@ -220,7 +220,7 @@ def test_the_noise_scale_is_the_ratio_of_the_scans_random_noise_to_the_model(tru
 def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_ones_to_the_tolerance():
     """flatness_length D0: tau_D = tau min(1, D / D0). A 1 m patch bumpy by 3 cm RMS (a bush) passes a
     5 cm tolerance but not 5 cm * 1/4; a 1 m flat patch and a 12 m wall undulating by 3 cm pass both."""
-    from ppe_ros.core.fitting import _fit_pixel_groups
+    from ppe_ros.core.fitting import fit_pixel_groups
     from ppe_ros.core.surfaces import _drop_non_planar
 
     rng = np.random.default_rng(7)
@@ -235,7 +235,7 @@ def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_
     scan = make_ray_scan(points)
     ids = np.zeros((rows, cols), np.int64)
     ids[patch], ids[bush] = 1, 2
-    planes, _ = _fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
     sigmas = np.where(scan.valid, 0.005, np.nan)
 
     def kept(flatness_length):

@@ -164,14 +164,14 @@ class PpeMethod(PlaneMethod):
 
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
         from ppe_ros.core.extraction import extract_plane_hierarchy
-        from ppe_ros.core.fitting import _fit_pixel_groups
+        from ppe_ros.core.fitting import fit_pixel_groups
 
         stop = max([self.max_error_increment, *(self.sweep_errors or ())])
         start = time.perf_counter()
         hierarchy = extract_plane_hierarchy(points, origins=origins, max_neighbor_distance=self.max_neighbor_distance,
                                             max_error_increment=stop)
         steps = hierarchy.steps_for_error(self.max_error_increment)
-        planes, residuals = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps),
+        planes, residuals = fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps),
                                               min_plane_points=self.min_plane_points)
         seconds = time.perf_counter() - start
         sweep = None

@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ppe_ros.core.evaluation import score_segmentation
     from ppe_ros.core.extraction import extract_plane_hierarchy
-    from ppe_ros.core.fitting import _fit_pixel_groups
+    from ppe_ros.core.fitting import fit_pixel_groups
     from ppe_ros.core.synthetic import generate_scan
     from ppe_ros.io import save_pcd
     from ppe_ros.render import save_segmentation_png
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
                                         max_neighbor_distance=lmax,
                                         max_error_increment=e)
     steps = hierarchy.steps_for_error(e)
-    planes, residuals = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), min_plane_points=4,
+    planes, residuals = fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), min_plane_points=4,
                                           max_error_increment=e, actions=steps)
     wall = time.perf_counter() - start
     score = score_segmentation(planes.labels, scan.labels, gt_min_label=10, residuals=residuals)

@@ -39,11 +39,11 @@ from numba.extending import intrinsic
 from ppe_ros.core.fitting import (
     _fit,
     _fit4,
-    _fit_pixel_groups,
     _fit_rays,
     _gn_pass,
     _ray_terms,
     _solve_sym3,
+    fit_pixel_groups,
 )
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan, make_ray_scan
@@ -546,7 +546,7 @@ def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
 
 # Helpers called from the greedy's loops that only read and write arrays they are given are
 # compiled with _nrt=False: numba otherwise increments and decrements the reference count of
-# every array argument on each call, with atomic instructions (about a tenth of pc_01's greedy).
+# every array argument on each call, with atomic instructions.
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -784,7 +784,7 @@ def _gather(pi, nextpix, p, buf, endpoints, directions, start=0):
 
     Prefetch hints request each ray's endpoint and direction, which the fit that follows reads:
     the pixel list is a chain of dependent loads, the rays' rows are independent of each other, so
-    requesting them during the walk overlaps their cache misses with it (pc_01's greedy -10 %).
+    requesting them during the walk overlaps their cache misses with it.
     """
     n = 0
     k = pi[p, _PHEAD]
@@ -1332,7 +1332,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     o32 = 0
     # pixel state. Pixel, plane and node ids, versions and stamps are 32-bit wherever they are
     # stored (each is below 2^31 for the scans extract_plane_hierarchy accepts, < MAX_RAYS): the
-    # greedy waits on memory, and halving these arrays made it 8-10 % faster
+    # greedy waits on memory, and narrower arrays mean fewer cache misses
     owner = work_i32[o32:o32 + n_pixels]
     o32 = _aligned(o32 + n_pixels)
     nextpix = work_i32[o32:o32 + n_pixels]
@@ -2130,7 +2130,7 @@ class PlaneHierarchy:
             steps = self.steps_for_error(max_error_increment)
         else:
             steps = self.steps_for_count(max_planes)
-        planes, _ = _fit_pixel_groups(
+        planes, _ = fit_pixel_groups(
             self.scan, self.plane_ids(steps), min_plane_points=min_plane_points, residuals=False,
             sigmas=self.sigmas, max_error_increment=max_error_increment, max_planes=max_planes, actions=steps,
         )
@@ -2144,7 +2144,7 @@ def _reusable(name: str, size: int, dtype) -> np.ndarray:
     """A 1-D array of ``size`` elements from this thread's work memory (kept for the next call).
 
     Fresh memory costs a page fault per 4 KiB page when first touched: tens of thousands per
-    500 x 500 scan, 10-15 % of an Ouster sweep's extraction on this VM. Each thread keeps its own
+    500 x 500 scan, a noticeable share of a small scan's extraction. Each thread keeps its own
     buffers (calls from several threads never share one); a larger request replaces the buffer.
     """
     buffers = getattr(_work_memory, 'buffers', None)
@@ -2169,6 +2169,22 @@ def release_work_memory() -> None:
 def _work_buffers(n_f: int, n_i: int, n_i32: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return (_reusable('float64', n_f, np.float64), _reusable('int64', n_i, np.int64),
             _reusable('int32', n_i32, np.int32))
+
+
+def _check_hierarchy_options(scan: RayScan, lmax: float, pool_capacity, exact_plane_size, refined_merge_growth,
+                             merge_loop_growth) -> None:
+    """extract_plane_hierarchy's checks of its scan size and tuning options (ValueError naming the option)."""
+    if not (lmax > 0):
+        raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {lmax!r}')
+    if scan.size >= MAX_RAYS:
+        raise ValueError(f'scans of fewer than {MAX_RAYS} rays (2^26) are supported; got {scan.height} x {scan.width}')
+    if pool_capacity is not None and int(pool_capacity) < 1:
+        raise ValueError(f'pool_capacity must be >= 1 (None: from the scan size); got {pool_capacity!r}')
+    if int(exact_plane_size) < 4:
+        raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
+    for name, value in (('refined_merge_growth', refined_merge_growth), ('merge_loop_growth', merge_loop_growth)):
+        if not 0.0 <= float(value) < np.inf:
+            raise ValueError(f'{name} must be a finite fraction >= 0 (0: off); got {value!r}')
 
 
 def extract_plane_hierarchy(
@@ -2239,17 +2255,7 @@ def extract_plane_hierarchy(
     if noise is not None:
         scan, sigmas = _noise_scaled(scan, noise)
     lmax = float(max_neighbor_distance)
-    if not (lmax > 0):
-        raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {max_neighbor_distance!r}')
-    if scan.size >= MAX_RAYS:
-        raise ValueError(f'scans of fewer than {MAX_RAYS} rays (2^26) are supported; got {scan.height} x {scan.width}')
-    if pool_capacity is not None and int(pool_capacity) < 1:
-        raise ValueError(f'pool_capacity must be >= 1 (None: from the scan size); got {pool_capacity!r}')
-    if int(exact_plane_size) < 4:
-        raise ValueError(f'exact_plane_size must be >= 4; got {exact_plane_size!r}')
-    for name, value in (('refined_merge_growth', refined_merge_growth), ('merge_loop_growth', merge_loop_growth)):
-        if not 0.0 <= float(value) < np.inf:
-            raise ValueError(f'{name} must be a finite fraction >= 0 (0: off); got {value!r}')
+    _check_hierarchy_options(scan, lmax, pool_capacity, exact_plane_size, refined_merge_growth, merge_loop_growth)
     stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
         -np.inf if max_error_increment is None else float(max_error_increment))
     stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
@@ -2578,7 +2584,7 @@ def extract_planes(
                 for kw in cut_kwargs]
     if not cuts:
         steps = len(hierarchy.actions)
-        planes, _ = _fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), sigmas=hierarchy.sigmas,
+        planes, _ = fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), sigmas=hierarchy.sigmas,
                                       min_plane_points=min_plane_points, residuals=False, actions=steps)
         cuts = [planes]
     scalar = not isinstance(max_error_increment, Sequence | np.ndarray) and not isinstance(

@@ -231,9 +231,8 @@ def _fit4(P, V, k0, k1, k2, k3):
     """:func:`_fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
 
     Runs the algebraic start and up to three Gauss-Newton iterations exactly as :func:`_fit` would
-    (on pc_01's seeds 42 % of the fits stop at the second iteration, 55 % at the third, 2.3 % need
-    more or a halved step; a fourth iteration cost more in the vectorised loop than the general
-    fits it saved: seeds 4-10 % slower on pc_01 and an Ouster sweep).
+    (most seed fits converge within three; the rest go to the general fit, which a fourth
+    vectorised iteration would not save).
     Returns (sse, done): when done, sse is bit-identical to _fit_rays's; done is False when _fit
     would go on (more iterations, a halved step) or the set is degenerate: call _fit_rays then.
     """
@@ -360,7 +359,7 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
     if not scan.valid.all():
         raise ValueError(f'{int((~scan.valid).sum())} of {len(pts)} rays are not finite or have a length outside '
                          f'{MIN_RANGE:g}..{MAX_RANGE:g} m')
-    planes, residuals = _fit_pixel_groups(scan, np.zeros(len(pts), np.int64), min_plane_points=3)
+    planes, residuals = fit_pixel_groups(scan, np.zeros(len(pts), np.int64), min_plane_points=3)
     if planes.num_planes != 1 or not np.isfinite(planes.sse[0]):
         raise ValueError('degenerate ray set: the rays do not determine a plane (collinear endpoints?)')
     return PlaneFit(
@@ -374,7 +373,7 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
     )
 
 
-def _fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, residuals: bool = True,
+def fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, residuals: bool = True,
                       sigmas: np.ndarray | None = None, **meta) -> tuple[PlaneSet, np.ndarray | None]:
     """Fit every group of pixels sharing a plane id >= 0 (ids < 0: no plane).
 
@@ -519,7 +518,7 @@ def fit_labeled_planes(points: np.ndarray, labels: np.ndarray, *, origins: np.nd
         lab = lab.astype(np.int64)
     flat = lab.reshape(-1).astype(np.int64)
     ids = np.where(flat >= ignore_labels_below, flat, -1)
-    planes, residuals = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points)
+    planes, residuals = fit_pixel_groups(scan, ids, min_plane_points=min_plane_points)
     label_ids = np.zeros(planes.num_planes, np.int64)
     plane_labels = planes.labels.reshape(-1)
     mask = plane_labels > 0

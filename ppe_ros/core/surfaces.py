@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces
-from ppe_ros.core.fitting import _fit_pixel_groups
+from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan
 from ppe_ros.core.sensor import SensorProfile
@@ -40,7 +40,7 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
         noise_factor = 0.0 if profile is None else profile.noise_factor
         ids = _consolidate(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor,
                            min_plane_points)
-    planes, _ = _fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
+    planes, _ = fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
                                   actions=steps, **cut)
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
@@ -181,6 +181,6 @@ def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sig
         return planes
     keep = np.concatenate([[False], planar])
     ids = np.where(keep[labels], labels, -1).astype(np.int64)
-    refit, _ = _fit_pixel_groups(fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
+    refit, _ = fit_pixel_groups(fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
                                  actions=steps, **cut)
     return refit
