@@ -27,6 +27,7 @@ demo: venv
 
 test: venv
 	$(VENV)/bin/ruff check ppe_ros test benchmarks
+	$(VENV)/bin/ruff format --check ppe_ros test benchmarks launch
 	$(PY) -m pytest
 
 # optional peers of `ppe eval` (pinned in requirements.txt on the `# peers:` line)

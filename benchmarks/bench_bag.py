@@ -39,12 +39,14 @@ TOPIC = '/ouster/points'
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 
 #: The point layout of the Ouster ROS driver's cloud.
-OUSTER_POINT = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
-    'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
-    'itemsize': 48,
-})
+OUSTER_POINT = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
+        'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
+        'itemsize': 48,
+    }
+)
 
 
 def ouster_cloud(typestore, points: np.ndarray, index: int):
@@ -58,8 +60,13 @@ def ouster_cloud(typestore, points: np.ndarray, index: int):
     table['ring'] = np.arange(points.shape[0], dtype=np.uint16)[:, None]
     stamp = types['builtin_interfaces/msg/Time'](sec=1_700_000_000 + index // 10, nanosec=(index % 10) * 100_000_000)
     header = types['std_msgs/msg/Header'](stamp=stamp, frame_id='os_sensor')
-    return structured_to_pointcloud2(table, header=header, msg_class=types[POINTCLOUD2],
-                                     field_class=types['sensor_msgs/msg/PointField'], is_dense=False)
+    return structured_to_pointcloud2(
+        table,
+        header=header,
+        msg_class=types[POINTCLOUD2],
+        field_class=types['sensor_msgs/msg/PointField'],
+        is_dense=False,
+    )
 
 
 def write_input(path: Path, frames: int) -> list:
@@ -71,8 +78,11 @@ def write_input(path: Path, frames: int) -> list:
     writer.open()
     connection = writer.add_connection(TOPIC, POINTCLOUD2, typestore=typestore)
     for i, msg in enumerate(messages):
-        writer.write(connection, 1_700_000_000_000_000_000 + i * 100_000_000 + 5_000_000,
-                     typestore.serialize_cdr(msg, POINTCLOUD2))
+        writer.write(
+            connection,
+            1_700_000_000_000_000_000 + i * 100_000_000 + 5_000_000,
+            typestore.serialize_cdr(msg, POINTCLOUD2),
+        )
     writer.close()
     return messages
 
@@ -96,26 +106,40 @@ def main(argv: list[str] | None = None) -> int:
         warm = process_cloud(messages[0], params, rosbags_message_types())
         print(f'warm-up frame: {time.perf_counter() - start:.2f} s, {warm.planes.num_planes} planes', file=sys.stderr)
         for jobs in args.jobs:
-            options = BagOptions(folder / 'in', folder / f'out_{jobs}', params=params, jobs=jobs,
-                                 storage=args.storage, progress=False)
+            options = BagOptions(
+                folder / 'in', folder / f'out_{jobs}', params=params, jobs=jobs, storage=args.storage, progress=False
+            )
             report = process_bag(options, log=lambda text: None)
             if report.exit_code != 0 or report.frames_processed != args.frames:
-                print(f'--jobs {jobs}: exit code {report.exit_code}, {report.frames_processed} frames processed',
-                      file=sys.stderr)
+                print(
+                    f'--jobs {jobs}: exit code {report.exit_code}, {report.frames_processed} frames processed',
+                    file=sys.stderr,
+                )
                 return 1
             seconds = [s for topic in report.topics.values() for s in topic.seconds]
             planes = [n for topic in report.topics.values() for n in topic.planes]
-            rows.append((jobs, report.frames_processed, report.wall_seconds, report.frames_per_second,
-                         statistics.median(seconds), statistics.mean(planes)))
+            rows.append(
+                (
+                    jobs,
+                    report.frames_processed,
+                    report.wall_seconds,
+                    report.frames_per_second,
+                    statistics.median(seconds),
+                    statistics.mean(planes),
+                )
+            )
     cores = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else os.cpu_count()
-    print(f'process_bag throughput: {args.frames} Ouster OS-1-128 clouds (128 x 1024, 48-byte points), '
-          f'{args.storage} output, {cores} cores, load average {os.getloadavg()[0]:.1f} at the end')
+    print(
+        f'process_bag throughput: {args.frames} Ouster OS-1-128 clouds (128 x 1024, 48-byte points), '
+        f'{args.storage} output, {cores} cores, load average {os.getloadavg()[0]:.1f} at the end'
+    )
     print()
     print('| --jobs | frames | wall s | frames/s | speed-up | s/frame in worker (median) | planes/frame |')
     print('|---:|---:|---:|---:|---:|---:|---:|')
     for jobs, frames, wall, rate, median, planes in rows:
-        print(f'| {jobs} | {frames} | {wall:.2f} | {rate:.2f} | {rate / rows[0][3]:.2f} | {median:.3f} | '
-              f'{planes:.0f} |')
+        print(
+            f'| {jobs} | {frames} | {wall:.2f} | {rate:.2f} | {rate / rows[0][3]:.2f} | {median:.3f} | {planes:.0f} |'
+        )
     return 0
 
 

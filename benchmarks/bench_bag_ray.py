@@ -56,8 +56,12 @@ def commit() -> str:
 
 def run(inputs: list[Path], out: Path, params: ExtractorParams, executor: str, task_frames: int) -> tuple:
     """One run over all bags: (report of the run, median s/frame in the workers)."""
-    runs = [BagOptions(source, out / source.name, params=params, jobs=2, executor=executor, progress=False,
-                       task_frames=task_frames) for source in inputs]
+    runs = [
+        BagOptions(
+            source, out / source.name, params=params, jobs=2, executor=executor, progress=False, task_frames=task_frames
+        )
+        for source in inputs
+    ]
     bags = process_bags(runs, log=lambda text: None, output_directory=out)
     if bags.exit_code != 0:
         raise SystemExit(f'{executor}: exit code {bags.exit_code}: {[r.worker_error or r.error for r in bags.reports]}')
@@ -92,8 +96,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f'warm-up frame: {warm.planes.num_planes} planes', file=sys.stderr)
         start = time.perf_counter()
         os.environ.setdefault('RAY_USAGE_STATS_ENABLED', '0')
-        ray.init(num_cpus=2, include_dashboard=False, _node_ip_address='127.0.0.1', log_to_driver=False,
-                 configure_logging=False)
+        ray.init(
+            num_cpus=2,
+            include_dashboard=False,
+            _node_ip_address='127.0.0.1',
+            log_to_driver=False,
+            configure_logging=False,
+        )
         ray_start = time.perf_counter() - start
         try:
             for repeat in range(args.repeat):
@@ -103,9 +112,12 @@ def main(argv: list[str] | None = None) -> int:
                     if not same_outputs(folder / 'out_local_0', out):
                         raise SystemExit(f'{out.name}: outputs differ from the first local run')
                     frames = sum(r.frames_processed for r in bags.reports)
-                    label = ('local --jobs 2' if executor == 'local' else
-                             f'ray, 2 workers, {args.task_frames} frames/task' + (' (workers starting)' if
-                                                                                   repeat == 0 else ''))
+                    label = (
+                        'local --jobs 2'
+                        if executor == 'local'
+                        else f'ray, 2 workers, {args.task_frames} frames/task'
+                        + (' (workers starting)' if repeat == 0 else '')
+                    )
                     rows.append((label, executor, frames, bags.wall_seconds, frames / bags.wall_seconds, median))
         finally:
             ray.shutdown()
@@ -114,19 +126,25 @@ def main(argv: list[str] | None = None) -> int:
     frames_total = args.bags * args.frames
     local_rate = statistics.mean(rate for _, executor, _, _, rate, _ in rows if executor == 'local')
     print(f'process_bag over {args.bags} bags of {args.frames} Ouster OS-1-128 clouds (128 x 1024, 48-byte points)')
-    print(f'machine: {machine()}; load average {os.getloadavg()[0]:.1f} at the end; '
-          f'{datetime.now(UTC):%Y-%m-%d %H:%M} UTC, commit {commit()}')
+    print(
+        f'machine: {machine()}; load average {os.getloadavg()[0]:.1f} at the end; '
+        f'{datetime.now(UTC):%Y-%m-%d %H:%M} UTC, commit {commit()}'
+    )
     print(f'command: {" ".join(shlex.quote(a) for a in [sys.executable, *sys.argv])}')
-    print(f'local Ray (2 CPUs, 127.0.0.1) started in {ray_start:.1f} s, before the runs; every output byte-identical '
-          'to the first local run')
+    print(
+        f'local Ray (2 CPUs, 127.0.0.1) started in {ray_start:.1f} s, before the runs; every output byte-identical '
+        'to the first local run'
+    )
     print()
     print('| run | frames | wall s | frames/s | vs local | s/frame in worker (median) |')
     print('|---|---:|---:|---:|---:|---:|')
     for label, _, frames, wall, rate, median in rows:
         print(f'| {label} | {frames} | {wall:.2f} | {rate:.2f} | {rate / local_rate:.2f} | {median:.3f} |')
     print()
-    print(f'per frame: {in_bytes / frames_total / 1e6:.2f} MB in (mcap), {out_bytes / frames_total / 1e6:.2f} MB out '
-          '(labelled cloud, markers, plane table)')
+    print(
+        f'per frame: {in_bytes / frames_total / 1e6:.2f} MB in (mcap), {out_bytes / frames_total / 1e6:.2f} MB out '
+        '(labelled cloud, markers, plane table)'
+    )
     return 0
 
 

@@ -35,7 +35,7 @@ LMAX_SYNPEB = 0.18
 NODE_LMAX = float(PARAM_SPEC_BY_NAME['max_neighbor_distance'].default)  # the extractor node's defaults
 NODE_E = float(PARAM_SPEC_BY_NAME['max_error_increment'].default)
 
-WORKER = r'''
+WORKER = r"""
 import json, resource, sys, time
 import numpy as np
 spec = json.loads(sys.argv[1])
@@ -65,12 +65,18 @@ print(json.dumps({'first_call': first, 'median': float(np.median(times)), 'min':
                   'planes': n_planes, 'actions': n_actions, 'stats': stats, 'shape': list(points.shape[:2]),
                   'valid': float(np.isfinite(points).all(axis=2).mean()),
                   'peak_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
-'''
+"""
 
 
 def run_row(spec: dict, env: dict | None = None) -> dict:
-    result = subprocess.run([sys.executable, '-c', WORKER, json.dumps(spec)], capture_output=True, text=True,
-                            cwd=REPO, env=env, timeout=3600)
+    result = subprocess.run(
+        [sys.executable, '-c', WORKER, json.dumps(spec)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env=env,
+        timeout=3600,
+    )
     if result.returncode != 0:
         raise RuntimeError(f'benchmark row {spec} failed:\n{result.stderr[-2000:]}')
     return json.loads(result.stdout.strip().splitlines()[-1])
@@ -84,14 +90,34 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[tuple[str, dict]] = []
     ouster = SHARED / 'ouster'
     if SHARED.is_dir():
-        rows.append(('SynPEB pc_01, 500x500', {'kind': 'file', 'path': str(SHARED / 'synpeb' / 'pc_01.pcd'),
-                                              'lmax': LMAX_SYNPEB, 'e': E_SYNPEB}))
-        rows.append(('Ouster OS-1-128, 128x1024', {
-            'kind': 'file', 'path': str(ouster / 'OS-1-128_v2.3.0_1024x10_lb_n3_frame1796_xyz_m.npy'),
-            'lmax': LMAX_SYNPEB, 'e': E_SYNPEB}))
-        rows.append(('Ouster OS-1-32, 32x1024', {
-            'kind': 'file', 'path': str(ouster / 'OS-1-32-G_v2.1.1_1024x10_frame638_xyz_m.npy'),
-            'lmax': LMAX_SYNPEB, 'e': E_SYNPEB}))
+        rows.append(
+            (
+                'SynPEB pc_01, 500x500',
+                {'kind': 'file', 'path': str(SHARED / 'synpeb' / 'pc_01.pcd'), 'lmax': LMAX_SYNPEB, 'e': E_SYNPEB},
+            )
+        )
+        rows.append(
+            (
+                'Ouster OS-1-128, 128x1024',
+                {
+                    'kind': 'file',
+                    'path': str(ouster / 'OS-1-128_v2.3.0_1024x10_lb_n3_frame1796_xyz_m.npy'),
+                    'lmax': LMAX_SYNPEB,
+                    'e': E_SYNPEB,
+                },
+            )
+        )
+        rows.append(
+            (
+                'Ouster OS-1-32, 32x1024',
+                {
+                    'kind': 'file',
+                    'path': str(ouster / 'OS-1-32-G_v2.1.1_1024x10_frame638_xyz_m.npy'),
+                    'lmax': LMAX_SYNPEB,
+                    'e': E_SYNPEB,
+                },
+            )
+        )
         for name, spec in rows[1:3]:  # the extractor node's defaults: no distance limit, e 0.01 m^2
             rows.append((name, dict(spec, lmax=NODE_LMAX, e=NODE_E)))
     else:
@@ -99,8 +125,10 @@ def main(argv: list[str] | None = None) -> int:
     sizes = (125, 250, 500) if args.quick else (125, 250, 500, 1000)
     for n in sizes:
         rows.append((f'generated room, {n}x{n}', {'kind': 'generated', 'size': n, 'lmax': LMAX_SYNPEB, 'e': E_SYNPEB}))
-    print(f'machine: {machine_description()}; command: python benchmarks/bench_extraction.py --repeats {args.repeats}'
-          f'{" --quick" if args.quick else ""}; {time.strftime("%Y-%m-%d")}\n')
+    print(
+        f'machine: {machine_description()}; command: python benchmarks/bench_extraction.py --repeats {args.repeats}'
+        f'{" --quick" if args.quick else ""}; {time.strftime("%Y-%m-%d")}\n'
+    )
     warm = time.perf_counter()
     run_row({'kind': 'generated', 'size': 16, 'lmax': LMAX_SYNPEB, 'e': E_SYNPEB, 'repeats': 1})
     print(f'(numba cache checked and filled in an untimed process: {time.perf_counter() - warm:.1f} s)\n')
@@ -110,27 +138,39 @@ def main(argv: list[str] | None = None) -> int:
     for name, spec in rows:
         spec['repeats'] = args.repeats
         r = run_row(spec)
-        name = f"{name} ({'node defaults' if spec['lmax'] == NODE_LMAX else 'SynPEB parameters'})" if \
-            spec['kind'] == 'file' and 'Ouster' in name else name
+        name = (
+            f'{name} ({"node defaults" if spec["lmax"] == NODE_LMAX else "SynPEB parameters"})'
+            if spec['kind'] == 'file' and 'Ouster' in name
+            else name
+        )
         results.append((name, r))
-        print(f"| {name} | {spec['lmax']:g} | {spec['e']:g} | {r['valid']:.0%} | {r['planes']} | {r['actions']} | "
-              f"{r['median']:.3f} | {r['min']:.3f} | {r['first_call']:.2f} | {r['peak_mb']:.0f} |", flush=True)
-    print('\nper action (median time / actions; the greedy\'s counters / actions):\n')
-    print('| input | µs | heap pops | merge valuations | merge refinements | refinement rays | new candidates '
-          '| re-linearisation rays |')
+        print(
+            f'| {name} | {spec["lmax"]:g} | {spec["e"]:g} | {r["valid"]:.0%} | {r["planes"]} | {r["actions"]} | '
+            f'{r["median"]:.3f} | {r["min"]:.3f} | {r["first_call"]:.2f} | {r["peak_mb"]:.0f} |',
+            flush=True,
+        )
+    print("\nper action (median time / actions; the greedy's counters / actions):\n")
+    print(
+        '| input | µs | heap pops | merge valuations | merge refinements | refinement rays | new candidates '
+        '| re-linearisation rays |'
+    )
     print('|---|---|---|---|---|---|---|---|')
     for name, r in results:
         per = {key: value / max(r['actions'], 1) for key, value in r['stats'].items()}
-        print(f"| {name} | {1e6 * r['median'] / max(r['actions'], 1):.2f} | {per['heap_pops']:.2f} | "
-              f"{per['merge_evaluations']:.2f} | {per['merge_refinements']:.2f} | {per['merge_refinement_rays']:.2f} | "
-              f"{per['new_candidates']:.2f} | {per['relinearisation_rays']:.2f} |")
+        print(
+            f'| {name} | {1e6 * r["median"] / max(r["actions"], 1):.2f} | {per["heap_pops"]:.2f} | '
+            f'{per["merge_evaluations"]:.2f} | {per["merge_refinements"]:.2f} | {per["merge_refinement_rays"]:.2f} | '
+            f'{per["new_candidates"]:.2f} | {per["relinearisation_rays"]:.2f} |'
+        )
     if not args.quick:
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache)
             spec = {'kind': 'generated', 'size': 125, 'lmax': LMAX_SYNPEB, 'e': E_SYNPEB, 'repeats': 1}
             r = run_row(spec, env)
-        print(f"\nfirst call with an empty numba cache (JIT compilation + one 125x125 run): {r['first_call']:.1f} s; "
-              f"the same call with a warm cache: see the 125x125 row's first-call column")
+        print(
+            f'\nfirst call with an empty numba cache (JIT compilation + one 125x125 run): {r["first_call"]:.1f} s; '
+            f"the same call with a warm cache: see the 125x125 row's first-call column"
+        )
     return 0
 
 

@@ -58,16 +58,19 @@ OUSTER_FILE = 'OS-1-128_v2.3.0_1024x10_lb_n3_frame1795_xyz_m.npy'
 BUDGET_MS = 15.0
 
 #: The point layout of the Ouster ROS driver's cloud (x y z, intensity, t, reflectivity, ring, ambient, range).
-OUSTER_POINT = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
-    'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
-    'itemsize': 48,
-})
+OUSTER_POINT = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
+        'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
+        'itemsize': 48,
+    }
+)
 
 
-def synthetic_room(height: int = 128, width: int = 1024, sides: int = 28,
-                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def synthetic_room(
+    height: int = 128, width: int = 1024, sides: int = 28, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Scan of a ``sides``-gon room (radius 8 m, floor -1.5 m, ceiling 2.5 m), 1 cm noise, 2 % no-returns.
 
     Returns ``(H, W, 3)`` points and ``(H, W)`` true face labels (0 = no return, faces 1..sides + 2).
@@ -86,8 +89,13 @@ def driver_message(points: np.ndarray, types):
     table['ring'] = np.arange(points.shape[0])[:, None]
     header = Header(frame_id='os_lidar')
     header.stamp.sec = 1_700_000_000
-    return structured_to_pointcloud2(table, header=header, msg_class=types.PointCloud2,
-                                     field_class=types.PointField, datatypes={'intensity': FLOAT32})
+    return structured_to_pointcloud2(
+        table,
+        header=header,
+        msg_class=types.PointCloud2,
+        field_class=types.PointField,
+        datatypes={'intensity': FLOAT32},
+    )
 
 
 def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: bool) -> dict:
@@ -101,8 +109,11 @@ def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: boo
     context = rclpy.context.Context()
     rclpy.init(context=context, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '77')))
     executor = SingleThreadedExecutor(context=context)
-    node = ExtractorNode(context=context, namespace=f'/bench_idle_{os.getpid()}', parameter_overrides=[
-        Parameter('process_without_subscribers', value=process_without_subscribers)])
+    node = ExtractorNode(
+        context=context,
+        namespace=f'/bench_idle_{os.getpid()}',
+        parameter_overrides=[Parameter('process_without_subscribers', value=process_without_subscribers)],
+    )
     executor.add_node(node)
     try:
         deadline = time.monotonic() + 600
@@ -117,8 +128,9 @@ def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: boo
                 executor.spin_once(timeout_sec=max(0.0, next_at - time.monotonic()))
         cores = (time.process_time() - cpu_start) / (time.monotonic() - start)
         counts = node.frame_counts()
-        return dict(sent=sent, processed=counts['processed'], idle=counts['idle'], dropped=counts['dropped'],
-                    cores=cores)
+        return dict(
+            sent=sent, processed=counts['processed'], idle=counts['idle'], dropped=counts['dropped'], cores=cores
+        )
     finally:
         executor.remove_node(node)
         node.destroy_node()
@@ -130,10 +142,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
     parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth'), default='synthetic')
-    parser.add_argument('--params', default=None, metavar='FILE.yaml',
-                        help="the node's params file (default: the node defaults)")
-    parser.add_argument('--idle', type=float, default=0.0, metavar='SECONDS',
-                        help='measure the CPU use with no subscriber instead (in-process node)')
+    parser.add_argument(
+        '--params', default=None, metavar='FILE.yaml', help="the node's params file (default: the node defaults)"
+    )
+    parser.add_argument(
+        '--idle',
+        type=float,
+        default=0.0,
+        metavar='SECONDS',
+        help='measure the CPU use with no subscriber instead (in-process node)',
+    )
     parser.add_argument('--rate', type=float, default=10.0, help='input clouds per second for --idle')
     args = parser.parse_args(argv)
     params = ExtractorParams.from_yaml(args.params) if args.params else ExtractorParams()
@@ -145,9 +163,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         points = np.load(OUSTER / OUSTER_FILE).astype(np.float64)
         msg = driver_message(points, types)
-        planes = extract_planes(cloud_points(msg, params), max_error_increment=params.max_error_increment,
-                                max_neighbor_distance=params.max_neighbor_distance,
-                                min_plane_points=params.min_plane_points)
+        planes = extract_planes(
+            cloud_points(msg, params),
+            max_error_increment=params.max_error_increment,
+            max_neighbor_distance=params.max_neighbor_distance,
+            min_plane_points=params.min_plane_points,
+        )
         description = f'Ouster {OUSTER_FILE}, planes from extract_planes'
     elif args.cloud == 'depth':  # what the node finds with these params
         from ppe_ros.core.synthetic_real import generate_depth_scan
@@ -164,14 +185,18 @@ def main(argv: list[str] | None = None) -> int:
     planes_s = time.perf_counter() - start
     if args.idle:
         height, width, _ = points.shape
-        print(f'Cloud: {description}, {height} x {width}, at {args.rate:g} Hz for {args.idle:g} s into an in-process '
-              'node with no subscriber on any output.\n')
+        print(
+            f'Cloud: {description}, {height} x {width}, at {args.rate:g} Hz for {args.idle:g} s into an in-process '
+            'node with no subscriber on any output.\n'
+        )
         print('| process_without_subscribers | clouds | extracted | idle | dropped | CPU (cores) |')
         print('|---|---|---|---|---|---|')
         for anyway in (False, True):
             row = idle_cost(msg, args.idle, args.rate, anyway)
-            print(f'| {str(anyway).lower()} | {row["sent"]} | {row["processed"]} | {row["idle"]} | {row["dropped"]} | '
-                  f'{row["cores"]:.2f} |')
+            print(
+                f'| {str(anyway).lower()} | {row["sent"]} | {row["processed"]} | {row["idle"]} | {row["dropped"]} | '
+                f'{row["cores"]:.2f} |'
+            )
         print(f'\nLoad average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores.')
         return 0
     selection = OutputSelection(True, True, True)
@@ -183,8 +208,13 @@ def main(argv: list[str] | None = None) -> int:
         start, cpu_start = time.perf_counter(), time.thread_time()
         points_in = cloud_points(msg, params)
         convert = time.perf_counter() - start
-        frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=points_in,
-                               planes=planes, timings={'convert': convert})
+        frame = ProcessedFrame(
+            header=msg.header,
+            stamped=StampedFrame.of(msg.header),
+            points=points_in,
+            planes=planes,
+            timings={'convert': convert},
+        )
         build_outputs(frame, params, types, selection)
         total = time.perf_counter() - start
         cpu_total = time.thread_time() - cpu_start
@@ -198,24 +228,34 @@ def main(argv: list[str] | None = None) -> int:
         builds.append((total - convert) * 1e3)
 
     height, width, _ = points.shape
-    print(f'Cloud: {description}, {height} x {width}, {planes.num_planes} planes '
-          f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
-          f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats; '
-          f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}, '
-          f'marker_max_triangles {params.marker_max_triangles}: mesh stride used {marker_stride}).\n')
+    print(
+        f'Cloud: {description}, {height} x {width}, {planes.num_planes} planes '
+        f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
+        f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats; '
+        f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}, '
+        f'marker_max_triangles {params.marker_max_triangles}: mesh stride used {marker_stride}).\n'
+    )
     print('| step | median ms | max ms |')
     print('|---|---|---|')
-    labels = {'convert': 'conversion in (PointCloud2 -> validated points)', 'labeled_points': 'labelled cloud',
-              'markers': 'markers (mesh + outline + arrows, CDR)', 'plane_table': 'plane table'}
+    labels = {
+        'convert': 'conversion in (PointCloud2 -> validated points)',
+        'labeled_points': 'labelled cloud',
+        'markers': 'markers (mesh + outline + arrows, CDR)',
+        'plane_table': 'plane table',
+    }
     for key, values in rows.items():
         print(f'| {labels[key]} | {statistics.median(values):.2f} | {max(values):.2f} |')
     print(f'| building outputs (sum of the three) | {statistics.median(builds):.2f} | {max(builds):.2f} |')
     print(f'| **total overhead** | **{statistics.median(totals):.2f}** | {max(totals):.2f} |')
-    print(f'| total overhead, CPU time of the thread (not inflated by other processes) | '
-          f'{statistics.median(cpu_totals):.2f} | {max(cpu_totals):.2f} |')
+    print(
+        f'| total overhead, CPU time of the thread (not inflated by other processes) | '
+        f'{statistics.median(cpu_totals):.2f} | {max(cpu_totals):.2f} |'
+    )
     verdict = 'within' if statistics.median(totals) <= BUDGET_MS else 'OVER'
-    print(f'\nBudget {BUDGET_MS:.0f} ms per frame (median wall time): {verdict}. '
-          f'Load average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores.')
+    print(
+        f'\nBudget {BUDGET_MS:.0f} ms per frame (median wall time): {verdict}. '
+        f'Load average during the run: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores.'
+    )
     return 0
 
 

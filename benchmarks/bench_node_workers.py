@@ -48,8 +48,11 @@ def run(workers: int, seconds: float, rate: float, clouds, sensor: str = 'none')
     context = rclpy.context.Context()
     rclpy.init(context=context, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '77')))
     executor = SingleThreadedExecutor(context=context)
-    node = ExtractorNode(context=context, namespace=f'/bench_{os.getpid()}_{workers}',
-                         parameter_overrides=[Parameter('workers', value=workers), Parameter('sensor', value=sensor)])
+    node = ExtractorNode(
+        context=context,
+        namespace=f'/bench_{os.getpid()}_{workers}',
+        parameter_overrides=[Parameter('workers', value=workers), Parameter('sensor', value=sensor)],
+    )
     probe = rclpy.create_node('probe', context=context, namespace=node.get_namespace())
     stamps: list[int] = []
     sent_at: dict[int, float] = {}
@@ -59,8 +62,9 @@ def run(workers: int, seconds: float, rate: float, clouds, sensor: str = 'none')
         stamps.append(msg.header.stamp.sec)
         latencies.append(time.monotonic() - sent_at[msg.header.stamp.sec])
 
-    probe.create_subscription(node._types.PointCloud2, 'planes', received,
-                              QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+    probe.create_subscription(
+        node._types.PointCloud2, 'planes', received, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    )
     executor.add_node(node)
     executor.add_node(probe)
     try:
@@ -75,9 +79,15 @@ def run(workers: int, seconds: float, rate: float, clouds, sensor: str = 'none')
         while time.monotonic() - start < seconds:
             template = clouds[sent % len(clouds)]  # a new message each time: a worker may still hold the last
             msg = node._types.PointCloud2(
-                height=template.height, width=template.width, fields=template.fields,
-                is_bigendian=template.is_bigendian, point_step=template.point_step, row_step=template.row_step,
-                data=template.data, is_dense=template.is_dense)
+                height=template.height,
+                width=template.width,
+                fields=template.fields,
+                is_bigendian=template.is_bigendian,
+                point_step=template.point_step,
+                row_step=template.row_step,
+                data=template.data,
+                is_dense=template.is_dense,
+            )
             msg.header.frame_id = template.header.frame_id
             msg.header.stamp.sec = sent + 1
             sent_at[sent + 1] = time.monotonic()
@@ -95,11 +105,18 @@ def run(workers: int, seconds: float, rate: float, clouds, sensor: str = 'none')
         while len(stamps) < counts['processed'] and time.monotonic() - settle < 10:
             executor.spin_once(timeout_sec=0.02)
         status = {kv.key: kv.value for kv in node.diagnostics_status().values}
-        return dict(workers=workers, sent=sent, processed=counts['processed'], dropped=counts['dropped'],
-                    failed=counts['failed'] + counts['skipped'], rate_out=counts['processed'] / elapsed,
-                    mean_ms=float(status['processing_time_mean_ms']), in_order=stamps == sorted(stamps),
-                    median_latency_ms=1000 * float(np.median(latencies)) if latencies else float('nan'),
-                    peak=status['frames_in_progress_peak'])
+        return dict(
+            workers=workers,
+            sent=sent,
+            processed=counts['processed'],
+            dropped=counts['dropped'],
+            failed=counts['failed'] + counts['skipped'],
+            rate_out=counts['processed'] / elapsed,
+            mean_ms=float(status['processing_time_mean_ms']),
+            in_order=stamps == sorted(stamps),
+            median_latency_ms=1000 * float(np.median(latencies)) if latencies else float('nan'),
+            peak=status['frames_in_progress_peak'],
+        )
     finally:
         executor.remove_node(probe)
         executor.remove_node(node)
@@ -115,8 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seconds', type=float, default=15.0)
     parser.add_argument('--rate', type=float, default=20.0, help='input clouds per second')
     parser.add_argument('--sensor', default='none', help="the node's sensor parameter (default none; e.g. lidar)")
-    parser.add_argument('--compare-tiles', action='store_true',
-                        help='each worker count with one tile (the exact greedy) and with the default tiles')
+    parser.add_argument(
+        '--compare-tiles',
+        action='store_true',
+        help='each worker count with one tile (the exact greedy) and with the default tiles',
+    )
     args = parser.parse_args(argv)
     if not all((OUSTER / name).is_file() for name in FRAMES):
         print(f'needs the Ouster sweeps {FRAMES} in {OUSTER}', file=sys.stderr)
@@ -130,12 +150,14 @@ def main(argv: list[str] | None = None) -> int:
 
     command = ' '.join(['python benchmarks/bench_node_workers.py', *(argv if argv is not None else sys.argv[1:])])
     print(f'machine: {machine_description()}; command: {command}; {time.strftime("%Y-%m-%d %H:%M")}\n')
-    print('| workers | sensor | tiles | clouds in | frames out | dropped | failed or skipped | frames/s out '
-          '| mean ms per frame | median latency ms | most at once | outputs in input order |')
+    print(
+        '| workers | sensor | tiles | clouds in | frames out | dropped | failed or skipped | frames/s out '
+        '| mean ms per frame | median latency ms | most at once | outputs in input order |'
+    )
     print('|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|')
     auto_columns = extraction.AUTO_TILE_COLUMNS
     for workers in args.workers:
-        for one_tile in ((True, False) if args.compare_tiles else (False,)):
+        for one_tile in (True, False) if args.compare_tiles else (False,):
             # one tile: 'auto' then means one strip of the whole width (the exact greedy)
             extraction.AUTO_TILE_COLUMNS = 2**31 if one_tile else auto_columns
             try:
@@ -143,10 +165,13 @@ def main(argv: list[str] | None = None) -> int:
             finally:
                 extraction.AUTO_TILE_COLUMNS = auto_columns
             tiles = '1' if one_tile or args.sensor == 'none' else 'default'
-            dropped = f"{r['dropped']} ({100 * r['dropped'] / max(r['sent'], 1):.0f} %)"
-            print(f"| {r['workers']} | {args.sensor} | {tiles} | {r['sent']} | {r['processed']} | {dropped} | "
-                  f"{r['failed']} | {r['rate_out']:.2f} | {r['mean_ms']:.0f} | {r['median_latency_ms']:.0f} | "
-                  f"{r['peak']} | {'yes' if r['in_order'] else 'NO'} |", flush=True)
+            dropped = f'{r["dropped"]} ({100 * r["dropped"] / max(r["sent"], 1):.0f} %)'
+            print(
+                f'| {r["workers"]} | {args.sensor} | {tiles} | {r["sent"]} | {r["processed"]} | {dropped} | '
+                f'{r["failed"]} | {r["rate_out"]:.2f} | {r["mean_ms"]:.0f} | {r["median_latency_ms"]:.0f} | '
+                f'{r["peak"]} | {"yes" if r["in_order"] else "NO"} |',
+                flush=True,
+            )
     return 0
 
 

@@ -69,16 +69,51 @@ RANSAC_MAX_PLANES = 100
 #: Settings passed to the PEAC driver (PEAC's ini names; mm and degrees): its own Kinect and TLS settings
 #: (plane_fitter_pcd.ini = its built-in defaults, plane_fitter_pcd.tls.ini) and, for the Ouster sweeps, its
 #: defaults with 4x4 windows, min support 100 and constant 30/40 mm tolerances (no depth-dependent term).
-PEAC_KINECT = {'stdTol_merge': 8, 'stdTol_init': 5, 'depthSigma': 1.6e-6, 'z_near': 500, 'z_far': 4000,
-               'angleDegree_near': 15, 'angleDegree_far': 90, 'similarityDegreeTh_merge': 60,
-               'similarityDegreeTh_refine': 30, 'depthAlpha': 0.04, 'depthChangeTol': 0.02, 'initType': 0,
-               'minSupport': 3000, 'windowWidth': 10, 'windowHeight': 10, 'doRefine': 1}
-PEAC_TLS = {'stdTol_merge': 6, 'stdTol_init': 3, 'depthSigma': 0, 'z_near': 500, 'z_far': 4000,
-            'angleDegree_near': 15, 'angleDegree_far': 45, 'similarityDegreeTh_merge': 45,
-            'similarityDegreeTh_refine': 15, 'depthAlpha': 0.004, 'depthChangeTol': 30, 'initType': 1,
-            'minSupport': 200, 'windowWidth': 10, 'windowHeight': 10, 'doRefine': 1}
-PEAC_OUSTER = {**PEAC_KINECT, 'depthSigma': 0, 'windowWidth': 4, 'windowHeight': 4, 'minSupport': 100,
-               'stdTol_init': 30, 'stdTol_merge': 40}
+PEAC_KINECT = {
+    'stdTol_merge': 8,
+    'stdTol_init': 5,
+    'depthSigma': 1.6e-6,
+    'z_near': 500,
+    'z_far': 4000,
+    'angleDegree_near': 15,
+    'angleDegree_far': 90,
+    'similarityDegreeTh_merge': 60,
+    'similarityDegreeTh_refine': 30,
+    'depthAlpha': 0.04,
+    'depthChangeTol': 0.02,
+    'initType': 0,
+    'minSupport': 3000,
+    'windowWidth': 10,
+    'windowHeight': 10,
+    'doRefine': 1,
+}
+PEAC_TLS = {
+    'stdTol_merge': 6,
+    'stdTol_init': 3,
+    'depthSigma': 0,
+    'z_near': 500,
+    'z_far': 4000,
+    'angleDegree_near': 15,
+    'angleDegree_far': 45,
+    'similarityDegreeTh_merge': 45,
+    'similarityDegreeTh_refine': 15,
+    'depthAlpha': 0.004,
+    'depthChangeTol': 30,
+    'initType': 1,
+    'minSupport': 200,
+    'windowWidth': 10,
+    'windowHeight': 10,
+    'doRefine': 1,
+}
+PEAC_OUSTER = {
+    **PEAC_KINECT,
+    'depthSigma': 0,
+    'windowWidth': 4,
+    'windowHeight': 4,
+    'minSupport': 100,
+    'stdTol_init': 30,
+    'stdTol_merge': 40,
+}
 
 
 def peac_settings(spec) -> dict:
@@ -103,11 +138,23 @@ def has_sensor_argument() -> bool:
 def ppe_settings(sensor: str, paper: bool, kind: str) -> tuple[dict, str]:
     """Keyword arguments of extract_planes for a scan kind, and the method's name in the tables."""
     if paper:
-        return ({'max_error_increment': PAPER_MAX_ERROR_INCREMENT, 'max_neighbor_distance': PAPER_MAX_NEIGHBOR_DISTANCE,
-                 'min_plane_points': MIN_PLANE_POINTS}, 'PPE paper (e 0.0484, lmax 0.18)')
+        return (
+            {
+                'max_error_increment': PAPER_MAX_ERROR_INCREMENT,
+                'max_neighbor_distance': PAPER_MAX_NEIGHBOR_DISTANCE,
+                'min_plane_points': MIN_PLANE_POINTS,
+            },
+            'PPE paper (e 0.0484, lmax 0.18)',
+        )
     if sensor == 'none':
-        return ({'max_error_increment': NODE_MAX_ERROR_INCREMENT, 'max_neighbor_distance': NODE_MAX_NEIGHBOR_DISTANCE,
-                 'min_plane_points': MIN_PLANE_POINTS}, 'PPE node defaults (e 0.01, lmax inf)')
+        return (
+            {
+                'max_error_increment': NODE_MAX_ERROR_INCREMENT,
+                'max_neighbor_distance': NODE_MAX_NEIGHBOR_DISTANCE,
+                'min_plane_points': MIN_PLANE_POINTS,
+            },
+            'PPE node defaults (e 0.01, lmax inf)',
+        )
     profile = kind if sensor == 'auto' else sensor
     return {'sensor': profile}, f'PPE sensor={profile}'
 
@@ -139,8 +186,9 @@ def run_ransac(o3d, points, kind):
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(flat[remaining]))
     label = 0
     while len(remaining) >= max(RANSAC_MIN_INLIERS, 3) and label < RANSAC_MAX_PLANES:
-        _, inliers = cloud.segment_plane(distance_threshold=RANSAC_DISTANCE[kind], ransac_n=3,
-                                         num_iterations=RANSAC_ITERATIONS)
+        _, inliers = cloud.segment_plane(
+            distance_threshold=RANSAC_DISTANCE[kind], ransac_n=3, num_iterations=RANSAC_ITERATIONS
+        )
         inliers = np.asarray(inliers, dtype=np.int64)
         if len(inliers) < RANSAC_MIN_INLIERS:
             break
@@ -204,15 +252,24 @@ def warm_up(specs, data, sensor, paper):
 def scan_metrics(spec, scan, labels, seconds, ground):
     from ppe_ros.core.evaluation import score_segmentation
 
-    row = {'planes_20': count_planes(labels, MIN_PLANE_POINTS), 'planes_100': count_planes(labels, 100),
-           'large_share': share_in_large_planes(labels, scan.valid, LARGE_PLANE_POINTS), 'seconds': seconds}
+    row = {
+        'planes_20': count_planes(labels, MIN_PLANE_POINTS),
+        'planes_100': count_planes(labels, 100),
+        'large_share': share_in_large_planes(labels, scan.valid, LARGE_PLANE_POINTS),
+        'seconds': seconds,
+    }
     if ground is not None:
         cover = ground_cover(labels, ground.mask, 0.8)
-        row.update(ground_points=cover.ground_points, ground_largest=cover.largest_share,
-                   ground_planes_80=cover.planes_for_share, ground_covered=cover.covered_share)
+        row.update(
+            ground_points=cover.ground_points,
+            ground_largest=cover.largest_share,
+            ground_planes_80=cover.planes_for_share,
+            ground_covered=cover.covered_share,
+        )
     if spec.labelled and scan.labels is not None:
-        score = score_segmentation(labels, scan.labels, gt_min_label=int(scan.meta.get('min_plane_label', 1)),
-                                   valid=scan.valid)
+        score = score_segmentation(
+            labels, scan.labels, gt_min_label=int(scan.meta.get('min_plane_label', 1)), valid=scan.valid
+        )
         row.update(f=score.f, k=score.k, n_gt=score.n_gt)
     return row
 
@@ -232,6 +289,7 @@ def fitted_planes(points, origins, labels):
 
 def register_open3d(o3d, points_a, points_b):
     """Point-to-plane ICP of sweep A onto sweep B (0.1 m voxels, 1.0 -> 0.3 -> 0.1 m correspondences)."""
+
     def cloud(points):
         flat = points.reshape(-1, 3)
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(flat[np.isfinite(flat).all(axis=1)]))
@@ -244,12 +302,23 @@ def register_open3d(o3d, points_a, points_b):
     result = None
     for distance in (1.0, 0.3, 0.1):
         result = o3d.pipelines.registration.registration_icp(
-            source, target, distance, transform, o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50))
+            source,
+            target,
+            distance,
+            transform,
+            o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50),
+        )
         transform = np.asarray(result.transformation)
-    return transform[:3, :3].copy(), transform[:3, 3].copy(), {
-        'method': 'Open3D point-to-plane ICP', 'fitness': float(result.fitness),
-        'inlier_rmse': float(result.inlier_rmse)}
+    return (
+        transform[:3, :3].copy(),
+        transform[:3, 3].copy(),
+        {
+            'method': 'Open3D point-to-plane ICP',
+            'fitness': float(result.fitness),
+            'inlier_rmse': float(result.inlier_rmse),
+        },
+    )
 
 
 def register_planes(labels_a, points_a, planes_a, labels_b, points_b, origins_b, planes_b):
@@ -265,26 +334,49 @@ def register_planes(labels_a, points_a, planes_a, labels_b, points_b, origins_b,
     used, weakest = 0, math.nan
     for round_index in range(6):
         max_angle, max_offset, min_iou = (5.0, 0.5, 0.0) if round_index == 0 else (2.0, 0.1, 0.3)
-        matches = [m for m in match_planes(labels_a, points_a, planes_a.normals, planes_a.offsets, None, labels_b,
-                                           projector, planes_b.normals, planes_b.offsets, None, rotation, translation,
-                                           min_points=REGISTRATION_PLANE_POINTS)
-                   if m.label_b > 0 and m.angle_deg < max_angle and m.offset_diff < max_offset and m.iou > min_iou]
+        matches = [
+            m
+            for m in match_planes(
+                labels_a,
+                points_a,
+                planes_a.normals,
+                planes_a.offsets,
+                None,
+                labels_b,
+                projector,
+                planes_b.normals,
+                planes_b.offsets,
+                None,
+                rotation,
+                translation,
+                min_points=REGISTRATION_PLANE_POINTS,
+            )
+            if m.label_b > 0 and m.angle_deg < max_angle and m.offset_diff < max_offset and m.iou > min_iou
+        ]
         if len(matches) < 3:
             break
         ia = np.array([m.label_a - 1 for m in matches])
         ib = np.array([m.label_b - 1 for m in matches])
         weights = np.array([m.points_a for m in matches], float)
         try:
-            rotation, translation = rigid_fit_from_planes(planes_a.normals[ia], planes_a.offsets[ia],
-                                                          planes_b.normals[ib], planes_b.offsets[ib], weights)
+            rotation, translation = rigid_fit_from_planes(
+                planes_a.normals[ia], planes_a.offsets[ia], planes_b.normals[ib], planes_b.offsets[ib], weights
+            )
         except ValueError:
             break
         moved = planes_a.normals[ia] @ rotation.T
         eigenvalues = np.linalg.eigvalsh((weights[:, None] * moved).T @ moved)
         used, weakest = len(matches), float(eigenvalues[0] / eigenvalues[-1])
-    return rotation, translation, {'method': f'rigid fit from {used} matched planes (weakest direction '
-                                             f'{100 * weakest:.1f} % of the strongest)',
-                                   'fitness': math.nan, 'inlier_rmse': math.nan}
+    return (
+        rotation,
+        translation,
+        {
+            'method': f'rigid fit from {used} matched planes (weakest direction '
+            f'{100 * weakest:.1f} % of the strongest)',
+            'fitness': math.nan,
+            'inlier_rmse': math.nan,
+        },
+    )
 
 
 # --------------------------------------------------------------------------------------------- tables
@@ -307,50 +399,107 @@ def markdown(header, rows):
 
 
 def main_table(results):
-    header = ['scan', 'split', 'method', 'planes >= 20', 'planes >= 100', 'valid pts in planes >= 1000', 'time s',
-              'ground pts (25 m)', 'ground: largest plane', 'ground: planes for 80 %', 'ICL f', 'ICL k']
+    header = [
+        'scan',
+        'split',
+        'method',
+        'planes >= 20',
+        'planes >= 100',
+        'valid pts in planes >= 1000',
+        'time s',
+        'ground pts (25 m)',
+        'ground: largest plane',
+        'ground: planes for 80 %',
+        'ICL f',
+        'ICL k',
+    ]
     rows = []
     for r in results:
         if 'error' in r:
-            rows.append([r['scan'], r['split'], r['method'], f"failed: {r['error']}"] + [''] * 8)
+            rows.append([r['scan'], r['split'], r['method'], f'failed: {r["error"]}'] + [''] * 8)
             continue
         g80 = r.get('ground_planes_80', '')
         if 'ground_points' in r and g80 is None:
-            g80 = f"never ({pct(r['ground_covered'], 0)} in planes)"
-        rows.append([r['scan'], r['split'], r['method'], r['planes_20'], r['planes_100'], pct(r['large_share']),
-                     num(r['seconds']), r.get('ground_points', ''), pct(r.get('ground_largest')), g80,
-                     pct(r.get('f')), pct(r.get('k'))])
+            g80 = f'never ({pct(r["ground_covered"], 0)} in planes)'
+        rows.append(
+            [
+                r['scan'],
+                r['split'],
+                r['method'],
+                r['planes_20'],
+                r['planes_100'],
+                pct(r['large_share']),
+                num(r['seconds']),
+                r.get('ground_points', ''),
+                pct(r.get('ground_largest')),
+                g80,
+                pct(r.get('f')),
+                pct(r.get('k')),
+            ]
+        )
     return markdown(header, rows)
 
 
 def repeat_table(pairs):
-    header = ['A -> B', 'method', 'planes >= 1000 in A', 'found again', 'median IoU', 'matched pairs',
-              'median angle deg', 'median abs(d_A - d_B) mm', 'median predicted sigma_d mm',
-              f'median Mahalanobis² (calibrated {CHI2_3_MEDIAN:.2f})', 'same + registration error']
+    header = [
+        'A -> B',
+        'method',
+        'planes >= 1000 in A',
+        'found again',
+        'median IoU',
+        'matched pairs',
+        'median angle deg',
+        'median abs(d_A - d_B) mm',
+        'median predicted sigma_d mm',
+        f'median Mahalanobis² (calibrated {CHI2_3_MEDIAN:.2f})',
+        'same + registration error',
+    ]
     rows = []
     for p in pairs:
         s = p['summary']
-        found = f"{s['found']} / {s['planes']} ({pct(s['found_share'], 0)})" if s['planes'] else '0 / 0'
-        rows.append([p['pair'], p['method'], s['planes'], found, num(s['median_iou']), s['pairs'],
-                     num(s['median_angle_deg']), num(1000 * s['median_offset_diff'], '{:.1f}'),
-                     num(1000 * s['median_sigma_d_predicted'], '{:.1f}'), num(s['median_mahalanobis2'], '{:.1f}'),
-                     num(s['median_mahalanobis2_with_registration'], '{:.1f}')])
+        found = f'{s["found"]} / {s["planes"]} ({pct(s["found_share"], 0)})' if s['planes'] else '0 / 0'
+        rows.append(
+            [
+                p['pair'],
+                p['method'],
+                s['planes'],
+                found,
+                num(s['median_iou']),
+                s['pairs'],
+                num(s['median_angle_deg']),
+                num(1000 * s['median_offset_diff'], '{:.1f}'),
+                num(1000 * s['median_sigma_d_predicted'], '{:.1f}'),
+                num(s['median_mahalanobis2'], '{:.1f}'),
+                num(s['median_mahalanobis2_with_registration'], '{:.1f}'),
+            ]
+        )
     return markdown(header, rows)
 
 
 def registration_table(registrations, chain):
     header = ['A -> B', 'registration', 'motion m', 'rotation deg', 'ICP fitness', 'ICP inlier RMSE mm']
-    rows = [[r['pair'], r['method'], num(r['translation'], '{:.3f}'), num(r['rotation_deg'], '{:.3f}'),
-             num(r['fitness'], '{:.3f}'), num(1000 * r['inlier_rmse'], '{:.1f}')] for r in registrations]
+    rows = [
+        [
+            r['pair'],
+            r['method'],
+            num(r['translation'], '{:.3f}'),
+            num(r['rotation_deg'], '{:.3f}'),
+            num(r['fitness'], '{:.3f}'),
+            num(1000 * r['inlier_rmse'], '{:.1f}'),
+        ]
+        for r in registrations
+    ]
     text = markdown(header, rows)
     if chain is not None:
-        text += (f"\n\nRegistration error estimate: the loop {chain['pair']} registered directly differs from the "
-                 f"composition of the two steps by {chain['rotation_deg']:.3f} deg and "
-                 f"{1000 * chain['translation']:.1f} mm; three registrations enter that loop, so one registration "
-                 f"is taken to err by {chain['sigma_rotation_deg']:.3f} deg and "
-                 f"{1000 * chain['sigma_translation']:.1f} mm per axis (1 sigma). This error is in abs(d_A - d_B) "
-                 f"and in the Mahalanobis², not in the planes' covariances; the last column of the repeatability "
-                 f"table adds it (ppe_ros.benchmark.real.registration_covariance).")
+        text += (
+            f'\n\nRegistration error estimate: the loop {chain["pair"]} registered directly differs from the '
+            f'composition of the two steps by {chain["rotation_deg"]:.3f} deg and '
+            f'{1000 * chain["translation"]:.1f} mm; three registrations enter that loop, so one registration '
+            f'is taken to err by {chain["sigma_rotation_deg"]:.3f} deg and '
+            f'{1000 * chain["sigma_translation"]:.1f} mm per axis (1 sigma). This error is in abs(d_A - d_B) '
+            f"and in the Mahalanobis², not in the planes' covariances; the last column of the repeatability "
+            f'table adds it (ppe_ros.benchmark.real.registration_covariance).'
+        )
     return text
 
 
@@ -360,32 +509,51 @@ def registration_table(registrations, chain):
 def parse_args(argv):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--data', default=str(SHARED), help='the shared data folder (default ../shared/data)')
-    parser.add_argument('--scans', nargs='+', default=None, metavar='NAME',
-                        help='subset of scans by name or prefix (e.g. "OS-1-128" "ICL-NUIM 0"); default all')
-    parser.add_argument('--methods', default='ppe,ransac,peac',
-                        help='comma-separated methods: ppe, ransac (Open3D), peac (needs PEAC_BIN); default all')
-    parser.add_argument('--sensor', choices=SENSOR_CHOICES, default='none',
-                        help="PPE profile: none = node defaults without the sensor argument (default); auto = "
-                        "'lidar' for Ouster/TLS, 'depth_camera' for Kinect/ICL; or one profile for all")
-    parser.add_argument('--paper', action='store_true', help='PPE at the paper\'s e 0.0484 m², lmax 0.18 m')
+    parser.add_argument(
+        '--scans',
+        nargs='+',
+        default=None,
+        metavar='NAME',
+        help='subset of scans by name or prefix (e.g. "OS-1-128" "ICL-NUIM 0"); default all',
+    )
+    parser.add_argument(
+        '--methods',
+        default='ppe,ransac,peac',
+        help='comma-separated methods: ppe, ransac (Open3D), peac (needs PEAC_BIN); default all',
+    )
+    parser.add_argument(
+        '--sensor',
+        choices=SENSOR_CHOICES,
+        default='none',
+        help='PPE profile: none = node defaults without the sensor argument (default); auto = '
+        "'lidar' for Ouster/TLS, 'depth_camera' for Kinect/ICL; or one profile for all",
+    )
+    parser.add_argument('--paper', action='store_true', help="PPE at the paper's e 0.0484 m², lmax 0.18 m")
     parser.add_argument('--png-dir', default=None, help='write a segmentation PNG per scan and method here')
     parser.add_argument('--json', default=None, help='also write all numbers to this JSON file')
     parser.add_argument('--no-repeat', action='store_true', help='skip the repeatability / covariance tables')
-    parser.add_argument('--registration', choices=('auto', 'icp', 'planes'), default='auto',
-                        help='registration of consecutive sweeps: icp = Open3D point-to-plane ICP, planes = rigid fit '
-                        'from the first method\'s matched planes; auto (default) = icp when Open3D is installed')
+    parser.add_argument(
+        '--registration',
+        choices=('auto', 'icp', 'planes'),
+        default='auto',
+        help='registration of consecutive sweeps: icp = Open3D point-to-plane ICP, planes = rigid fit '
+        "from the first method's matched planes; auto (default) = icp when Open3D is installed",
+    )
     args = parser.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
     unknown = sorted(set(methods) - set(METHOD_CHOICES))
     if unknown or not methods:
-        raise BenchmarkError(f'unknown method(s) {", ".join(unknown) or "(none given)"}; choose from '
-                             f'{", ".join(METHOD_CHOICES)}')
+        raise BenchmarkError(
+            f'unknown method(s) {", ".join(unknown) or "(none given)"}; choose from {", ".join(METHOD_CHOICES)}'
+        )
     args.methods = methods
     if args.paper and args.sensor != 'none':
         raise BenchmarkError('--paper sets e and lmax itself; it cannot be combined with --sensor')
     if args.sensor != 'none' and not has_sensor_argument():
-        raise BenchmarkError(f'--sensor {args.sensor}: this ppe_ros\'s extract_planes has no sensor argument yet; '
-                             f'use --sensor none or --paper')
+        raise BenchmarkError(
+            f"--sensor {args.sensor}: this ppe_ros's extract_planes has no sensor argument yet; "
+            f'use --sensor none or --paper'
+        )
     specs = list(REAL_SCANS)
     if args.scans:
         chosen = [s for s in specs if any(s.name == n or s.name.startswith(n) for n in args.scans)]
@@ -411,8 +579,10 @@ def available_methods(methods):
         elif name == 'ransac':
             o3d = open3d_or_none()
             if o3d is None:
-                notes.append('ransac skipped: Open3D is not installed (pip install the open3d pinned in '
-                             'requirements.txt; Debian also needs apt-get install libusb-1.0-0)')
+                notes.append(
+                    'ransac skipped: Open3D is not installed (pip install the open3d pinned in '
+                    'requirements.txt; Debian also needs apt-get install libusb-1.0-0)'
+                )
             else:
                 handles[name] = o3d
         elif name == 'peac':
@@ -455,16 +625,19 @@ def run(args) -> int:
                 else:
                     if method == 'ransac':
                         labels, seconds = run_ransac(handles[method], scan.points, spec.kind)
-                        label = f"Open3D RANSAC loop ({RANSAC_DISTANCE[spec.kind] * 100:g} cm) + connected parts"
+                        label = f'Open3D RANSAC loop ({RANSAC_DISTANCE[spec.kind] * 100:g} cm) + connected parts'
                     else:
                         settings = peac_settings(spec)
                         labels, seconds = run_peac(handles[method], scan.points, settings)
-                        label = (f"PEAC ({settings['windowWidth']}x{settings['windowHeight']} windows, min support "
-                                 f"{settings['minSupport']})")
+                        label = (
+                            f'PEAC ({settings["windowWidth"]}x{settings["windowHeight"]} windows, min support '
+                            f'{settings["minSupport"]})'
+                        )
                     planes = None
             except Exception as exc:  # a failing method must not lose the other rows
-                results.append({'scan': spec.name, 'split': spec.split, 'method': method,
-                                'error': f'{type(exc).__name__}: {exc}'})
+                results.append(
+                    {'scan': spec.name, 'split': spec.split, 'method': method, 'error': f'{type(exc).__name__}: {exc}'}
+                )
                 print(f'note: {method} failed on {spec.name}: {exc}', file=sys.stderr)
                 continue
             row = {'scan': spec.name, 'split': spec.split, 'method': label, 'method_key': method}
@@ -479,10 +652,14 @@ def run(args) -> int:
                 tag = method
                 if method == 'ppe':
                     tag = 'ppe_paper' if args.paper else 'ppe_node'
-                    tag = f"ppe_{kwargs['sensor']}" if 'sensor' in kwargs else tag
-                save_segmentation_png(png_path(args.png_dir, spec.name, tag), labels,
-                                      ground_truth=scan.labels if spec.labelled else None,
-                                      gt_min_label=int(scan.meta.get('min_plane_label', 1)), scale=scale)
+                    tag = f'ppe_{kwargs["sensor"]}' if 'sensor' in kwargs else tag
+                save_segmentation_png(
+                    png_path(args.png_dir, spec.name, tag),
+                    labels,
+                    ground_truth=scan.labels if spec.labelled else None,
+                    gt_min_label=int(scan.meta.get('min_plane_label', 1)),
+                    scale=scale,
+                )
             if keep_sequence and spec.name in sequence_names:
                 if planes is None:
                     planes = fitted_planes(scan.points, scan.origins, labels)
@@ -524,12 +701,14 @@ def repeatability(args, handles, kept):
         if o3d is not None:
             motion = register_open3d(o3d, scan_a.points, scan_b.points)
         else:
-            motion = register_planes(planes_a.labels, scan_a.points, planes_a, planes_b.labels, scan_b.points,
-                                     scan_b.origins, planes_b)
+            motion = register_planes(
+                planes_a.labels, scan_a.points, planes_a, planes_b.labels, scan_b.points, scan_b.origins, planes_b
+            )
         motions[(a, b)] = motion
         angle, _ = motion_difference(np.eye(3), np.zeros(3), motion[0], motion[1])
-        registrations.append({'pair': f'{a} -> {b}', 'translation': float(np.linalg.norm(motion[1])),
-                              'rotation_deg': angle, **motion[2]})
+        registrations.append(
+            {'pair': f'{a} -> {b}', 'translation': float(np.linalg.norm(motion[1])), 'rotation_deg': angle, **motion[2]}
+        )
     chain = None
     if len(pair_list) == 2 and o3d is not None:
         (a, b), (_, c) = pair_list
@@ -538,24 +717,46 @@ def repeatability(args, handles, kept):
         r23, t23, _ = motions[pair_list[1]]
         angle, dist = motion_difference(r13, t13, r23 @ r12, r23 @ t12 + t23)
         # three registration errors enter the loop: per registration and axis about |loop error| / 3
-        chain = {'pair': f'{a} -> {c}', 'rotation_deg': angle, 'translation': dist,
-                 'sigma_translation': dist / 3, 'sigma_rotation_deg': angle / 3}
-    registration_sigma = None if chain is None else (chain['sigma_translation'],
-                                                      math.radians(chain['sigma_rotation_deg']))
+        chain = {
+            'pair': f'{a} -> {c}',
+            'rotation_deg': angle,
+            'translation': dist,
+            'sigma_translation': dist / 3,
+            'sigma_rotation_deg': angle / 3,
+        }
+    registration_sigma = (
+        None if chain is None else (chain['sigma_translation'], math.radians(chain['sigma_rotation_deg']))
+    )
     pairs_out = []
     for method in methods:
         for a, b in pair_list:
             scan_a, planes_a, label = kept[(a, method)]
             scan_b, planes_b, _ = kept[(b, method)]
             rotation, translation, _ = motions[(a, b)]
-            matches = match_planes(planes_a.labels, scan_a.points, planes_a.normals, planes_a.offsets,
-                                   planes_a.covariances, planes_b.labels, RangeImageProjector(scan_b.points,
-                                                                                              scan_b.origins),
-                                   planes_b.normals, planes_b.offsets, planes_b.covariances, rotation, translation,
-                                   min_points=LARGE_PLANE_POINTS, registration_sigma=registration_sigma)
-            pairs_out.append({'pair': f'{a} -> {b}', 'method': label,
-                              'summary': summarize_matches(matches).__dict__,
-                              'matches': [m.__dict__ for m in matches]})
+            matches = match_planes(
+                planes_a.labels,
+                scan_a.points,
+                planes_a.normals,
+                planes_a.offsets,
+                planes_a.covariances,
+                planes_b.labels,
+                RangeImageProjector(scan_b.points, scan_b.origins),
+                planes_b.normals,
+                planes_b.offsets,
+                planes_b.covariances,
+                rotation,
+                translation,
+                min_points=LARGE_PLANE_POINTS,
+                registration_sigma=registration_sigma,
+            )
+            pairs_out.append(
+                {
+                    'pair': f'{a} -> {b}',
+                    'method': label,
+                    'summary': summarize_matches(matches).__dict__,
+                    'matches': [m.__dict__ for m in matches],
+                }
+            )
     return pairs_out, registrations, chain
 
 

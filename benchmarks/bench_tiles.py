@@ -68,9 +68,11 @@ def _timed_extraction(points, origins, kwargs: dict, threads: int) -> tuple[floa
 def speed_table(repeats: int) -> list[str]:
     from ppe_ros.io import load_scan
 
-    lines = ['| scan | setting | threads | extract median s (min) | seeds + greedy median s | CPU s median '
-             '| vs 1 tile, same threads | vs 1 tile, 2 threads (before) | 2 threads vs 1 | vs calibration |',
-             '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|']
+    lines = [
+        '| scan | setting | threads | extract median s (min) | seeds + greedy median s | CPU s median '
+        '| vs 1 tile, same threads | vs 1 tile, 2 threads (before) | 2 threads vs 1 | vs calibration |',
+        '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|',
+    ]
     for name in SPEED_SCANS:
         scan = load_scan(OUSTER / name)
         runs = {i: [] for i in range(len(CONFIGS))}
@@ -95,9 +97,10 @@ def speed_table(repeats: int) -> list[str]:
                 cells[1] = f'{median[before] / median[i]:.2f}x'
                 cells[2] = f'{median[one_thread] / median[i]:.2f}x' if threads == 2 and one_thread is not None else ''
             cells[3] = f'{median[i] / calibration:.2f}'
-            lines.append(f'| {name.split("_")[0]} {scan.points.shape[0]}x{scan.points.shape[1]} | {label} | {threads} '
-                         f'| {median[i]:.3f} ({min(totals):.3f}) | {greedy:.3f} | {cpu:.3f} | '
-                         + ' | '.join(cells) + ' |')
+            lines.append(
+                f'| {name.split("_")[0]} {scan.points.shape[0]}x{scan.points.shape[1]} | {label} | {threads} '
+                f'| {median[i]:.3f} ({min(totals):.3f}) | {greedy:.3f} | {cpu:.3f} | ' + ' | '.join(cells) + ' |'
+            )
     return lines
 
 
@@ -109,9 +112,10 @@ def accuracy_tables(n_scans: int) -> list[str]:
     from ppe_ros.io import load_scan
 
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    lines = ['| generated sweep | seed | f % 1 tile | f % tiles | k % 1 tile | k % tiles | planes 1 tile '
-             '| planes tiles |',
-             '|---|---:|---:|---:|---:|---:|---:|---:|']
+    lines = [
+        '| generated sweep | seed | f % 1 tile | f % tiles | k % 1 tile | k % tiles | planes 1 tile | planes tiles |',
+        '|---|---:|---:|---:|---:|---:|---:|---:|',
+    ]
     totals = {1: [], 'auto': []}
     for model in ('os1-128', 'os1-32'):
         for seed in range(1000, 1000 + n_scans):
@@ -122,13 +126,19 @@ def accuracy_tables(n_scans: int) -> list[str]:
                 score = score_segmentation(planes.labels, scan.labels)
                 row[tiles] = (100 * score.f, 100 * score.k, planes.num_planes)
                 totals[tiles].append(row[tiles][:2])
-            lines.append(f'| {model} | {seed} | {row[1][0]:.1f} | {row["auto"][0]:.1f} | {row[1][1]:.1f} | '
-                         f'{row["auto"][1]:.1f} | {row[1][2]} | {row["auto"][2]} |')
+            lines.append(
+                f'| {model} | {seed} | {row[1][0]:.1f} | {row["auto"][0]:.1f} | {row[1][1]:.1f} | '
+                f'{row["auto"][1]:.1f} | {row[1][2]} | {row["auto"][2]} |'
+            )
     mean = {t: np.mean(v, axis=0) for t, v in totals.items()}
-    lines.append(f'| mean | | {mean[1][0]:.1f} | {mean["auto"][0]:.1f} | {mean[1][1]:.1f} | '
-                 f'{mean["auto"][1]:.1f} | | |')
-    lines += ['', '| real sweep | planes >= 20, 1 tile / tiles | planes >= 100 | share in planes >= 1000 |',
-              '|---|---:|---:|---:|']
+    lines.append(
+        f'| mean | | {mean[1][0]:.1f} | {mean["auto"][0]:.1f} | {mean[1][1]:.1f} | {mean["auto"][1]:.1f} | | |'
+    )
+    lines += [
+        '',
+        '| real sweep | planes >= 20, 1 tile / tiles | planes >= 100 | share in planes >= 1000 |',
+        '|---|---:|---:|---:|',
+    ]
     for path in sorted(OUSTER.glob('*_xyz_m.npy')):
         scan = load_scan(path)
         valid = np.isfinite(scan.points).all(axis=2)
@@ -136,8 +146,10 @@ def accuracy_tables(n_scans: int) -> list[str]:
         for tiles in (1, 'auto'):
             labels = extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=tiles).labels
             cells.append((count_planes(labels, 20), count_planes(labels, 100), share_in_large_planes(labels, valid)))
-        lines.append(f'| {path.name.split("_xyz")[0]} | {cells[0][0]} / {cells[1][0]} | {cells[0][1]} / {cells[1][1]} '
-                     f'| {cells[0][2]:.3f} / {cells[1][2]:.3f} |')
+        lines.append(
+            f'| {path.name.split("_xyz")[0]} | {cells[0][0]} / {cells[1][0]} | {cells[0][1]} / {cells[1][1]} '
+            f'| {cells[0][2]:.3f} / {cells[1][2]:.3f} |'
+        )
     return lines
 
 
@@ -156,8 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     from ppe_ros.benchmark.report import machine_description
 
     command = 'python benchmarks/bench_tiles.py ' + ' '.join(argv if argv is not None else sys.argv[1:])
-    print(f'machine: {machine_description()}; numba threads available: {numba.config.NUMBA_NUM_THREADS}; '
-          f'command: {command.strip()}; {time.strftime("%Y-%m-%d %H:%M")}\n')
+    print(
+        f'machine: {machine_description()}; numba threads available: {numba.config.NUMBA_NUM_THREADS}; '
+        f'command: {command.strip()}; {time.strftime("%Y-%m-%d %H:%M")}\n'
+    )
     for line in speed_table(repeats):
         print(line, flush=True)
     if n_scans:

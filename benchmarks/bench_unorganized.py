@@ -105,7 +105,8 @@ def sweep_rows(path: Path, repeat: int) -> list[str]:
             f'| {path.name.split("_v")[0]} {path.name.split("frame")[1].split("_")[0]} | {len(points)} | {name} | '
             f'{projection.rows}x{projection.columns} | {projection.lost_points} | {1e3 * project:.0f} | '
             f'{1e3 * labels:.1f} | {extract:.2f} ({organized_s:.2f}) | {100 * (project + labels) / extract:.1f} % | '
-            f'{100 * agreements[0]:.2f} % | {100 * agreements[1]:.2f} % ({seam:.1f} deg) |')
+            f'{100 * agreements[0]:.2f} % | {100 * agreements[1]:.2f} % ({seam:.1f} deg) |'
+        )
     return rows
 
 
@@ -117,8 +118,9 @@ def livox_like(n_points: int = 20000, seed: int = 7) -> tuple[np.ndarray, np.nda
     radius = np.radians(35) * np.abs(np.sin(2 * math.pi * 37 * t)) * np.sqrt(rng.uniform(0.2, 1, n_points))
     angle = 2 * math.pi * 5.1 * t
     elevation, azimuth = radius * np.sin(angle), radius * np.cos(angle)
-    direction = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                          np.sin(elevation)], axis=1)
+    direction = np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
     with np.errstate(divide='ignore'):
         to_wall = np.where(direction[:, 0] > 0, 5.0 / direction[:, 0], np.inf)
         to_floor = np.where(direction[:, 2] < 0, -1.5 / direction[:, 2], np.inf)
@@ -133,13 +135,16 @@ def livox_rows() -> list[str]:
     for resolution in (0.2, 0.4, 0.8, 1.6):
         start = time.perf_counter()
         projection = project_points(points, rows='angular_grid', angular_resolution=resolution)
-        planes = planes_for_points(projection, extract_planes(projection.image(points), sensor='lidar'), points,
-                                   LIDAR_TOLERANCE)
+        planes = planes_for_points(
+            projection, extract_planes(projection.image(points), sensor='lidar'), points, LIDAR_TOLERANCE
+        )
         seconds = time.perf_counter() - start
         filled = np.count_nonzero(projection.cell_points >= 0) / projection.cell_points.size
-        rows.append(f'| {resolution} | {projection.rows}x{projection.columns} | {100 * filled:.0f} % '
-                    f'| {projection.lost_points} | {planes.num_planes} | '
-                    f'{100 * matched_label_agreement(truth, planes.labels):.1f} % | {seconds:.2f} |')
+        rows.append(
+            f'| {resolution} | {projection.rows}x{projection.columns} | {100 * filled:.0f} % '
+            f'| {projection.lost_points} | {planes.num_planes} | '
+            f'{100 * matched_label_agreement(truth, planes.labels):.1f} % | {seconds:.2f} |'
+        )
     return rows
 
 
@@ -161,8 +166,10 @@ def main() -> int:
         projection = project_points(warm, given)
         planes_for_points(projection, extract_planes(projection.image(warm), sensor='lidar'), warm, LIDAR_TOLERANCE)
     print('## Unorganized Ouster sweeps (Hesai-like: shuffled, no-returns dropped), lidar profile\n')
-    print('| sweep | points | cloud | range image | lost | projection ms | labels ms | extraction s (organized) '
-          '| (projection + labels) / extraction | same plane, seam 180 deg | same plane, sweep\'s seam |')
+    print(
+        '| sweep | points | cloud | range image | lost | projection ms | labels ms | extraction s (organized) '
+        "| (projection + labels) / extraction | same plane, seam 180 deg | same plane, sweep's seam |"
+    )
     print('|---|---|---|---|---|---|---|---|---|---|---|')
     for path in paths:
         for row in sweep_rows(path, args.repeat):

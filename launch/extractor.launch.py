@@ -33,22 +33,41 @@ PARAMS_FILES = {'none': 'extractor.yaml', 'lidar': 'lidar.yaml', 'depth_camera':
 def generate_launch_description() -> LaunchDescription:
     share = FindPackageShare(PACKAGE)
     sensor = LaunchConfiguration('sensor')
-    params_file_of_sensor = PathJoinSubstitution([
-        share, 'config', PythonExpression([repr(PARAMS_FILES), ".get('", sensor, "', 'extractor.yaml')"]),
-    ])
+    params_file_of_sensor = PathJoinSubstitution(
+        [
+            share,
+            'config',
+            PythonExpression([repr(PARAMS_FILES), ".get('", sensor, "', 'extractor.yaml')"]),
+        ]
+    )
     arguments = [
-        DeclareLaunchArgument('sensor', default_value='none', choices=list(PARAMS_FILES),
-                              description='sensor profile: picks config/<profile>.yaml'),
-        DeclareLaunchArgument('params_file', default_value=params_file_of_sensor,
-                              description='params file of the extractor (default: the sensor profile\'s)'),
+        DeclareLaunchArgument(
+            'sensor',
+            default_value='none',
+            choices=list(PARAMS_FILES),
+            description='sensor profile: picks config/<profile>.yaml',
+        ),
+        DeclareLaunchArgument(
+            'params_file',
+            default_value=params_file_of_sensor,
+            description="params file of the extractor (default: the sensor profile's)",
+        ),
         DeclareLaunchArgument('points', default_value='/points', description='input PointCloud2 topic'),
-        DeclareLaunchArgument('metadata', default_value='/ouster/metadata',
-                              description="the Ouster driver's metadata topic (std_msgs/String)"),
+        DeclareLaunchArgument(
+            'metadata',
+            default_value='/ouster/metadata',
+            description="the Ouster driver's metadata topic (std_msgs/String)",
+        ),
         DeclareLaunchArgument('namespace', default_value='', description='namespace of the node'),
-        DeclareLaunchArgument('use_sim_time', default_value='false', choices=['true', 'false'],
-                              description='use /clock (bag replays)'),
-        DeclareLaunchArgument('rviz', default_value='false', choices=['true', 'false'],
-                              description='also start rviz2 with rviz/ppe_ros.rviz'),
+        DeclareLaunchArgument(
+            'use_sim_time', default_value='false', choices=['true', 'false'], description='use /clock (bag replays)'
+        ),
+        DeclareLaunchArgument(
+            'rviz',
+            default_value='false',
+            choices=['true', 'false'],
+            description='also start rviz2 with rviz/ppe_ros.rviz',
+        ),
         DeclareLaunchArgument('frame', default_value='os_lidar', description="RViz's fixed frame"),
     ]
     extractor = Node(

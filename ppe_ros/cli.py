@@ -53,8 +53,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f'ppe {args.command}: error: {error_line(exc)}', file=sys.stderr)
         return 2
     except MemoryError as exc:
-        print(f'ppe {args.command}: error: out of memory ({error_line(exc)}); the input is too large for this '
-              f'machine', file=sys.stderr)
+        print(
+            f'ppe {args.command}: error: out of memory ({error_line(exc)}); the input is too large for this machine',
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         print(f'ppe {args.command}: interrupted', file=sys.stderr)

@@ -26,9 +26,15 @@ def label_image(labels: np.ndarray, *, background: tuple[int, int, int] = (0, 0,
     return rgb
 
 
-def save_segmentation_png(path: str | os.PathLike[str], labels: np.ndarray, *,
-                          ground_truth: np.ndarray | None = None, gt_min_label: int = 1,
-                          overwrite: bool = True, scale: int | None = None) -> Path:
+def save_segmentation_png(
+    path: str | os.PathLike[str],
+    labels: np.ndarray,
+    *,
+    ground_truth: np.ndarray | None = None,
+    gt_min_label: int = 1,
+    overwrite: bool = True,
+    scale: int | None = None,
+) -> Path:
     """Write the segmentation (and the ground truth to its left, as in the paper's Figure 1).
 
     Args:
@@ -44,8 +50,9 @@ def save_segmentation_png(path: str | os.PathLike[str], labels: np.ndarray, *,
     return write_file_atomically(out, writer, overwrite=overwrite)
 
 
-def segmentation_png_writer(labels: np.ndarray, *, ground_truth: np.ndarray | None = None, gt_min_label: int = 1,
-                            scale: int | None = None):
+def segmentation_png_writer(
+    labels: np.ndarray, *, ground_truth: np.ndarray | None = None, gt_min_label: int = 1, scale: int | None = None
+):
     """A writer (for :func:`ppe_ros.io.files.write_files_atomically`) of :func:`save_segmentation_png`'s PNG."""
     from PIL import Image
 

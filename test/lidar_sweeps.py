@@ -10,16 +10,26 @@ import numpy as np
 HDL_LIKE_ELEVATIONS = np.r_[2.0 - np.arange(32) / 3.0, -8.83 - 0.5 * np.arange(32)]
 
 
-def room_sweep(elevations_deg: np.ndarray, columns: int, *, sigma: float = 0.003, seed: int = 0,
-               beam_origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+def room_sweep(
+    elevations_deg: np.ndarray,
+    columns: int,
+    *,
+    sigma: float = 0.003,
+    seed: int = 0,
+    beam_origin: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     """An organized 360 deg sweep ``(rows, columns, 3)`` of a box room (walls, floor, ceiling) seen from
     inside; rows are beams from the top, columns run clockwise from the back (as Ouster's image). Each
     beam starts ``beam_origin = (h, n)`` above and out from the sensor origin."""
     h, n = beam_origin
     elevation = np.radians(np.asarray(elevations_deg, dtype=np.float64))[:, None]
     azimuth = math.pi - (np.arange(columns) + 0.5) * 2 * math.pi / columns  # clockwise, starting behind
-    direction = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                                             np.sin(elevation)), axis=-1)
+    direction = np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+        ),
+        axis=-1,
+    )
     start = np.stack(np.broadcast_arrays(n * np.cos(azimuth), n * np.sin(azimuth), h + 0 * elevation), axis=-1)
     low, high = np.array([-6.0, -5.0, -1.7]), np.array([8.0, 4.0, 2.5])
     with np.errstate(divide='ignore', invalid='ignore'):

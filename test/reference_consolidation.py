@@ -74,8 +74,13 @@ def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_column
                 if _bridges(scan, sigmas, work, q, *planes[b], tau, connected_only):
                     continue
                 a = work[q]
-                if a >= 0 and (g == 1 or all(_bridges(scan, sigmas, work, r, *planes[a], tau, connected_only)
-                                             for r in range(q + step, k, step))):
+                if a >= 0 and (
+                    g == 1
+                    or all(
+                        _bridges(scan, sigmas, work, r, *planes[a], tau, connected_only)
+                        for r in range(q + step, k, step)
+                    )
+                ):
                     pairs.add((min(a, b), max(a, b)))
                 break
             else:
@@ -93,8 +98,9 @@ def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_column
     return pairs
 
 
-def consolidate_reference(scan, ids, sigmas, tau, *, noise_factor=0.0, connected_only=False, max_gap=64,
-                          wrap_columns=False):
+def consolidate_reference(
+    scan, ids, sigmas, tau, *, noise_factor=0.0, connected_only=False, max_gap=64, wrap_columns=False
+):
     """Surface id (the smallest piece id) of each pixel, -1 for none."""
     ids = np.asarray(ids, np.int64)
     pairs = candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_columns)

@@ -144,9 +144,7 @@ def _initial_guesses(points: np.ndarray, ranges: np.ndarray) -> list[np.ndarray]
     return guesses
 
 
-def _fit_translated(
-    points: np.ndarray, directions: np.ndarray, ranges: np.ndarray
-) -> tuple[float, np.ndarray]:
+def _fit_translated(points: np.ndarray, directions: np.ndarray, ranges: np.ndarray) -> tuple[float, np.ndarray]:
     """The best (sse, w) over all starts; ``points`` are endpoints relative to the mean origin."""
     best_sse, best_w = math.inf, np.full(3, np.nan)
     for guess in _initial_guesses(points, ranges):
@@ -156,9 +154,7 @@ def _fit_translated(
     return best_sse, best_w
 
 
-def reference_fit(
-    origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray
-) -> tuple[float, np.ndarray, float]:
+def reference_fit(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray) -> tuple[float, np.ndarray, float]:
     """Exact maximum-likelihood plane of N >= 3 rays under the radial (ray-length) noise model.
 
     Args:
@@ -244,10 +240,7 @@ def plane_sets(snapshot: Snapshot | np.ndarray) -> dict[int, tuple[int, ...]]:
     """Map plane id -> sorted linear pixel ids, from a snapshot or a plane-id image."""
     image = snapshot.plane_id_image if isinstance(snapshot, Snapshot) else np.asarray(snapshot)
     flat = image.reshape(-1)
-    return {
-        int(plane): tuple(int(k) for k in np.flatnonzero(flat == plane))
-        for plane in np.unique(flat[flat >= 0])
-    }
+    return {int(plane): tuple(int(k) for k in np.flatnonzero(flat == plane)) for plane in np.unique(flat[flat >= 0])}
 
 
 def tetromino_pixels(anchor: int, config: int, width: int) -> tuple[int, ...]:
@@ -390,9 +383,7 @@ class _Extractor:
         if pixels not in self._sse_cache:
             ids = np.array(sorted(pixels))
             scan = self.scan
-            self._sse_cache[pixels] = reference_fit(
-                scan.origins[ids], scan.directions[ids], scan.ranges[ids]
-            )[0]
+            self._sse_cache[pixels] = reference_fit(scan.origins[ids], scan.directions[ids], scan.ranges[ids])[0]
         return self._sse_cache[pixels]
 
     def plane_count(self) -> int:
@@ -422,11 +413,7 @@ class _Extractor:
                     if other >= 0 and other != plane:
                         merge_pairs.add((min(plane, other), max(plane, other)))
         for a, b in merge_pairs:
-            increment = (
-                self.sse(self.planes[a] | self.planes[b])
-                - self.sse(self.planes[a])
-                - self.sse(self.planes[b])
-            )
+            increment = self.sse(self.planes[a] | self.planes[b]) - self.sse(self.planes[a]) - self.sse(self.planes[b])
             out.append((increment, MERGE, a, b))
         # A NaN increment (a fit that failed) can never be chosen.
         return [candidate for candidate in out if not math.isnan(candidate[0])]

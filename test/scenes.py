@@ -66,8 +66,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q
 
 
-def staggered_directions(rows: int, cols: int, *, azimuth_fov_deg: float = 60.0, elevation_fov_deg: float = 40.0,
-                         seed: int = 0) -> np.ndarray:
+def staggered_directions(
+    rows: int, cols: int, *, azimuth_fov_deg: float = 60.0, elevation_fov_deg: float = 40.0, seed: int = 0
+) -> np.ndarray:
     """``(rows, cols, 3)`` unit ray directions (sensor frame) of a non-separable spherical grid.
 
     Row 0 is the top, column 0 the left (largest azimuth). Each row gets an azimuth stagger and
@@ -77,13 +78,19 @@ def staggered_directions(rows: int, cols: int, *, azimuth_fov_deg: float = 60.0,
     rng = np.random.default_rng([seed, 17])
     az_step = azimuth_fov_deg / max(cols - 1, 1)
     el_step = elevation_fov_deg / max(rows - 1, 1)
-    azimuth = np.linspace(azimuth_fov_deg / 2, -azimuth_fov_deg / 2, cols)[None, :] + (
-        rng.uniform(-az_step / 3, az_step / 3, rows)[:, None])
-    elevation = np.linspace(elevation_fov_deg / 2, -elevation_fov_deg / 2, rows)[:, None] + (
-        rng.uniform(-el_step / 3, el_step / 3, cols)[None, :])
+    azimuth = (
+        np.linspace(azimuth_fov_deg / 2, -azimuth_fov_deg / 2, cols)[None, :]
+        + (rng.uniform(-az_step / 3, az_step / 3, rows)[:, None])
+    )
+    elevation = (
+        np.linspace(elevation_fov_deg / 2, -elevation_fov_deg / 2, rows)[:, None]
+        + (rng.uniform(-el_step / 3, el_step / 3, cols)[None, :])
+    )
     azimuth, elevation = np.radians(azimuth), np.radians(elevation)
-    return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                     np.sin(elevation) + 0.0 * azimuth], axis=-1)
+    return np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation) + 0.0 * azimuth],
+        axis=-1,
+    )
 
 
 def beam_origins(directions: np.ndarray, radius: float = 0.04, height_step: float = 0.002) -> np.ndarray:
@@ -143,17 +150,30 @@ class Scan:
         return self.truth.shape
 
 
-def cast_scan(faces: list[Face], *, rows: int, cols: int, position, yaw_deg: float = 0.0, pitch_deg: float = 0.0,
-              roll_deg: float = 0.0, azimuth_fov_deg: float = 60.0, elevation_fov_deg: float = 40.0,
-              noise: float = 0.0, seed: int = 0, beam_radius: float | None = None,
-              nan_pixels=()) -> Scan:
+def cast_scan(
+    faces: list[Face],
+    *,
+    rows: int,
+    cols: int,
+    position,
+    yaw_deg: float = 0.0,
+    pitch_deg: float = 0.0,
+    roll_deg: float = 0.0,
+    azimuth_fov_deg: float = 60.0,
+    elevation_fov_deg: float = 40.0,
+    noise: float = 0.0,
+    seed: int = 0,
+    beam_radius: float | None = None,
+    nan_pixels=(),
+) -> Scan:
     """Cast a scan of ``faces`` with Gaussian range noise of std ``noise`` m (seeded).
 
     ``beam_radius`` gives per-ray starts (:func:`beam_origins`); ``nan_pixels`` is a list of
     ``(row, col)`` that become no-returns.
     """
-    directions = staggered_directions(rows, cols, azimuth_fov_deg=azimuth_fov_deg,
-                                      elevation_fov_deg=elevation_fov_deg, seed=seed)
+    directions = staggered_directions(
+        rows, cols, azimuth_fov_deg=azimuth_fov_deg, elevation_fov_deg=elevation_fov_deg, seed=seed
+    )
     sensor_origins = None if beam_radius is None else beam_origins(directions, beam_radius)
     starts = np.zeros_like(directions) if sensor_origins is None else sensor_origins
     rot = rotation(yaw_deg, pitch_deg, roll_deg)
@@ -170,8 +190,16 @@ def cast_scan(faces: list[Face], *, rows: int, cols: int, position, yaw_deg: flo
         truth[row, col] = -1
     sensor_points = starts + distances[..., None] * directions
     points = world_starts + distances[..., None] * world_dirs
-    return Scan(sensor_points=sensor_points, sensor_origins=sensor_origins, points=points, origins=world_starts,
-                truth=truth, faces=list(faces), position=position, rotation=rot)
+    return Scan(
+        sensor_points=sensor_points,
+        sensor_origins=sensor_origins,
+        points=points,
+        origins=world_starts,
+        truth=truth,
+        faces=list(faces),
+        position=position,
+        rotation=rot,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -182,16 +210,36 @@ def cast_scan(faces: list[Face], *, rows: int, cols: int, position, yaw_deg: flo
 CORNER = (plane([0, 0, 1], 0.0), plane([-1, 0, 0], -3.0), plane([0, 1, 0], -1.2))
 
 
-def corner_scan(*, rows: int = 8, cols: int = 10, n_planes: int = 3, noise: float = 0.0, seed: int = 0,
-                beam_radius: float | None = None, nan_pixels=()) -> Scan:
+def corner_scan(
+    *,
+    rows: int = 8,
+    cols: int = 10,
+    n_planes: int = 3,
+    noise: float = 0.0,
+    seed: int = 0,
+    beam_radius: float | None = None,
+    nan_pixels=(),
+) -> Scan:
     """A small scan of the floor and one or two walls by a pitched and rolled sensor 1 m above the floor.
 
     With ``n_planes=2`` the second wall is left out (the first wall is then hit where it was).
     """
     faces = list(CORNER[:n_planes])
-    return cast_scan(faces, rows=rows, cols=cols, position=(0.0, 0.0, 1.0), yaw_deg=-15.0, pitch_deg=15.0,
-                     roll_deg=12.0, azimuth_fov_deg=60.0, elevation_fov_deg=50.0, noise=noise, seed=seed,
-                     beam_radius=beam_radius, nan_pixels=nan_pixels)
+    return cast_scan(
+        faces,
+        rows=rows,
+        cols=cols,
+        position=(0.0, 0.0, 1.0),
+        yaw_deg=-15.0,
+        pitch_deg=15.0,
+        roll_deg=12.0,
+        azimuth_fov_deg=60.0,
+        elevation_fov_deg=50.0,
+        noise=noise,
+        seed=seed,
+        beam_radius=beam_radius,
+        nan_pixels=nan_pixels,
+    )
 
 
 def depth_jump_scan(*, rows: int = 8, cols: int = 10, noise: float = 0.003, seed: int = 0) -> Scan:
@@ -199,8 +247,19 @@ def depth_jump_scan(*, rows: int = 8, cols: int = 10, noise: float = 0.003, seed
     between the left and the right part of the scan, plus the floor."""
     near = face_from_polygon([[2.0, 0.05, -0.1], [2.0, 0.05, 3.0], [2.0, 5.0, 3.0], [2.0, 5.0, -0.1]])
     faces = [plane([0, 0, 1], 0.0), plane([-1, 0, 0], -3.5), near]
-    return cast_scan(faces, rows=rows, cols=cols, position=(0.0, 0.0, 1.0), yaw_deg=3.0, pitch_deg=12.0,
-                     roll_deg=8.0, azimuth_fov_deg=60.0, elevation_fov_deg=50.0, noise=noise, seed=seed)
+    return cast_scan(
+        faces,
+        rows=rows,
+        cols=cols,
+        position=(0.0, 0.0, 1.0),
+        yaw_deg=3.0,
+        pitch_deg=12.0,
+        roll_deg=8.0,
+        azimuth_fov_deg=60.0,
+        elevation_fov_deg=50.0,
+        noise=noise,
+        seed=seed,
+    )
 
 
 def box_faces(lo, hi) -> list[Face]:
@@ -221,20 +280,48 @@ def room_scan(*, rows: int = 60, cols: int = 80, noise: float = 0.02, seed: int 
 
     Every face shows at least ~100 pixels on the 60 x 80 grid.
     """
-    room = [plane([0, 0, 1], 0.0), plane([0, 0, -1], -2.6), plane([-1, 0, 0], -5.0),
-            plane([0, -1, 0], -2.5), plane([0, 1, 0], -2.5)]
+    room = [
+        plane([0, 0, 1], 0.0),
+        plane([0, 0, -1], -2.6),
+        plane([-1, 0, 0], -5.0),
+        plane([0, -1, 0], -2.5),
+        plane([0, 1, 0], -2.5),
+    ]
     boxes = box_faces((1.6, -0.4, 0.0), (2.4, 0.6, 0.6)) + box_faces((2.2, -2.2, 0.0), (3.0, -1.3, 1.4))
-    return cast_scan(room + boxes, rows=rows, cols=cols, position=(0.0, 0.0, 1.2), yaw_deg=4.0, pitch_deg=8.0,
-                     roll_deg=5.0, azimuth_fov_deg=100.0, elevation_fov_deg=70.0, noise=noise, seed=seed)
+    return cast_scan(
+        room + boxes,
+        rows=rows,
+        cols=cols,
+        position=(0.0, 0.0, 1.2),
+        yaw_deg=4.0,
+        pitch_deg=8.0,
+        roll_deg=5.0,
+        azimuth_fov_deg=100.0,
+        elevation_fov_deg=70.0,
+        noise=noise,
+        seed=seed,
+    )
 
 
-def plane_patch(*, rows: int = 10, cols: int = 10, noise: float = 0.01, seed: int = 0,
-                beam_radius: float | None = None) -> Scan:
+def plane_patch(
+    *, rows: int = 10, cols: int = 10, noise: float = 0.01, seed: int = 0, beam_radius: float | None = None
+) -> Scan:
     """A single tilted plane filling the whole grid (world frame = sensor at the origin, rotated)."""
     faces = [plane([-1.0, 0.2, -0.3], -2.5)]
-    return cast_scan(faces, rows=rows, cols=cols, position=(0.3, -0.2, 0.1), yaw_deg=10.0, pitch_deg=-5.0,
-                     roll_deg=20.0, azimuth_fov_deg=40.0, elevation_fov_deg=30.0, noise=noise, seed=seed,
-                     beam_radius=beam_radius)
+    return cast_scan(
+        faces,
+        rows=rows,
+        cols=cols,
+        position=(0.3, -0.2, 0.1),
+        yaw_deg=10.0,
+        pitch_deg=-5.0,
+        roll_deg=20.0,
+        azimuth_fov_deg=40.0,
+        elevation_fov_deg=30.0,
+        noise=noise,
+        seed=seed,
+        beam_radius=beam_radius,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -245,8 +332,11 @@ def plane_patch(*, rows: int = 10, cols: int = 10, noise: float = 0.01, seed: in
 def rays(points: np.ndarray, origins: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(starts, unit directions, ranges)`` of ``(N, 3)`` endpoints and ``(N, 3)``/``(3,)``/None starts."""
     points = np.asarray(points, dtype=np.float64)
-    starts = np.zeros_like(points) if origins is None else np.broadcast_to(
-        np.asarray(origins, dtype=np.float64), points.shape)
+    starts = (
+        np.zeros_like(points)
+        if origins is None
+        else np.broadcast_to(np.asarray(origins, dtype=np.float64), points.shape)
+    )
     delta = points - starts
     ranges = np.linalg.norm(delta, axis=1)
     return np.array(starts), delta / ranges[:, None], ranges
@@ -284,9 +374,13 @@ def lm_plane_fit(starts, directions, ranges, *, max_iterations: int = 500) -> tu
     def unpack(params):
         theta, phi, d = params
         local = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
-        dlocal = np.array([[np.cos(theta) * np.cos(phi), -np.sin(theta) * np.sin(phi)],
-                           [np.cos(theta) * np.sin(phi), np.sin(theta) * np.cos(phi)],
-                           [-np.sin(theta), 0.0]])
+        dlocal = np.array(
+            [
+                [np.cos(theta) * np.cos(phi), -np.sin(theta) * np.sin(phi)],
+                [np.cos(theta) * np.sin(phi), np.sin(theta) * np.cos(phi)],
+                [-np.sin(theta), 0.0],
+            ]
+        )
         return q @ local, q @ dlocal, d
 
     def residuals_and_jacobian(params):

@@ -78,13 +78,22 @@ def cloud(store, index: int, points: np.ndarray, *, pad_bytes: int = 0):
     """An organized cloud of ``points`` (x y z float32, plus an unused field of ``pad_bytes``)."""
     types = store.types
     if not pad_bytes:
-        return xyz_to_pointcloud2(points, header=header(store, index), msg_class=types[POINTCLOUD2],
-                                  field_class=types['sensor_msgs/msg/PointField'])
-    table = np.zeros(points.shape[:2], dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'),
-                                              ('padding', '<u4', (pad_bytes // 4,))])
+        return xyz_to_pointcloud2(
+            points,
+            header=header(store, index),
+            msg_class=types[POINTCLOUD2],
+            field_class=types['sensor_msgs/msg/PointField'],
+        )
+    table = np.zeros(
+        points.shape[:2], dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('padding', '<u4', (pad_bytes // 4,))]
+    )
     table['x'], table['y'], table['z'] = points[..., 0], points[..., 1], points[..., 2]
-    return structured_to_pointcloud2(table, header=header(store, index), msg_class=types[POINTCLOUD2],
-                                     field_class=types['sensor_msgs/msg/PointField'])
+    return structured_to_pointcloud2(
+        table,
+        header=header(store, index),
+        msg_class=types[POINTCLOUD2],
+        field_class=types['sensor_msgs/msg/PointField'],
+    )
 
 
 def serialized(store, msg) -> bytes:
@@ -93,8 +102,15 @@ def serialized(store, msg) -> bytes:
     return bytes(JAZZY.serialize_cdr(msg, POINTCLOUD2))
 
 
-def write_rosbag2(path: Path, messages: list[tuple[int, bytes]], *, storage: str = 'mcap', topic: str = TOPIC,
-                  compressed: bool = False, chatter: bool = True) -> Path:
+def write_rosbag2(
+    path: Path,
+    messages: list[tuple[int, bytes]],
+    *,
+    storage: str = 'mcap',
+    topic: str = TOPIC,
+    compressed: bool = False,
+    chatter: bool = True,
+) -> Path:
     """A rosbag2 with ``messages`` (bag time, CDR) on ``topic`` and, with ``chatter``, a String topic."""
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3)
     if compressed:
@@ -195,8 +211,9 @@ def check_outputs(out: dict, expected, indices: list[int]) -> None:
     """The three outputs of frames ``indices``: times, headers, labels, plane table, markers."""
     for kind, topic in OUTPUTS.items():
         assert [t for t, _ in out[topic]] == [bag_time(i) for i in indices], kind
-    for (_, labeled), (_, table), (_, markers), i in zip(out[OUTPUTS['labeled_points']], out[OUTPUTS['plane_table']],
-                                                         out[OUTPUTS['markers']], indices, strict=True):
+    for (_, labeled), (_, table), (_, markers), i in zip(
+        out[OUTPUTS['labeled_points']], out[OUTPUTS['plane_table']], out[OUTPUTS['markers']], indices, strict=True
+    ):
         frame = expected[i]
         assert_header(labeled.header, i)
         assert_header(table.header, i)
@@ -219,19 +236,29 @@ def check_outputs(out: dict, expected, indices: list[int]) -> None:
 
 def test_output_topics_replace_the_last_name_like_the_node():
     names = output_topics(['/ouster/points', '/points'])
-    assert names['/ouster/points'] == {'labeled_points': '/ouster/planes/labeled_points',
-                                       'markers': '/ouster/planes/markers', 'plane_table': '/ouster/planes'}
-    assert names['/points'] == {'labeled_points': '/planes/labeled_points', 'markers': '/planes/markers',
-                                'plane_table': '/planes'}
+    assert names['/ouster/points'] == {
+        'labeled_points': '/ouster/planes/labeled_points',
+        'markers': '/ouster/planes/markers',
+        'plane_table': '/ouster/planes',
+    }
+    assert names['/points'] == {
+        'labeled_points': '/planes/labeled_points',
+        'markers': '/planes/markers',
+        'plane_table': '/planes',
+    }
 
 
 def test_output_topics_fall_back_under_the_input_when_they_would_collide():
     names = output_topics(['/a/front', '/a/back', '/b/points'], kinds=['plane_table'])
-    assert names == {'/a/front': {'plane_table': '/a/front/planes'}, '/a/back': {'plane_table': '/a/back/planes'},
-                     '/b/points': {'plane_table': '/b/planes'}}
+    assert names == {
+        '/a/front': {'plane_table': '/a/front/planes'},
+        '/a/back': {'plane_table': '/a/back/planes'},
+        '/b/points': {'plane_table': '/b/planes'},
+    }
     # an output equal to a copied input topic moves as well
     assert output_topics(['/x/planes'], kinds=['plane_table'], reserved=['/x/planes']) == {
-        '/x/planes': {'plane_table': '/x/planes/planes'}}
+        '/x/planes': {'plane_table': '/x/planes/planes'}
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -239,20 +266,27 @@ def test_output_topics_fall_back_under_the_input_when_they_would_collide():
 # --------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(('input_storage', 'compressed', 'output_storage'), [
-    ('mcap', False, 'sqlite3'),
-    ('sqlite3', False, 'mcap'),
-    ('mcap', True, 'mcap'),
-])
-def test_outputs_are_the_nodes_at_the_input_times(tmp_path, ros2_messages, expected, input_storage, compressed,
-                                                  output_storage):
+@pytest.mark.parametrize(
+    ('input_storage', 'compressed', 'output_storage'),
+    [
+        ('mcap', False, 'sqlite3'),
+        ('sqlite3', False, 'mcap'),
+        ('mcap', True, 'mcap'),
+    ],
+)
+def test_outputs_are_the_nodes_at_the_input_times(
+    tmp_path, ros2_messages, expected, input_storage, compressed, output_storage
+):
     source = write_rosbag2(tmp_path / 'in', ros2_messages, storage=input_storage, compressed=compressed)
     report = process_bag(BagOptions(source, tmp_path / 'out', storage=output_storage, progress=False))
     assert report.exit_code == 0
     assert (report.frames_read, report.frames_processed, report.frames_skipped) == (3, 3, 0)
     out = read_bag(tmp_path / 'out')
-    assert out['__types__'] == {OUTPUTS['labeled_points']: POINTCLOUD2, OUTPUTS['plane_table']: POINTCLOUD2,
-                                OUTPUTS['markers']: 'visualization_msgs/msg/MarkerArray'}
+    assert out['__types__'] == {
+        OUTPUTS['labeled_points']: POINTCLOUD2,
+        OUTPUTS['plane_table']: POINTCLOUD2,
+        OUTPUTS['markers']: 'visualization_msgs/msg/MarkerArray',
+    }
     check_outputs(out, expected, [0, 1, 2])
     metadata = (tmp_path / 'out' / 'metadata.yaml').read_text()
     assert f'storage_identifier: {output_storage}' in metadata
@@ -269,8 +303,21 @@ def test_cli_names_the_topics_and_prints_the_summary(tmp_path, mcap_bag, capsys)
 
 
 def test_ppe_bag_runs_the_same_command(tmp_path, mcap_bag, expected, capsys):
-    assert ppe_main(['bag', str(mcap_bag), str(tmp_path / 'out'), '--topic', 'sensor/points', '--storage',
-                     'sqlite3', '--no-progress']) == 0
+    assert (
+        ppe_main(
+            [
+                'bag',
+                str(mcap_bag),
+                str(tmp_path / 'out'),
+                '--topic',
+                'sensor/points',
+                '--storage',
+                'sqlite3',
+                '--no-progress',
+            ]
+        )
+        == 0
+    )
     check_outputs(read_bag(tmp_path / 'out'), expected, [0, 1, 2])
     assert ppe_main(['bag', str(mcap_bag), str(tmp_path / 'out'), '--no-progress']) == 2
     assert 'ppe bag: error:' in capsys.readouterr().err
@@ -300,14 +347,20 @@ def test_copy_input_copies_rosbag2_messages(tmp_path, mcap_bag, ros2_messages):
     assert [t for t, _ in out[TOPIC]] == [t for t, _ in ros2_messages]
     for (_, copy), original in zip(out[TOPIC], originals, strict=True):
         assert (copy.height, copy.width, copy.point_step, copy.header.frame_id) == (
-            original.height, original.width, original.point_step, original.header.frame_id)
+            original.height,
+            original.width,
+            original.point_step,
+            original.header.frame_id,
+        )
         np.testing.assert_array_equal(copy.data, original.data)
 
 
 def test_params_file_is_the_nodes(tmp_path, mcap_bag, scans):
     params_file = tmp_path / 'params.yaml'
-    params_file.write_text('extractor:\n  ros__parameters:\n    max_error_increment: 0.001\n'
-                           '    min_plane_points: 5\n    publish_markers: false\n')
+    params_file.write_text(
+        'extractor:\n  ros__parameters:\n    max_error_increment: 0.001\n'
+        '    min_plane_points: 5\n    publish_markers: false\n'
+    )
     assert run_cli([mcap_bag, tmp_path / 'out', '--params', params_file]) == 0
     out = read_bag(tmp_path / 'out')
     assert OUTPUTS['markers'] not in out['__types__']
@@ -352,8 +405,9 @@ def test_bad_frames_are_skipped_with_the_reason_and_counted(tmp_path, scans, exp
     flat = scans[1].reshape(-1, 3)  # height 1 with a ring field of no beam numbers: no range image
     ringed = np.zeros(len(flat), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
     ringed['x'], ringed['y'], ringed['z'], ringed['ring'] = *flat.T, -5
-    unorganized = structured_to_pointcloud2(ringed, header=header(JAZZY, 1), msg_class=types[POINTCLOUD2],
-                                            field_class=types['sensor_msgs/msg/PointField'])
+    unorganized = structured_to_pointcloud2(
+        ringed, header=header(JAZZY, 1), msg_class=types[POINTCLOUD2], field_class=types['sensor_msgs/msg/PointField']
+    )
     all_nan = cloud(JAZZY, 2, np.full_like(scans[2], np.nan))
     messages = [
         (bag_time(0), serialized(JAZZY, cloud(JAZZY, 0, scans[0]))),
@@ -386,23 +440,27 @@ def _bag_of_strings(tmp_path: Path) -> Path:
     writer = Writer(tmp_path / 'strings', version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()
     connection = writer.add_connection('/chatter', 'std_msgs/msg/String', typestore=JAZZY)
-    writer.write(connection, 1, JAZZY.serialize_cdr(JAZZY.types['std_msgs/msg/String'](data='hi'),
-                                                    'std_msgs/msg/String'))
+    writer.write(
+        connection, 1, JAZZY.serialize_cdr(JAZZY.types['std_msgs/msg/String'](data='hi'), 'std_msgs/msg/String')
+    )
     writer.close()
     return tmp_path / 'strings'
 
 
-@pytest.mark.parametrize(('case', 'message'), [
-    ('missing', 'no such file or directory'),
-    ('text file', 'is not a bag'),
-    ('empty directory', 'is a directory but not a rosbag2 bag'),
-    ('misnamed mcap', 'rename it to end in .mcap'),
-    ('no pointcloud2', f'has no {POINTCLOUD2} topic; its topics: /chatter (std_msgs/msg/String)'),
-    ('unknown topic', "topic '/lidar' is not in"),
-    ('not a pointcloud2 topic', f'topic /chatter has type std_msgs/msg/String, not {POINTCLOUD2}'),
-    ('missing params', 'cannot read params file'),
-    ('invalid params', 'max_error_increment must be'),
-])
+@pytest.mark.parametrize(
+    ('case', 'message'),
+    [
+        ('missing', 'no such file or directory'),
+        ('text file', 'is not a bag'),
+        ('empty directory', 'is a directory but not a rosbag2 bag'),
+        ('misnamed mcap', 'rename it to end in .mcap'),
+        ('no pointcloud2', f'has no {POINTCLOUD2} topic; its topics: /chatter (std_msgs/msg/String)'),
+        ('unknown topic', "topic '/lidar' is not in"),
+        ('not a pointcloud2 topic', f'topic /chatter has type std_msgs/msg/String, not {POINTCLOUD2}'),
+        ('missing params', 'cannot read params file'),
+        ('invalid params', 'max_error_increment must be'),
+    ],
+)
 def test_clear_errors_and_no_output(tmp_path, mcap_bag, capsys, case, message):
     argv: list = [mcap_bag, tmp_path / 'out']
     if case == 'missing':
@@ -452,8 +510,7 @@ def test_existing_output_is_replaced_only_with_force(tmp_path, mcap_bag, capsys)
 def test_the_input_is_never_overwritten(tmp_path, ros2_messages, capsys, where):
     source = write_rosbag2(tmp_path / 'bags' / 'in', ros2_messages)
     before = sorted((p.name, p.stat().st_size) for p in source.iterdir())
-    target = {'input itself': source, 'inside the input': source / 'out',
-              'parent of the input': source.parent}[where]
+    target = {'input itself': source, 'inside the input': source / 'out', 'parent of the input': source.parent}[where]
     assert run_cli([source, target, '--force']) == 2
     assert 'refusing to write' in capsys.readouterr().err
     assert sorted((p.name, p.stat().st_size) for p in source.iterdir()) == before
@@ -497,10 +554,13 @@ def test_truncated_mcap_keeps_the_frames_before_the_damage(tmp_path, big_frames,
     assert _check_partial(tmp_path / 'out', big_expected, 3, 4) == 3
 
 
-@pytest.mark.parametrize(('metadata', 'note'), [(None, 'has no metadata.yaml'),
-                                                ('rosbag2_bagfile_information: [', 'reading its storage files')])
-def test_rosbag2_without_usable_metadata_is_read_from_its_storage_file(tmp_path, ros2_messages, expected, capsys,
-                                                                       metadata, note):
+@pytest.mark.parametrize(
+    ('metadata', 'note'),
+    [(None, 'has no metadata.yaml'), ('rosbag2_bagfile_information: [', 'reading its storage files')],
+)
+def test_rosbag2_without_usable_metadata_is_read_from_its_storage_file(
+    tmp_path, ros2_messages, expected, capsys, metadata, note
+):
     source = write_rosbag2(tmp_path / 'in', ros2_messages, storage='sqlite3')
     if metadata is None:
         (source / 'metadata.yaml').unlink()
@@ -611,8 +671,12 @@ def test_ctrl_c_with_worker_processes(tmp_path, scans):
     messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, scans[i % 3]))) for i in range(count)]
     source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
     script = 'import sys; from ppe_ros.ros.bag import main; sys.exit(main())'
-    process = subprocess.Popen([sys.executable, '-c', script, str(source), str(tmp_path / 'out'), '--jobs', '2',
-                                '--progress'], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    process = subprocess.Popen(
+        [sys.executable, '-c', script, str(source), str(tmp_path / 'out'), '--jobs', '2', '--progress'],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=REPO,
+    )
     seen = bytearray()
 
     def read_stderr():
@@ -656,8 +720,10 @@ def test_three_ouster_sweeps_match_ppe_extract(tmp_path, shared_data):
     messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, p))) for i, p in enumerate(points)]
     source = write_rosbag2(tmp_path / 'in', messages)
     params_file = tmp_path / 'params.yaml'
-    params_file.write_text('/**:\n  ros__parameters:\n    max_error_increment: 0.0484\n'
-                           '    max_neighbor_distance: 0.18\n    min_plane_points: 4\n')
+    params_file.write_text(
+        '/**:\n  ros__parameters:\n    max_error_increment: 0.0484\n'
+        '    max_neighbor_distance: 0.18\n    min_plane_points: 4\n'
+    )
     assert run_cli([source, tmp_path / 'out', '--params', params_file, '--topic', TOPIC]) == 0
     out = read_bag(tmp_path / 'out')
     for topic in OUTPUTS.values():
@@ -674,8 +740,23 @@ def test_three_ouster_sweeps_match_ppe_extract(tmp_path, shared_data):
     # ppe extract on the same frame (its points as the bag holds them, rays from the origin)
     npy = tmp_path / 'frame1795.npy'
     np.save(npy, points[0].astype(np.float32))
-    assert ppe_main(['extract', str(npy), '-o', str(tmp_path / 'planes.npz'), '-e', '0.0484', '--lmax', '0.18',
-                     '--min-plane-points', '4']) == 0
+    assert (
+        ppe_main(
+            [
+                'extract',
+                str(npy),
+                '-o',
+                str(tmp_path / 'planes.npz'),
+                '-e',
+                '0.0484',
+                '--lmax',
+                '0.18',
+                '--min-plane-points',
+                '4',
+            ]
+        )
+        == 0
+    )
     with np.load(tmp_path / 'planes.npz') as planes:
         assert same_partition(labels_of(labeled[0]), planes['labels'])
         assert json.loads(str(planes['meta']))['max_neighbor_distance'] == 0.18
@@ -814,9 +895,15 @@ def test_a_bag_cut_before_its_first_frame_is_damaged(tmp_path, distinct_frames, 
         storage = next(source.glob('*.mcap'))
         first = len(messages[0][1])
     else:
-        ros1 = [(t, serialized(NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
-                                                                   seed=100 + i).points)))
-                for i, (t, _) in enumerate(messages[:4])]
+        ros1 = [
+            (
+                t,
+                serialized(
+                    NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=100 + i).points)
+                ),
+            )
+            for i, (t, _) in enumerate(messages[:4])
+        ]
         source = storage = write_ros1(tmp_path / 'in.bag', ros1, chunk_bytes=10_000)
         first = len(ros1[0][1])
     _cut(storage, first // 2)
@@ -845,9 +932,15 @@ def test_a_chunk_cut_short_gives_its_complete_frames(tmp_path, distinct_frames, 
         source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
         storage = next(source.glob('*.mcap'))
     else:
-        ros1 = [(t, serialized(NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
-                                                                   seed=100 + i).points)))
-                for i, (t, _) in enumerate(messages)]
+        ros1 = [
+            (
+                t,
+                serialized(
+                    NOETIC, cloud(NOETIC, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=100 + i).points)
+                ),
+            )
+            for i, (t, _) in enumerate(messages)
+        ]
         source = storage = write_ros1(tmp_path / 'in.bag', ros1, chunk_bytes=30_000)
     _cut(storage, int(storage.stat().st_size * 0.5))
     assert run_cli([source, tmp_path / 'out']) == 1
@@ -873,8 +966,9 @@ def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, 
             try:
                 os.kill(os.getpid(), signum)  # the handler raises here, as where numba boxes a result
             except KeyboardInterrupt as exc:
-                raise SystemError('CPUDispatcher(<function _seed_errors>) returned a result with an exception '
-                                  'set') from exc
+                raise SystemError(
+                    'CPUDispatcher(<function _seed_errors>) returned a result with an exception set'
+                ) from exc
         return original(msg, params, types, outputs=outputs)
 
     monkeypatch.setattr(bag_frames, 'process_cloud', interrupted_in_the_kernel)
@@ -893,8 +987,12 @@ def test_repeated_signals_during_inline_frames(tmp_path, signum):
     messages = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, p))) for i, p in enumerate(clouds)]
     source = write_rosbag2(tmp_path / 'in', messages, chatter=False)
     script = 'import sys; from ppe_ros.ros.bag import main; sys.exit(main())'
-    process = subprocess.Popen([sys.executable, '-c', script, str(source), str(tmp_path / 'out'), '--progress'],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    process = subprocess.Popen(
+        [sys.executable, '-c', script, str(source), str(tmp_path / 'out'), '--progress'],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=REPO,
+    )
     seen = bytearray()
 
     def read_stderr():
@@ -926,8 +1024,10 @@ def test_repeated_signals_during_inline_frames(tmp_path, signum):
 
 def test_an_unknown_key_in_the_params_file_is_a_warning_like_the_node(tmp_path, mcap_bag, scans, capsys):
     params_file = tmp_path / 'params.yaml'
-    params_file.write_text('extractor:\n  ros__parameters:\n    min_plane_points: 40\n    max_eror_increment: 0.1\n'
-                           '    use_sim_time: false\n')
+    params_file.write_text(
+        'extractor:\n  ros__parameters:\n    min_plane_points: 40\n    max_eror_increment: 0.1\n'
+        '    use_sim_time: false\n'
+    )
     assert run_cli([mcap_bag, tmp_path / 'out', '--params', params_file]) == 0
     warnings = [line for line in capsys.readouterr().err.splitlines() if 'unknown' in line]
     assert len(warnings) == 1

@@ -24,9 +24,15 @@ def run_cli(argv: list) -> int:
 
 
 def frames(count: int, seed: int, store=JAZZY) -> list[tuple[int, bytes]]:
-    return [(bag_time(i), serialized(store, cloud(store, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005,
-                                                                       seed=seed + i).points)))
-            for i in range(count)]
+    return [
+        (
+            bag_time(i),
+            serialized(
+                store, cloud(store, i, plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=seed + i).points)
+            ),
+        )
+        for i in range(count)
+    ]
 
 
 @pytest.fixture(scope='module')
@@ -53,7 +59,8 @@ def same_bag(a: Path, b: Path) -> bool:
     """Byte-identical bag directories (the same files with the same contents)."""
     names = sorted(p.name for p in a.iterdir())
     return names == sorted(p.name for p in b.iterdir()) and all(
-        filecmp.cmp(a / name, b / name, shallow=False) for name in names)
+        filecmp.cmp(a / name, b / name, shallow=False) for name in names
+    )
 
 
 def test_a_directory_of_bags_is_its_bags_in_name_order(fleet):
@@ -96,14 +103,17 @@ def test_an_unusable_input_is_reported_and_the_others_are_written(tmp_path, flee
     assert '4 inputs, 2 complete' in captured.out
 
 
-@pytest.mark.parametrize(('case', 'message'), [
-    ('same name', 'would all write'),
-    ('same bag twice', 'is given twice'),
-    ('out is a file', 'is not a directory'),
-    ('out inside an input', 'refusing to write in'),
-    ('an output exists', 'exists; use --force to replace it'),
-    ('ray address without ray', '--ray-address needs --executor ray'),
-])
+@pytest.mark.parametrize(
+    ('case', 'message'),
+    [
+        ('same name', 'would all write'),
+        ('same bag twice', 'is given twice'),
+        ('out is a file', 'is not a directory'),
+        ('out inside an input', 'refusing to write in'),
+        ('an output exists', 'exists; use --force to replace it'),
+        ('ray address without ray', '--ray-address needs --executor ray'),
+    ],
+)
 def test_bad_paths_are_refused_before_anything_is_written(tmp_path, fleet, capsys, case, message):
     inputs: list = [fleet / 'day1_front', fleet / 'day1_rear']
     out = tmp_path / 'out'

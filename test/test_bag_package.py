@@ -40,14 +40,25 @@ def test_only_the_salvage_readers_import_rosbags_internals():
 
 
 def test_the_names_tests_and_entry_points_use_are_public():
-    for name in ('BagOptions', 'BagError', 'FrameProcessor', 'main', 'run', 'add_arguments', 'output_topics',
-                 'open_input_bag', 'process_bag', 'format_report'):
+    for name in (
+        'BagOptions',
+        'BagError',
+        'FrameProcessor',
+        'main',
+        'run',
+        'add_arguments',
+        'output_topics',
+        'open_input_bag',
+        'process_bag',
+        'format_report',
+    ):
         assert callable(getattr(bag_package, name)), name
     setup = (REPO / 'setup.py').read_text()
     for module, function in re.findall(r"'process_bag = ([\w.]+):(\w+)'", setup):
         assert getattr(import_module(module), function) is bag_package.main
-    result = subprocess.run([sys.executable, '-m', 'ppe_ros.ros.bag', '--help'], capture_output=True, text=True,
-                            cwd=REPO, timeout=120)
+    result = subprocess.run(
+        [sys.executable, '-m', 'ppe_ros.ros.bag', '--help'], capture_output=True, text=True, cwd=REPO, timeout=120
+    )
     assert result.returncode == 0 and 'usage: process_bag' in result.stdout, result.stderr
 
 

@@ -39,8 +39,14 @@ NAMES = ('a', 'b', 'c')
 def local_ray():
     """Ray in this process: two CPUs (two workers), 127.0.0.1 only, no dashboard, a small object store."""
     os.environ.setdefault('RAY_USAGE_STATS_ENABLED', '0')
-    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address='127.0.0.1', object_store_memory=100 << 20,
-             log_to_driver=False, configure_logging=False)
+    ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        _node_ip_address='127.0.0.1',
+        object_store_memory=100 << 20,
+        log_to_driver=False,
+        configure_logging=False,
+    )
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the killing task bodies below
     yield ray.get_runtime_context().gcs_address
     ray.shutdown()
@@ -50,8 +56,10 @@ def local_ray():
 def three_bags(tmp_path_factory) -> tuple[list[Path], Path]:
     """Three bags of 5, 3 and 6 frames, and what ``--executor local`` writes for them."""
     folder = tmp_path_factory.mktemp('bags')
-    inputs = [write_rosbag2(folder / name, frames(count, 50 + 10 * index))
-              for index, (name, count) in enumerate(zip(NAMES, (5, 3, 6), strict=True))]
+    inputs = [
+        write_rosbag2(folder / name, frames(count, 50 + 10 * index))
+        for index, (name, count) in enumerate(zip(NAMES, (5, 3, 6), strict=True))
+    ]
     assert main([*map(str, inputs), str(folder / 'local'), '--no-progress']) == 0
     return inputs, folder / 'local'
 
@@ -88,8 +96,12 @@ def test_ray_writes_the_bytes_local_writes(local_ray, three_bags, tmp_path, caps
 def test_a_killed_worker_is_retried_and_nothing_is_lost(local_ray, three_bags, tmp_path):
     inputs, local = three_bags
     flag = tmp_path / 'killed'
-    executor = RayExecutor(BagOptions(inputs[0], tmp_path).params, task_frames=2, retries=2,
-                           task_function=functools.partial(kill_the_first_attempt, str(flag)))
+    executor = RayExecutor(
+        BagOptions(inputs[0], tmp_path).params,
+        task_frames=2,
+        retries=2,
+        task_function=functools.partial(kill_the_first_attempt, str(flag)),
+    )
     bags = process_bags(runs(inputs, tmp_path / 'out'), output_directory=tmp_path / 'out', executor=executor)
     assert flag.exists()  # a worker was killed
     assert bags.exit_code == 0, [r.worker_error for r in bags.reports]
@@ -100,8 +112,12 @@ def test_a_killed_worker_is_retried_and_nothing_is_lost(local_ray, three_bags, t
 def test_a_task_that_keeps_failing_is_reported_and_the_other_inputs_go_on(local_ray, three_bags, tmp_path, capsys):
     inputs, local = three_bags
     doomed = cloud_messages(inputs[0])[2]  # frame 2 of bag a: in the second task
-    executor = RayExecutor(BagOptions(inputs[0], tmp_path).params, task_frames=2, retries=1,
-                           task_function=functools.partial(kill_when_holding, hashlib.sha1(doomed).hexdigest()))
+    executor = RayExecutor(
+        BagOptions(inputs[0], tmp_path).params,
+        task_frames=2,
+        retries=1,
+        task_function=functools.partial(kill_when_holding, hashlib.sha1(doomed).hexdigest()),
+    )
     options = runs(inputs, tmp_path / 'out')
     bags = process_bags(options, output_directory=tmp_path / 'out', executor=executor)
     a, b, c = bags.reports
@@ -125,14 +141,38 @@ def cloud_messages(bag: Path) -> list[bytes]:
 
 def test_ctrl_c_keeps_every_finished_bag_and_names_the_incomplete_ones(local_ray, tmp_path):
     """The real thing: SIGINT to ``process_bag a b c OUT --executor ray --ray-address <this Ray>`` during b."""
-    big = [(bag_time(i), serialized(JAZZY, cloud(JAZZY, i, plane_scan(3, rows=64, cols=512, radial_sigma=0.005,
-                                                                       seed=i % 4).points))) for i in range(40)]
-    inputs = [write_rosbag2(tmp_path / 'in' / 'a', frames(3, 70)), write_rosbag2(tmp_path / 'in' / 'b', big),
-              write_rosbag2(tmp_path / 'in' / 'c', frames(3, 80))]
+    big = [
+        (
+            bag_time(i),
+            serialized(JAZZY, cloud(JAZZY, i, plane_scan(3, rows=64, cols=512, radial_sigma=0.005, seed=i % 4).points)),
+        )
+        for i in range(40)
+    ]
+    inputs = [
+        write_rosbag2(tmp_path / 'in' / 'a', frames(3, 70)),
+        write_rosbag2(tmp_path / 'in' / 'b', big),
+        write_rosbag2(tmp_path / 'in' / 'c', frames(3, 80)),
+    ]
     out = tmp_path / 'out'
-    process = subprocess.Popen([sys.executable, '-m', 'ppe_ros.ros.bag', *map(str, inputs), str(out), '--executor',
-                                'ray', '--ray-address', local_ray, '--task-frames', '1', '--progress'],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            '-m',
+            'ppe_ros.ros.bag',
+            *map(str, inputs),
+            str(out),
+            '--executor',
+            'ray',
+            '--ray-address',
+            local_ray,
+            '--task-frames',
+            '1',
+            '--progress',
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=REPO,
+    )
     seen = bytearray()
 
     def read_stderr():
@@ -175,12 +215,29 @@ def test_options_of_the_ray_executor_are_checked(tmp_path):
         assert exc.value.code == 2
     with pytest.raises(BagError, match='--task-frames must be >= 1'):
         process_bags([replace(BagOptions(source, tmp_path / 'out'), executor='ray', task_frames=0)])
-    for address, message in (('127.0.0.1:1', 'cannot connect to the Ray cluster at 127.0.0.1:1: Connection refused'),
-                             ('nowhere', "--ray-address 'nowhere' is not 'auto', HOST:PORT or ray://HOST:PORT")):
+    for address, message in (
+        ('127.0.0.1:1', 'cannot connect to the Ray cluster at 127.0.0.1:1: Connection refused'),
+        ('nowhere', "--ray-address 'nowhere' is not 'auto', HOST:PORT or ray://HOST:PORT"),
+    ):
         started = time.monotonic()  # a process of its own: this one may be connected to Ray already
-        result = subprocess.run([sys.executable, '-m', 'ppe_ros.ros.bag', str(source), str(tmp_path / 'out'),
-                                 '--executor', 'ray', '--ray-address', address, '--no-progress'],
-                                capture_output=True, text=True, cwd=REPO, timeout=120)
+        result = subprocess.run(
+            [
+                sys.executable,
+                '-m',
+                'ppe_ros.ros.bag',
+                str(source),
+                str(tmp_path / 'out'),
+                '--executor',
+                'ray',
+                '--ray-address',
+                address,
+                '--no-progress',
+            ],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            timeout=120,
+        )
         assert result.returncode == 2, result.stderr
         assert f'process_bag: error: {message}' in result.stderr and 'Traceback' not in result.stderr, result.stderr
         assert time.monotonic() - started < 60  # not minutes of ray.init retrying

@@ -41,7 +41,7 @@ def _labels_with_sizes(sizes, shape=(50, 60)):
     flat = np.zeros(shape[0] * shape[1], np.int64)
     start = 0
     for label, size in enumerate(sizes, start=1):
-        flat[start:start + size] = label
+        flat[start : start + size] = label
         start += size
     return flat.reshape(shape)
 
@@ -166,8 +166,10 @@ def test_closest_point_jacobian_matches_finite_differences():
 
     c = np.array([1.0, -2.0, 3.0])
     step = 1e-6
-    numeric = np.stack([(moved_closest_point(c + step * e) - moved_closest_point(c - step * e)) / (2 * step)
-                        for e in np.eye(3)], axis=1)
+    numeric = np.stack(
+        [(moved_closest_point(c + step * e) - moved_closest_point(c - step * e)) / (2 * step) for e in np.eye(3)],
+        axis=1,
+    )
     np.testing.assert_allclose(closest_point_jacobian(c, rotation, translation), numeric, atol=1e-7)
 
 
@@ -190,8 +192,9 @@ def test_registration_covariance_matches_sampled_small_motions():
     deltas = []
     for _ in range(4000):
         w, u = rng.normal(0, sigma_r, 3), rng.normal(0, sigma_t, 3)
-        moved_n, moved_d = transform_planes(normal[None], np.array([offset]),
-                                            _rotation(w, math.degrees(np.linalg.norm(w))), u)
+        moved_n, moved_d = transform_planes(
+            normal[None], np.array([offset]), _rotation(w, math.degrees(np.linalg.norm(w))), u
+        )
         deltas.append(moved_d[0] * moved_n[0] - offset * normal)
     sampled = np.cov(np.array(deltas).T)
     predicted = registration_covariance(normal, offset, sigma_t, sigma_r)
@@ -221,8 +224,18 @@ def test_match_planes_finds_the_same_planes_after_a_known_motion():
     points_b, labels_b = _spherical_scene(motion)  # sensor B sits at `motion` in A's (world) frame
     planes_a, planes_b = _planes_of(points_a, labels_a), _planes_of(points_b, labels_b)
     projector = RangeImageProjector(points_b)
-    args = (planes_a.labels, points_a, planes_a.normals, planes_a.offsets, None, planes_b.labels, projector,
-            planes_b.normals, planes_b.offsets, None)
+    args = (
+        planes_a.labels,
+        points_a,
+        planes_a.normals,
+        planes_a.offsets,
+        None,
+        planes_b.labels,
+        projector,
+        planes_b.normals,
+        planes_b.offsets,
+        None,
+    )
     matches = match_planes(*args, np.eye(3), -motion, min_points=100)
     assert len(matches) == 2
     for m in matches:
@@ -237,14 +250,40 @@ def test_match_planes_finds_the_same_planes_after_a_known_motion():
     split = planes_b.labels.copy()
     split[:, : split.shape[1] // 2][split[:, : split.shape[1] // 2] > 0] += 10
     halves = _planes_of(points_b, split)
-    matches = match_planes(planes_a.labels, points_a, planes_a.normals, planes_a.offsets, None, halves.labels,
-                           projector, halves.normals, halves.offsets, None, np.eye(3), -motion, min_points=100)
+    matches = match_planes(
+        planes_a.labels,
+        points_a,
+        planes_a.normals,
+        planes_a.offsets,
+        None,
+        halves.labels,
+        projector,
+        halves.normals,
+        halves.offsets,
+        None,
+        np.eye(3),
+        -motion,
+        min_points=100,
+    )
     assert all(not m.found and 0.3 < m.iou < 0.7 for m in matches)
     assert summarize_matches(matches).found_share == 0.0
     # A split into halves, B whole: each half lies inside B's plane, but B's plane is twice as large
     halves_a = _planes_of(points_a, np.where(labels_a > 0, labels_a + 10 * (np.arange(labels_a.shape[1]) < 180), 0))
-    matches = match_planes(halves_a.labels, points_a, halves_a.normals, halves_a.offsets, None, planes_b.labels,
-                           projector, planes_b.normals, planes_b.offsets, None, np.eye(3), -motion, min_points=100)
+    matches = match_planes(
+        halves_a.labels,
+        points_a,
+        halves_a.normals,
+        halves_a.offsets,
+        None,
+        planes_b.labels,
+        projector,
+        planes_b.normals,
+        planes_b.offsets,
+        None,
+        np.eye(3),
+        -motion,
+        min_points=100,
+    )
     assert len(matches) == 4 and all(not m.found and 0.3 < m.iou < 0.7 for m in matches)
 
 
@@ -254,23 +293,37 @@ def test_match_planes_mahalanobis_uses_both_covariances():
     projector = RangeImageProjector(points)
     shifted = planes.offsets + 0.01  # B's planes 1 cm further than A's
     cov = np.tile(np.eye(3) * 1e-4, (planes.num_planes, 1, 1))  # sigma 1 cm per axis in each sweep
-    matches = match_planes(planes.labels, points, planes.normals, planes.offsets, cov, planes.labels, projector,
-                           planes.normals, shifted, cov, np.eye(3), np.zeros(3), min_points=100,
-                           registration_sigma=(0.01, math.radians(0.1)))
+    matches = match_planes(
+        planes.labels,
+        points,
+        planes.normals,
+        planes.offsets,
+        cov,
+        planes.labels,
+        projector,
+        planes.normals,
+        shifted,
+        cov,
+        np.eye(3),
+        np.zeros(3),
+        min_points=100,
+        registration_sigma=(0.01, math.radians(0.1)),
+    )
     assert len(matches) == 2
     for m in matches:
-        assert m.mahalanobis2 == pytest.approx(0.01 ** 2 / 2e-4)  # delta 1 cm along n, variance 2 (1 cm)^2
+        assert m.mahalanobis2 == pytest.approx(0.01**2 / 2e-4)  # delta 1 cm along n, variance 2 (1 cm)^2
         assert m.sigma_d_predicted == pytest.approx(math.sqrt(2e-4))
         # the registration adds (1 cm)^2 along n (its rotation part moves c across n only)
-        assert m.mahalanobis2_with_registration == pytest.approx(0.01 ** 2 / 3e-4)
+        assert m.mahalanobis2_with_registration == pytest.approx(0.01**2 / 3e-4)
 
 
 def test_summary_medians_count_unmatched_planes_as_iou_zero():
     def match(iou, found, label_b=1, md2=1.0):
         return PlaneMatch(1, label_b, 1000, 1000, iou, 0.1, 0.01, md2, 0.01, found)
 
-    summary = summarize_matches([match(0.9, True), match(0.8, True, md2=5.0), match(0.0, False, label_b=0,
-                                                                                      md2=math.nan)])
+    summary = summarize_matches(
+        [match(0.9, True), match(0.8, True, md2=5.0), match(0.0, False, label_b=0, md2=math.nan)]
+    )
     assert summary.planes == 3 and summary.found == 2 and summary.found_share == pytest.approx(2 / 3)
     assert summary.median_iou == pytest.approx(0.8)
     assert summary.pairs == 2 and summary.median_mahalanobis2 == pytest.approx(3.0)
@@ -280,7 +333,12 @@ def test_every_real_scan_has_a_split():
     assert {scan.name for scan in REAL_SCANS} == set(SCAN_SPLIT)
     assert set(SCAN_SPLIT.values()) == {'training', 'reported'}
     assert [s.name for s in REAL_SCANS if s.split == 'training'] == [
-        'OS-0-128 1491', 'OS-2-128 1259', 'OS-2-32 5424', 'OS-1-32 638', 'ICL-NUIM 0']
+        'OS-0-128 1491',
+        'OS-2-128 1259',
+        'OS-2-32 5424',
+        'OS-1-32 638',
+        'ICL-NUIM 0',
+    ]
 
 
 def _bench_real_module():

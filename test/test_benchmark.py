@@ -49,7 +49,12 @@ def tiny_dataset(tmp_path_factory):
 
 def test_level_names_follow_the_synpeb_variances():
     assert [ds.level_name(s) for s in ds.DEFAULT_SIGMAS] == [
-        'sigma_0mm', 'sigma_7.1mm', 'sigma_10mm', 'sigma_14.1mm', 'sigma_20mm']
+        'sigma_0mm',
+        'sigma_7.1mm',
+        'sigma_10mm',
+        'sigma_14.1mm',
+        'sigma_20mm',
+    ]
     assert np.allclose(np.square(np.array(ds.DEFAULT_SIGMAS) * 100), [0, 0.5, 1, 2, 4])
 
 
@@ -106,10 +111,17 @@ def test_dataset_refuses_to_overwrite(tiny_dataset):
         ds.make_dataset(tiny_dataset, **TINY)
 
 
-@pytest.mark.parametrize(('kwargs', 'message'), [
-    ({'sigmas': ()}, 'sigmas'), ({'sigmas': (0.01, 0.01001)}, 'differ'), ({'n_train': -1}, 'n_train'),
-    ({'n_train': 0, 'n_test': 0}, 'at least one'), ({'rows': 1}, 'rows'), ({'seed': -2}, 'seed'),
-])
+@pytest.mark.parametrize(
+    ('kwargs', 'message'),
+    [
+        ({'sigmas': ()}, 'sigmas'),
+        ({'sigmas': (0.01, 0.01001)}, 'differ'),
+        ({'n_train': -1}, 'n_train'),
+        ({'n_train': 0, 'n_test': 0}, 'at least one'),
+        ({'rows': 1}, 'rows'),
+        ({'seed': -2}, 'seed'),
+    ],
+)
 def test_dataset_bad_parameters(tmp_path, kwargs, message):
     with pytest.raises(ValueError, match=message):
         ds.make_dataset(tmp_path / 'x', **{**TINY, **kwargs})
@@ -131,8 +143,10 @@ def test_iter_scans_selects_split_and_level(tiny_dataset):
 
 def test_ppe_and_msac_segment_a_simple_scene():
     scan = plane_scan(3, rows=24, cols=32, radial_sigma=0.002, seed=1)
-    for method in (PpeMethod(max_neighbor_distance=0.5, max_error_increment=0.01),
-                   MsacMethod(distance=0.01, fraction=0.0)):
+    for method in (
+        PpeMethod(max_neighbor_distance=0.5, max_error_increment=0.01),
+        MsacMethod(distance=0.01, fraction=0.0),
+    ):
         result = method.segment(scan.points)
         assert result.labels.shape == scan.labels.shape and result.seconds > 0
         assert score_segmentation(result.labels, scan.labels).f == 1.0, method.name
@@ -149,7 +163,7 @@ def test_ppe_sweep_gives_every_cut_of_one_run():
     # residuals (m) of the exact radial fits: on every plane pixel and nowhere else, at the noise level (2 mm); a
     # single pixel may sit far off (e = 0.01 m^2 admits joins of up to 0.1 m), so the bound is on the RMSE
     assert np.array_equal(np.isfinite(result.residuals), result.labels > 0)
-    assert np.sqrt(np.nanmean(result.residuals ** 2)) < 0.005
+    assert np.sqrt(np.nanmean(result.residuals**2)) < 0.005
 
 
 def test_ppe_level_params_apply_to_their_noise_level_only():
@@ -163,8 +177,15 @@ def test_ppe_level_params_apply_to_their_noise_level_only():
     assert 'at 5 mm={lmax=0.5' in method.describe()
 
     def labelled(sigma):
-        return LabelledScan(name='s', points=scan.points, origins=None, labels=scan.labels, gt_min_label=10,
-                            group='g', radial_sigma=sigma)
+        return LabelledScan(
+            name='s',
+            points=scan.points,
+            origins=None,
+            labels=scan.labels,
+            gt_min_label=10,
+            group='g',
+            radial_sigma=sigma,
+        )
 
     assert run_method_on_scan(method, labelled(0.005)).score.n_correct == 3
     assert run_method_on_scan(method, labelled(None)).score.n_correct == 0
@@ -203,13 +224,25 @@ def test_method_registry_and_unavailable_peers(monkeypatch):
 
 def _scan_loader(seed: int, group: str):
     scan = plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=seed)
-    return (f'scan{seed}', lambda: LabelledScan(name=f'scan{seed}', points=scan.points, origins=None,
-                                                labels=scan.labels, gt_min_label=10, group=group, radial_sigma=0.005))
+    return (
+        f'scan{seed}',
+        lambda: LabelledScan(
+            name=f'scan{seed}',
+            points=scan.points,
+            origins=None,
+            labels=scan.labels,
+            gt_min_label=10,
+            group=group,
+            radial_sigma=0.005,
+        ),
+    )
 
 
 def test_evaluate_scores_every_method_on_every_scan():
-    methods = [PpeMethod(max_neighbor_distance=0.5, max_error_increment=0.005, sweep_errors=ERROR_GRID[:5]),
-               MsacMethod(distance=0.02, fraction=0.0)]
+    methods = [
+        PpeMethod(max_neighbor_distance=0.5, max_error_increment=0.005, sweep_errors=ERROR_GRID[:5]),
+        MsacMethod(distance=0.02, fraction=0.0),
+    ]
     evaluation = evaluate([_scan_loader(1, 'a'), _scan_loader(2, 'a')], methods, warm_up=False)
     assert len(evaluation.results) == 4
     rows = evaluation.rows('a')
@@ -225,27 +258,36 @@ def test_evaluate_scores_every_method_on_every_scan():
 
 def _fake_row(method, f, k, rmse, sigma):
     score = score_segmentation(np.zeros((2, 2), int), np.full((2, 2), 10))
-    score = score.__class__(**{**score.__dict__, 'f': f, 'k': k, 'rmse': rmse, 'n_correct': round(f * 10),
-                               'n_gt': 10})
+    score = score.__class__(**{**score.__dict__, 'f': f, 'k': k, 'rmse': rmse, 'n_correct': round(f * 10), 'n_gt': 10})
     return ScanResult(scan='s', group=f'g{sigma}', method=method, score=score, seconds=1.0, radial_sigma=sigma)
 
 
 def test_targets_are_checked_with_the_numbers():
-    results = [_fake_row('ppe', 0.8, 0.8, 0.0140, 0.01414), _fake_row('msac', 0.1, 0.4, 0.02, 0.01414),
-               _fake_row('ppe', 0.7, 0.9, 0.0205, 0.02), _fake_row('msac', 0.75, 0.5, 0.02, 0.02)]
+    results = [
+        _fake_row('ppe', 0.8, 0.8, 0.0140, 0.01414),
+        _fake_row('msac', 0.1, 0.4, 0.02, 0.01414),
+        _fake_row('ppe', 0.7, 0.9, 0.0205, 0.02),
+        _fake_row('msac', 0.75, 0.5, 0.02, 0.02),
+    ]
     evaluation = Evaluation(results=results, skipped={}, methods=[PpeMethod(), MsacMethod()])
     checks = check_targets(evaluation)
     met = {target.split(':')[0] + ':' + target.split(':')[1][:6]: ok for target, ok, _ in checks}
-    assert met == {'σ = 14.1 mm: at le': True, 'σ = 14.1 mm: ahead': True, 'σ = 20.0 mm: f ≥ 7': False,
-                   'σ = 20.0 mm: ahead': False}
+    assert met == {
+        'σ = 14.1 mm: at le': True,
+        'σ = 14.1 mm: ahead': True,
+        'σ = 20.0 mm: f ≥ 7': False,
+        'σ = 20.0 mm: ahead': False,
+    }
     assert any('f 70.0 %' in numbers for _, _, numbers in checks)
 
 
 def test_ppe_variants_are_not_competitors_in_the_targets():
-    results = [_fake_row('ppe', 0.8, 0.8, 0.0140, 0.01414), _fake_row('ppe-paper', 0.9, 0.9, 0.0140, 0.01414),
-               _fake_row('msac', 0.1, 0.4, 0.02, 0.01414)]
-    evaluation = Evaluation(results=results, skipped={},
-                            methods=[PpeMethod(), PpePaperMethod(), MsacMethod()])
+    results = [
+        _fake_row('ppe', 0.8, 0.8, 0.0140, 0.01414),
+        _fake_row('ppe-paper', 0.9, 0.9, 0.0140, 0.01414),
+        _fake_row('msac', 0.1, 0.4, 0.02, 0.01414),
+    ]
+    evaluation = Evaluation(results=results, skipped={}, methods=[PpeMethod(), PpePaperMethod(), MsacMethod()])
     ahead = [(target, ok) for target, ok, _ in check_targets(evaluation) if 'ahead of' in target]
     assert ahead == [('σ = 14.1 mm: ahead of msac on f and k', True)]  # ppe-paper beats ppe but is not a rival
     paper = check_targets(evaluation, method='ppe-paper')
@@ -296,8 +338,26 @@ def test_tune_ppe_finds_a_working_point():
 
 def test_dataset_command(tmp_path, capsys):
     out = tmp_path / 'd'
-    assert main(['dataset', 'make', str(out), '--scans', '1', '--rows', '12', '--cols', '16', '--noise', '0', '20',
-                 '--quiet']) == 0
+    assert (
+        main(
+            [
+                'dataset',
+                'make',
+                str(out),
+                '--scans',
+                '1',
+                '--rows',
+                '12',
+                '--cols',
+                '16',
+                '--noise',
+                '0',
+                '20',
+                '--quiet',
+            ]
+        )
+        == 0
+    )
     assert '4 scans' in capsys.readouterr().out
     assert len(list(out.glob('*/*/*.pcd'))) == 4
     assert main(['dataset', 'make', str(out), '--scans', '1', '--quiet']) == 2  # refuses an existing data set
@@ -307,8 +367,25 @@ def test_dataset_command(tmp_path, capsys):
 def test_eval_command_end_to_end(tiny_dataset, tmp_path, capsys):
     out = tmp_path / 'bench.md'
     raw = tmp_path / 'raw.json'
-    code = main(['eval', str(tiny_dataset), '--methods', 'ppe', 'msac', 'polylidar', '--noise', '20', '--out',
-                 str(out), '--raw', str(raw), '--quiet', '--lmax', '0.5'])
+    code = main(
+        [
+            'eval',
+            str(tiny_dataset),
+            '--methods',
+            'ppe',
+            'msac',
+            'polylidar',
+            '--noise',
+            '20',
+            '--out',
+            str(out),
+            '--raw',
+            str(raw),
+            '--quiet',
+            '--lmax',
+            '0.5',
+        ]
+    )
     assert code == 0
     captured = capsys.readouterr()
     assert 'sigma_20mm (2 scans)' in captured.out and 'RMSE mm' in captured.out
@@ -333,8 +410,26 @@ def test_eval_command_rejects_unknown_methods_and_levels(tiny_dataset, tmp_path,
 
 def test_tune_command_writes_a_usable_params_file(tiny_dataset, tmp_path, capsys):
     out = tmp_path / 'tuned.yaml'
-    assert main(['tune', str(tiny_dataset), '--noise', '20', '--lmax', '0.3', '0.6', '--sqrt-e', '0.1', '0.2',
-                 '-o', str(out), '--quiet']) == 0
+    assert (
+        main(
+            [
+                'tune',
+                str(tiny_dataset),
+                '--noise',
+                '20',
+                '--lmax',
+                '0.3',
+                '0.6',
+                '--sqrt-e',
+                '0.1',
+                '0.2',
+                '-o',
+                str(out),
+                '--quiet',
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert 'best: lmax = ' in printed
     params = read_params_yaml(out)
@@ -343,16 +438,51 @@ def test_tune_command_writes_a_usable_params_file(tiny_dataset, tmp_path, capsys
     assert main(['tune', str(tiny_dataset), '--noise', '20', '-o', str(out), '--quiet']) == 2  # no overwrite
     # the file drives `ppe eval`
     md = tmp_path / 'b.md'
-    assert main(['eval', str(tiny_dataset), '--methods', 'ppe', '--noise', '20', '--params', str(out), '--out',
-                 str(md), '--quiet', '--no-sweep']) == 0
-    assert f"lmax={params['max_neighbor_distance']:g}" in md.read_text()
+    assert (
+        main(
+            [
+                'eval',
+                str(tiny_dataset),
+                '--methods',
+                'ppe',
+                '--noise',
+                '20',
+                '--params',
+                str(out),
+                '--out',
+                str(md),
+                '--quiet',
+                '--no-sweep',
+            ]
+        )
+        == 0
+    )
+    assert f'lmax={params["max_neighbor_distance"]:g}' in md.read_text()
 
 
 def test_eval_reuses_unchanged_methods_from_a_raw_file(tiny_dataset, tmp_path, capsys, monkeypatch):
     raw = tmp_path / 'raw.json'
     first = tmp_path / 'first.md'
-    assert main(['eval', str(tiny_dataset), '--methods', 'ppe', 'msac', '--noise', '0', '--out', str(first),
-                 '--raw', str(raw), '--quiet', '--no-sweep']) == 0
+    assert (
+        main(
+            [
+                'eval',
+                str(tiny_dataset),
+                '--methods',
+                'ppe',
+                'msac',
+                '--noise',
+                '0',
+                '--out',
+                str(first),
+                '--raw',
+                str(raw),
+                '--quiet',
+                '--no-sweep',
+            ]
+        )
+        == 0
+    )
     from ppe_ros.benchmark.methods import MsacMethod as Msac
 
     def fail(self, points, origins=None):
@@ -360,10 +490,31 @@ def test_eval_reuses_unchanged_methods_from_a_raw_file(tiny_dataset, tmp_path, c
 
     monkeypatch.setattr(Msac, 'segment', fail)
     second = tmp_path / 'second.md'
-    assert main(['eval', str(tiny_dataset), '--methods', 'ppe', 'msac', '--noise', '0', '--out', str(second),
-                 '--reuse', str(raw), '--lmax', '0.4', '--quiet', '--no-sweep']) == 0
-    msac_rows = [[line for line in path.read_text().splitlines() if line.startswith('| msac |')] for path in
-                 (first, second)]
+    assert (
+        main(
+            [
+                'eval',
+                str(tiny_dataset),
+                '--methods',
+                'ppe',
+                'msac',
+                '--noise',
+                '0',
+                '--out',
+                str(second),
+                '--reuse',
+                str(raw),
+                '--lmax',
+                '0.4',
+                '--quiet',
+                '--no-sweep',
+            ]
+        )
+        == 0
+    )
+    msac_rows = [
+        [line for line in path.read_text().splitlines() if line.startswith('| msac |')] for path in (first, second)
+    ]
     assert msac_rows[0] == msac_rows[1] and len(msac_rows[0]) == 1
     text = second.read_text()
     assert 'taken from the earlier run' in text and '--reuse' in text and 'lmax=0.4' in text
@@ -378,8 +529,27 @@ def test_eval_per_level_params_and_kept_hand_written_part(tiny_dataset, tmp_path
     out = tmp_path / 'bench.md'
     out.write_text('old report\n' + REPORT_END + '\n\n## Speed\n\nhand-written\n')
     raw = tmp_path / 'raw.json'
-    assert main(['eval', str(tiny_dataset), '--methods', 'ppe', 'ppe-paper', '--params', str(coarse),
-                 f'20={fine}', '--out', str(out), '--raw', str(raw), '--quiet', '--no-sweep']) == 0
+    assert (
+        main(
+            [
+                'eval',
+                str(tiny_dataset),
+                '--methods',
+                'ppe',
+                'ppe-paper',
+                '--params',
+                str(coarse),
+                f'20={fine}',
+                '--out',
+                str(out),
+                '--raw',
+                str(raw),
+                '--quiet',
+                '--no-sweep',
+            ]
+        )
+        == 0
+    )
     text = out.read_text()
     assert 'old report' not in text and text.count(REPORT_END) == 1
     assert text.endswith(REPORT_END + '\n\n## Speed\n\nhand-written\n')  # the part after the marker is kept
@@ -390,8 +560,9 @@ def test_eval_per_level_params_and_kept_hand_written_part(tiny_dataset, tmp_path
     assert ppe['sigma_20mm']['ppe']['f'] > 0.0  # the 20 mm file
     capsys.readouterr()
     for bad in (['a.yaml', 'b.yaml'], ['x=a.yaml'], ['20=']):
-        assert main(['eval', str(tiny_dataset), '--methods', 'ppe', '--params', *bad, '--out', str(out),
-                     '--quiet']) == 2
+        assert (
+            main(['eval', str(tiny_dataset), '--methods', 'ppe', '--params', *bad, '--out', str(out), '--quiet']) == 2
+        )
     assert '--params' in capsys.readouterr().err
 
 
@@ -410,7 +581,22 @@ def test_eval_progress_bar_counts_only_the_methods_that_run(tiny_dataset, tmp_pa
         raise MethodUnavailable('polylidar is not installed')
 
     monkeypatch.setattr(peers.Polylidar3dOrganized, 'check_available', missing)
-    assert main(['eval', str(tiny_dataset), '--methods', 'msac', 'polylidar', '--noise', '0', '--out',
-                 str(tmp_path / 'b.md'), '--no-sweep']) == 0
+    assert (
+        main(
+            [
+                'eval',
+                str(tiny_dataset),
+                '--methods',
+                'msac',
+                'polylidar',
+                '--noise',
+                '0',
+                '--out',
+                str(tmp_path / 'b.md'),
+                '--no-sweep',
+            ]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     assert 'skipped polylidar' in err and '2/2 ' in err and '100%' in err  # 2 scans x msac; polylidar never runs

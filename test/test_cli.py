@@ -79,10 +79,13 @@ def test_extract_refuses_to_overwrite(small_scan, tmp_path, capsys):
     assert path.read_bytes() == before
 
 
-@pytest.mark.parametrize(('args', 'message'), [
-    (['-o', 'x.txt'], '.npz or .pcd'),
-    (['-o', 'x.npz', '--min-plane-points', '0'], 'min-plane-points'),
-])
+@pytest.mark.parametrize(
+    ('args', 'message'),
+    [
+        (['-o', 'x.txt'], '.npz or .pcd'),
+        (['-o', 'x.npz', '--min-plane-points', '0'], 'min-plane-points'),
+    ],
+)
 def test_extract_rejects_bad_arguments(small_scan, tmp_path, capsys, args, message):
     path, _ = small_scan
     args = [a if a not in ('x.txt', 'x.npz') else str(tmp_path / a) for a in args]
@@ -142,8 +145,22 @@ def test_extract_refuses_a_link_to_its_labels_file(small_scan, tmp_path, capsys)
     np.save(gt, scan.labels)
     (tmp_path / 'out.png').hardlink_to(gt)
     before = gt.read_bytes()
-    assert main(['extract', str(path), '--gt', str(gt), '-o', str(tmp_path / 'p.npz'), '--png',
-                 str(tmp_path / 'out.png'), '--force']) == 2
+    assert (
+        main(
+            [
+                'extract',
+                str(path),
+                '--gt',
+                str(gt),
+                '-o',
+                str(tmp_path / 'p.npz'),
+                '--png',
+                str(tmp_path / 'out.png'),
+                '--force',
+            ]
+        )
+        == 2
+    )
     assert f'refusing to overwrite the input {gt}' in capsys.readouterr().err
     assert gt.read_bytes() == before
 
@@ -155,14 +172,17 @@ def test_eval_and_tune_refuse_a_link_to_an_input(tmp_path, capsys):
     manifest = tmp_path / 'ds' / 'dataset.json'
     before = manifest.read_bytes()
     (tmp_path / 'report.md').hardlink_to(manifest)
-    assert main(['eval', str(tmp_path / 'ds'), '--methods', 'ppe', '--out', str(tmp_path / 'report.md'),
-                 '--quiet']) == 2
+    assert (
+        main(['eval', str(tmp_path / 'ds'), '--methods', 'ppe', '--out', str(tmp_path / 'report.md'), '--quiet']) == 2
+    )
     assert 'refusing to overwrite the input' in capsys.readouterr().err
     scan = next((tmp_path / 'ds' / 'train').rglob('*.pcd'))
     scan_before = scan.read_bytes()
     (tmp_path / 'tuned.yaml').hardlink_to(scan)
-    assert main(['tune', str(tmp_path / 'ds'), '--noise', '20', '-o', str(tmp_path / 'tuned.yaml'), '--force',
-                 '--quiet']) == 2
+    assert (
+        main(['tune', str(tmp_path / 'ds'), '--noise', '20', '-o', str(tmp_path / 'tuned.yaml'), '--force', '--quiet'])
+        == 2
+    )
     assert 'refusing to overwrite the input' in capsys.readouterr().err
     assert manifest.read_bytes() == before and scan.read_bytes() == scan_before
 
@@ -194,8 +214,7 @@ def test_extract_rejects_the_same_file_for_planes_and_picture(small_scan, tmp_pa
 
 
 @pytest.mark.parametrize('room', [0, 100, 5000])
-def test_extract_on_a_full_disk_leaves_no_output_and_no_temporary_file(small_scan, tmp_path, capsys, monkeypatch,
-                                                                       room):
+def test_extract_on_a_full_disk_leaves_no_output_and_no_temporary_file(small_scan, tmp_path, capsys, monkeypatch, room):
     from test_io_files import full_disk
 
     path, _ = small_scan

@@ -45,8 +45,14 @@ def test_the_core_imports_nothing_of_ros():
     offenders = []
     for path in sorted((PACKAGE / 'core').rglob('*.py')):
         for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
-                [node.module or ''] if isinstance(node, ast.ImportFrom) else [])
-            offenders += [f'{path.name}: {n}' for n in names if n.split('.')[0] in ('rclpy', 'rosbags')
-                          or n.startswith('ppe_ros.ros')]
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else ([node.module or ''] if isinstance(node, ast.ImportFrom) else [])
+            )
+            offenders += [
+                f'{path.name}: {n}'
+                for n in names
+                if n.split('.')[0] in ('rclpy', 'rosbags') or n.startswith('ppe_ros.ros')
+            ]
     assert offenders == []

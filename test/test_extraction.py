@@ -75,6 +75,7 @@ def partition(ids: np.ndarray, *, background: int = -1) -> frozenset[frozenset[i
 def partition_difference(a: np.ndarray, b: np.ndarray) -> int:
     """Pixels on which two labelings (0 = no plane) disagree after matching each plane to the plane
     of the other labeling it overlaps most (the larger count of both directions)."""
+
     def one_way(x, y):
         diff = 0
         for label in np.unique(x):
@@ -94,8 +95,11 @@ def first_divergence(first: np.ndarray, second: np.ndarray) -> int | None:
     """Index of the first action whose (kind, a, b) differ, or the shorter length if one log is a
     prefix of the other; None if both logs have the same keys."""
     n = min(len(first), len(second))
-    same = ((first['kind'][:n] == second['kind'][:n]) & (first['a'][:n] == second['a'][:n])
-            & (first['b'][:n] == second['b'][:n]))
+    same = (
+        (first['kind'][:n] == second['kind'][:n])
+        & (first['a'][:n] == second['a'][:n])
+        & (first['b'][:n] == second['b'][:n])
+    )
     bad = np.flatnonzero(~same)
     if len(bad):
         return int(bad[0])
@@ -151,14 +155,23 @@ def pixel_rays(points: np.ndarray, origins: np.ndarray | None, pixels: np.ndarra
 
 SMALL_SCENES = {
     # sensor frame, rays from the origin, three noisy planes with no-returns, no distance limit
-    'corner-sensor-nan': lambda: (scenes.corner_scan(noise=0.003, seed=1, nan_pixels=[(2, 3), (5, 7), (0, 0)]),
-                                  'sensor', np.inf),
+    'corner-sensor-nan': lambda: (
+        scenes.corner_scan(noise=0.003, seed=1, nan_pixels=[(2, 3), (5, 7), (0, 0)]),
+        'sensor',
+        np.inf,
+    ),
     # world frame, per-ray origins on a ring, two planes, distance limit (29 edges cut)
-    'floor-wall-beams-lmax': lambda: (scenes.corner_scan(n_planes=2, noise=0.001, seed=2, beam_radius=0.04),
-                                      'world', 0.5),
+    'floor-wall-beams-lmax': lambda: (
+        scenes.corner_scan(n_planes=2, noise=0.001, seed=2, beam_radius=0.04),
+        'world',
+        0.5,
+    ),
     # world frame, per-ray origins, three planes, 5 mm noise, no-returns, distance limit
-    'corner-beams-nan-lmax': lambda: (scenes.corner_scan(noise=0.005, seed=3, beam_radius=0.05,
-                                                         nan_pixels=[(4, 4), (4, 5)]), 'world', 0.45),
+    'corner-beams-nan-lmax': lambda: (
+        scenes.corner_scan(noise=0.005, seed=3, beam_radius=0.05, nan_pixels=[(4, 4), (4, 5)]),
+        'world',
+        0.45,
+    ),
     # three planes, the greedy order is sensitive here (a wrong plane error changes it early)
     'corner-sensor-seed3': lambda: (scenes.corner_scan(noise=0.001, seed=3), 'sensor', np.inf),
     # a near panel in front of a far wall: the distance limit separates them
@@ -208,14 +221,17 @@ def assert_matches_reference(fast, ref, label: str) -> None:
     bad = np.flatnonzero(~close)
     assert not len(bad), (
         f'{label}: increments differ at step {bad[0]} of {len(fa)}: fast {action_str(fa[bad[0]])}, '
-        f'reference {action_str(ra[bad[0]])}')
+        f'reference {action_str(ra[bad[0]])}'
+    )
     if divergence is not None:
         assert divergence < min(len(fa), len(ra)), (
-            f'{label}: one log is a prefix of the other ({len(fa)} fast vs {len(ra)} reference actions)')
+            f'{label}: one log is a prefix of the other ({len(fa)} fast vs {len(ra)} reference actions)'
+        )
         inc_f, inc_r = fa['increment'][divergence], ra['increment'][divergence]
         assert abs(inc_f - inc_r) <= 1e-6 * max(abs(inc_f), abs(inc_r)) + 1e-15, (
             f'{label}: the logs diverge at step {divergence} of {len(ra)} without a tie: fast '
-            f'{action_str(fa[divergence])}, reference {action_str(ra[divergence])}')
+            f'{action_str(fa[divergence])}, reference {action_str(ra[divergence])}'
+        )
         final_fast = partition(fast.plane_ids(len(fa)))
         final_ref = partition(ref.final_plane_id_image)
         assert final_fast == final_ref, f'{label}: after a tie at step {divergence} the final partitions differ'
@@ -227,8 +243,9 @@ def test_exact_settings_reproduce_the_reference_action_log(name):
     fast = small_hierarchy(name, exact=True)
     assert fast.complete
     ref_origins = None if origins is None else np.broadcast_to(origins, points.shape)
-    ref = reference_extract(points, origins=ref_origins, max_neighbor_distance=lmax,
-                            max_error_increment=list(SMALL_CUTS), max_planes=1)
+    ref = reference_extract(
+        points, origins=ref_origins, max_neighbor_distance=lmax, max_error_increment=list(SMALL_CUTS), max_planes=1
+    )
     assert len(ref.actions) > 30
     assert {KIND_CREATE, KIND_EXTEND, KIND_MERGE} <= set(fast.actions['kind'].tolist())
     assert_matches_reference(fast, ref, name)
@@ -259,21 +276,26 @@ def test_exact_ties_on_a_separable_grid_are_resolved_like_the_reference():
 @pytest.mark.parametrize('name', list(SMALL_SCENES))
 def test_default_settings_segment_small_scenes_like_exact_settings(name):
     fast, exact = small_hierarchy(name, exact=False), small_hierarchy(name, exact=True)
-    diffs = {e: partition_difference(fast.cut(max_error_increment=e).labels,
-                                      exact.cut(max_error_increment=e).labels) for e in SMALL_CUTS}
+    diffs = {
+        e: partition_difference(fast.cut(max_error_increment=e).labels, exact.cut(max_error_increment=e).labels)
+        for e in SMALL_CUTS
+    }
     assert max(diffs.values()) <= 2, f'{name}: pixels that differ per e: {diffs}'
 
 
 def test_default_settings_segment_a_medium_noisy_scene_like_exact_settings():
     fast, exact = medium_hierarchy(exact=False), medium_hierarchy(exact=True)
-    diffs = {e: partition_difference(fast.cut(max_error_increment=e).labels,
-                                      exact.cut(max_error_increment=e).labels) for e in (0.01, 0.05, 0.2)}
+    diffs = {
+        e: partition_difference(fast.cut(max_error_increment=e).labels, exact.cut(max_error_increment=e).labels)
+        for e in (0.01, 0.05, 0.2)
+    }
     # measured: 0-1 pixel of 2400 at each of these e
     assert max(diffs.values()) <= 10, f'pixels that differ per e (of 2400): {diffs}'
 
 
 def _exact_increment(points, origins, ids, action, width):
     """The increment of a logged action recomputed with exact fits of the replayed pixel sets."""
+
     def sse(pixels):
         pixels = np.asarray(pixels)
         return fit_plane(points.reshape(-1, 3)[pixels], origins.reshape(-1, 3)[pixels]).sse
@@ -300,10 +322,17 @@ def test_deferring_merges_does_not_change_the_action_log(exact):
     assert (deferred.actions['kind'] == KIND_MERGE).sum() > 50
     assert np.array_equal(deferred.actions, queued.actions)
     # and at a threshold with a distance limit, where merges are cut off
-    deferred = extract_plane_hierarchy(scan.points, origins=scan.origins, max_neighbor_distance=0.15,
-                                       max_error_increment=0.02, **settings)
-    queued = extract_plane_hierarchy(scan.points, origins=scan.origins, max_neighbor_distance=0.15,
-                                     max_error_increment=0.02, defer_merges=False, **settings)
+    deferred = extract_plane_hierarchy(
+        scan.points, origins=scan.origins, max_neighbor_distance=0.15, max_error_increment=0.02, **settings
+    )
+    queued = extract_plane_hierarchy(
+        scan.points,
+        origins=scan.origins,
+        max_neighbor_distance=0.15,
+        max_error_increment=0.02,
+        defer_merges=False,
+        **settings,
+    )
     assert np.array_equal(deferred.actions, queued.actions)
 
 
@@ -341,7 +370,7 @@ def test_reused_work_memory_does_not_change_the_result():
             if buffer.dtype == np.float64:
                 buffer[:] = garbage
             else:
-                buffer[:] = rng.integers(-2**31, 2**31 - 1, len(buffer))
+                buffer[:] = rng.integers(-(2**31), 2**31 - 1, len(buffer))
         again = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut)
         assert np.array_equal(again.actions, fresh.actions)
         assert _work_memory.buffers['int64'] is buffers['int64']  # the same buffers, reused
@@ -370,7 +399,8 @@ def test_default_increments_are_close_to_exact_refits():
     # measured on this scene: median 2e-13 (exact evaluations), max 3.3e-3 (model-based merges)
     assert relative.max() < 1e-2, (
         f'worst relative increment error {worst[0]:.3g} at step {worst[1]} {action_str(actions[worst[1]])}, '
-        f'exact {worst[2]:.9g}; 99th percentile {np.quantile(relative, 0.99):.3g}')
+        f'exact {worst[2]:.9g}; 99th percentile {np.quantile(relative, 0.99):.3g}'
+    )
     assert np.median(relative) < 1e-9
 
 
@@ -395,7 +425,8 @@ def test_noise_free_scenes_split_exactly_into_their_planes(name, e):
     expected = ground_truth_components(scan.truth)
     assert partition(planes.labels, background=0) == partition(expected), (
         f'{name}: {planes.num_planes} planes, {len(partition(expected))} expected regions; '
-        f'{partition_difference(planes.labels, expected + 1)} pixels differ')
+        f'{partition_difference(planes.labels, expected + 1)} pixels differ'
+    )
     for j in range(planes.num_planes):
         face = scan.faces[int(scan.truth.reshape(-1)[np.flatnonzero(planes.labels.reshape(-1) == j + 1)[0]])]
         normal, offset = facing(face.normal, face.offset, scan.position)
@@ -486,7 +517,7 @@ def test_all_nan_input_gives_an_empty_plane_set():
 
 @pytest.mark.parametrize('shape', [(1, 10), (10, 1), (1, 1)])
 def test_grids_without_room_for_a_seed_give_no_plane(shape):
-    points = scenes.plane_patch(noise=0.0).points[:shape[0], :shape[1]]
+    points = scenes.plane_patch(noise=0.0).points[: shape[0], : shape[1]]
     planes = extract_planes(points, max_error_increment=None)
     assert planes.num_planes == 0 and planes.labels.shape == shape and planes.actions == 0
 
@@ -633,8 +664,9 @@ def test_action_log_is_well_formed():
     ids = hierarchy.plane_ids(len(actions))
     assert np.all(ids[~valid] == -1)
     assert hierarchy.initial_plane_count == valid.sum()
-    assert np.array_equal(hierarchy.plane_counts,
-                          valid.sum() - np.cumsum(np.where(actions['kind'] == KIND_CREATE, 3, 1)))
+    assert np.array_equal(
+        hierarchy.plane_counts, valid.sum() - np.cumsum(np.where(actions['kind'] == KIND_CREATE, 3, 1))
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -705,9 +737,14 @@ def test_covariance_of_the_closest_point_matches_monte_carlo():
     assert np.linalg.norm(sample - model) < 0.25 * np.linalg.norm(model)
 
 
-@pytest.mark.parametrize('name, rows, cols', [('pc_01', slice(250, 350), slice(200, 300)),
-                                              ('pc_02', slice(0, 100), slice(300, 400)),
-                                              ('pc_02', slice(None, None, 5), slice(None, None, 5))])
+@pytest.mark.parametrize(
+    'name, rows, cols',
+    [
+        ('pc_01', slice(250, 350), slice(200, 300)),
+        ('pc_02', slice(0, 100), slice(300, 400)),
+        ('pc_02', slice(None, None, 5), slice(None, None, 5)),
+    ],
+)
 def test_default_settings_segment_synpeb_crops_like_exact_settings(shared_data, name, rows, cols):
     """On 100 x 100 pieces of the benchmark scans (the whole scans are too large for exact settings,
     whose cost grows with the square of the plane size) the default settings' segmentation at the
@@ -768,8 +805,20 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     best_config = np.empty(scan.size, np.int32)
     best_key = np.empty(scan.size)
     P, V = np.ascontiguousarray(scan.endpoints.T), np.ascontiguousarray(scan.directions.T)
-    _seed_errors(scan.endpoints, scan.directions, P, V, ok_right, ok_down, scan.height, scan.width,
-                 TETROMINO_OFFSETS, fast, best_config, best_key)
+    _seed_errors(
+        scan.endpoints,
+        scan.directions,
+        P,
+        V,
+        ok_right,
+        ok_down,
+        scan.height,
+        scan.width,
+        TETROMINO_OFFSETS,
+        fast,
+        best_config,
+        best_key,
+    )
     slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
     assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000
     np.testing.assert_array_equal(fast, slow)
@@ -796,8 +845,21 @@ def test_seeds_left_to_the_general_fit_above_the_cutoff_are_not_fitted():
     tables = []
     for seed_cutoff in (np.inf, cutoff):
         table, best_config, best_key = np.empty((scan.size, 17)), np.empty(scan.size, np.int32), np.empty(scan.size)
-        _seed_errors(scan.endpoints, scan.directions, P, V, ok_right, ok_down, scan.height, scan.width,
-                     TETROMINO_OFFSETS, table, best_config, best_key, seed_cutoff)
+        _seed_errors(
+            scan.endpoints,
+            scan.directions,
+            P,
+            V,
+            ok_right,
+            ok_down,
+            scan.height,
+            scan.width,
+            TETROMINO_OFFSETS,
+            table,
+            best_config,
+            best_key,
+            seed_cutoff,
+        )
         tables.append((table, best_config, best_key))
     (full, _, full_key), (cut, cut_config, cut_key) = tables
     skipped = np.isfinite(full) & np.isinf(cut)
@@ -939,9 +1001,10 @@ def test_union_fit_keeps_the_model_start_only_when_the_models_agree():
         rays_a, rays_b, union = np.arange(6), np.arange(6, 12), np.arange(12)
         pf, (sse, w0, w1, w2) = _union_of_two_fitted_sets(endpoints, directions, rays_a, rays_b)
         model_inc, m0, m1, m2 = _model_merge(pf, 0, 1)
-        starts = ((m0, m1, m2), tuple(pf[0, _PW:_PW + 3]), tuple(pf[1, _PW:_PW + 3]), (np.nan, np.nan, np.nan))
-        fits = [_fit_rays(endpoints, directions, union, 12, *start, _FIT_ITERATIONS, _FIT_TOLERANCE)
-                for start in starts]
+        starts = ((m0, m1, m2), tuple(pf[0, _PW : _PW + 3]), tuple(pf[1, _PW : _PW + 3]), (np.nan, np.nan, np.nan))
+        fits = [
+            _fit_rays(endpoints, directions, union, 12, *start, _FIT_ITERATIONS, _FIT_TOLERANCE) for start in starts
+        ]
         inc = fits[0][0] - pf[0, _PE] - pf[1, _PE]
         if model_inc < np.inf and abs(inc - model_inc) <= UNION_MODEL_AGREEMENT * max(inc, model_inc):
             expected = fits[0]
@@ -971,15 +1034,13 @@ def _refined_merge_after_growth(endpoints, directions, big_rays, small_rays, add
     pi[0, _PCOUNT] = before
     pi[1, _PCOUNT] = len(small_rays)
     _, m0, m1, m2 = _model_merge(pf, 0, 1)
-    value, w0, w1, w2, info, grad = _hybrid_merge(endpoints, directions, pf, 0, small_rays, len(small_rays), m0, m1,
-                                                  m2)
+    value, w0, w1, w2, info, grad = _hybrid_merge(endpoints, directions, pf, 0, small_rays, len(small_rays), m0, m1, m2)
     refined = value - pf[0, _PE] - pf[1, _PE]
     _keep_refined_merge(rcache_i, rcache_f, pf, pi, 0, 1, pf[1, _PE], value, w0, w1, w2, info, grad)
     kept = _refined_merge_increment(pf, 0, rcache_f, 1)
     _set_exact_state(endpoints, directions, pf, big_rays, len(big_rays), 0, np.nan, np.nan, np.nan)
     _, m0, m1, m2 = _model_merge(pf, 0, 1)
-    value, w0, w1, w2, info, grad = _hybrid_merge(endpoints, directions, pf, 0, small_rays, len(small_rays), m0, m1,
-                                                  m2)
+    value, w0, w1, w2, info, grad = _hybrid_merge(endpoints, directions, pf, 0, small_rays, len(small_rays), m0, m1, m2)
     return refined, kept, value - pf[0, _PE] - pf[1, _PE], _refined_merge_increment(pf, 0, rcache_f, 1)
 
 
@@ -1095,7 +1156,7 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
     joint_running = np.empty(len(tiled.actions))
     for t in range(3):
         joint_running[strip_of == t] = np.maximum.accumulate(tiled.actions['increment'][strip_of == t])
-    assert np.all(np.diff(joint_running) >= 0), 'the joint log is ordered by each strip\'s running maximum'
+    assert np.all(np.diff(joint_running) >= 0), "the joint log is ordered by each strip's running maximum"
     # the cut at any e is the union of the strips' own cuts at e
     for cut in (e / 100, e / 10, e):
         ids = tiled.plane_ids(tiled.steps_for_error(cut)).reshape(points.shape[:2])
@@ -1110,7 +1171,7 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
     # no plane crosses a border
     ids = tiled.plane_ids(len(tiled.actions)).reshape(points.shape[:2])
     for t in range(3):
-        inside = ids[:, bounds[t]:bounds[t + 1]]
+        inside = ids[:, bounds[t] : bounds[t + 1]]
         assert np.all((inside < 0) | (np.searchsorted(bounds, inside % 60, side='right') - 1 == t))
 
 
@@ -1131,11 +1192,17 @@ def test_tile_borders_move_to_the_columns_that_fewest_edges_cross():
 
 def test_tiled_results_do_not_depend_on_the_thread_count():
     scan = medium_scan()
-    logs = [extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=0.05, tiles=5,
-                                    threads=threads).actions.tobytes() for threads in (1, 2, 3, 5)]
+    logs = [
+        extract_plane_hierarchy(
+            scan.points, origins=scan.origins, max_error_increment=0.05, tiles=5, threads=threads
+        ).actions.tobytes()
+        for threads in (1, 2, 3, 5)
+    ]
     assert logs[0] == logs[1] == logs[2] == logs[3]
-    planes = [extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=4, threads=threads)
-              for threads in (1, 2)]
+    planes = [
+        extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=4, threads=threads)
+        for threads in (1, 2)
+    ]
     assert planes[0].labels.tobytes() == planes[1].labels.tobytes()
     assert planes[0].normals.tobytes() == planes[1].normals.tobytes()
 
@@ -1150,22 +1217,27 @@ def test_one_tile_is_the_exact_greedy_and_the_default_without_consolidation():
         default = extract_planes(scan.points, origins=scan.origins, sensor=sensor)
         single = extract_planes(scan.points, origins=scan.origins, sensor=sensor, tiles=1)
         assert default.labels.tobytes() == single.labels.tobytes()
-    assert extract_plane_hierarchy(scan.points, max_error_increment=0.05, tiles='auto').actions.tobytes() == \
-        extract_plane_hierarchy(scan.points, max_error_increment=0.05).actions.tobytes()  # 60 columns: 1 tile
+    assert (
+        extract_plane_hierarchy(scan.points, max_error_increment=0.05, tiles='auto').actions.tobytes()
+        == extract_plane_hierarchy(scan.points, max_error_increment=0.05).actions.tobytes()
+    )  # 60 columns: 1 tile
 
 
-@pytest.mark.parametrize(('height', 'width', 'tiles', 'bounds'), [
-    (128, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),  # a sweep: 128-column sectors
-    (32, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),
-    (480, 640, 'auto', [0, 320, 640]),  # an image: strips of about 256 columns
-    (513, 633, 'auto', [0, 316, 633]),
-    (500, 500, 'auto', [0, 250, 500]),
-    (100, 200, 'auto', [0, 200]),
-    (10, 100, 'auto', [0, 100]),
-    (10, 60, 4, [0, 15, 30, 45, 60]),
-    (10, 20, 8, [0, 10, 20]),  # strips of at least 8 columns
-    (10, 5, 3, [0, 5]),
-])
+@pytest.mark.parametrize(
+    ('height', 'width', 'tiles', 'bounds'),
+    [
+        (128, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),  # a sweep: 128-column sectors
+        (32, 1024, 'auto', [0, 128, 256, 384, 512, 640, 768, 896, 1024]),
+        (480, 640, 'auto', [0, 320, 640]),  # an image: strips of about 256 columns
+        (513, 633, 'auto', [0, 316, 633]),
+        (500, 500, 'auto', [0, 250, 500]),
+        (100, 200, 'auto', [0, 200]),
+        (10, 100, 'auto', [0, 100]),
+        (10, 60, 4, [0, 15, 30, 45, 60]),
+        (10, 20, 8, [0, 10, 20]),  # strips of at least 8 columns
+        (10, 5, 3, [0, 5]),
+    ],
+)
 def test_tile_bounds(height, width, tiles, bounds):
     from ppe_ros.core.extraction import _tile_bounds
 
@@ -1178,8 +1250,9 @@ def test_the_consolidation_joins_a_surface_that_the_tile_borders_cut():
     scan = plane_scan(n_planes=3, rows=40, cols=96, radial_sigma=0.01, seed=3)
     whole = extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=1)
     tiled = extract_planes(scan.points, origins=scan.origins, sensor='lidar', tiles=6)
-    pieces = extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=16.0, tiles=6,
-                                     noise=LIDAR_NOISE)
+    pieces = extract_plane_hierarchy(
+        scan.points, origins=scan.origins, max_error_increment=16.0, tiles=6, noise=LIDAR_NOISE
+    )
     ids = pieces.plane_ids(len(pieces.actions))
     assert len(np.unique(ids[ids >= 0])) >= 6 * 3 // 2  # the borders cut the faces into pieces
     assert tiled.num_planes == whole.num_planes == 3

@@ -226,8 +226,9 @@ def test_fit_labeled_planes_options():
     assert sorted(high.label_ids.tolist()) == [7, 9]
     # integral float labels are accepted
     as_float = fit_labeled_planes(scan.points, labels.astype(float), origins=scan.origins)
-    assert np.array_equal(as_float.planes.labels, fit_labeled_planes(scan.points, labels,
-                                                                     origins=scan.origins).planes.labels)
+    assert np.array_equal(
+        as_float.planes.labels, fit_labeled_planes(scan.points, labels, origins=scan.origins).planes.labels
+    )
     # labels far beyond the pixel count group the same pixels
     base = fit_labeled_planes(scan.points, labels, origins=scan.origins)
     huge = fit_labeled_planes(scan.points, labels * 10**12, origins=scan.origins)
@@ -287,4 +288,5 @@ def test_covariance_is_the_delta_method_covariance_of_the_closest_point(starts):
     fit = fit_plane(points, origins)
     expected = _delta_method_covariance(points, origins, fit.normal, fit.offset, fit.sse)
     assert np.allclose(fit.covariance, expected, rtol=1e-4, atol=1e-6 * np.abs(expected).max()), (
-        f'reported\n{fit.covariance}\ndelta method\n{expected}')
+        f'reported\n{fit.covariance}\ndelta method\n{expected}'
+    )

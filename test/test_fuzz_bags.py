@@ -65,8 +65,9 @@ def _cloud(store, index: int):
         header = types['std_msgs/msg/Header'](seq=index, stamp=stamp, frame_id='lidar')
     else:
         header = types['std_msgs/msg/Header'](stamp=stamp, frame_id='lidar')
-    return xyz_to_pointcloud2(points, header=header, msg_class=types[POINTCLOUD2],
-                              field_class=types['sensor_msgs/msg/PointField'])
+    return xyz_to_pointcloud2(
+        points, header=header, msg_class=types[POINTCLOUD2], field_class=types['sensor_msgs/msg/PointField']
+    )
 
 
 def _bag_time(index: int) -> int:
@@ -212,7 +213,7 @@ def check_run(code: int, err: str, damaged: Path, out: Path, mutation, clean_inp
     clean_times = [t for t, _ in clean_outputs[OUTPUT_TOPICS[0]]]
     damaged_inputs = input_messages(damaged)
     if what == 'cut':  # the frames before the damage, every one of them
-        assert times == clean_times[:len(times)], context
+        assert times == clean_times[: len(times)], context
     else:  # a flipped byte may change a time stamp too (no checksum): frames of the bag as it reads
         assert set(times) <= set(damaged_inputs), context
     intact = {t for t, raw in damaged_inputs.items() if clean_inputs.get(t) == raw}
@@ -244,11 +245,14 @@ def test_damaged_bags_give_the_documented_outcome(clean, kind):
 
 
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize(('kind', 'mutation'), [
-    ('rosbag2 sqlite3', ('cut', 0.6)),
-    ('zstd file', ('cut', 0.5)),
-    ('bare mcap', ('cut', 8)),
-])
+@pytest.mark.parametrize(
+    ('kind', 'mutation'),
+    [
+        ('rosbag2 sqlite3', ('cut', 0.6)),
+        ('zstd file', ('cut', 0.5)),
+        ('bare mcap', ('cut', 8)),
+    ],
+)
 def test_damaged_bags_in_a_real_process(clean, tmp_path, kind, mutation):
     """Exit code, stderr (one line, no traceback) and peak memory of the real command."""
     _, source, storage, clean_inputs, clean_outputs = clean[kind]
@@ -257,8 +261,13 @@ def test_damaged_bags_in_a_real_process(clean, tmp_path, kind, mutation):
     damaged = damaged_copy(tmp_path, source, storage, (what, length), 'case')
     out = damaged.parent / 'out'
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    result = subprocess.run([sys.executable, '-m', 'ppe_ros.ros.bag', str(damaged), str(out), '--no-progress'],
-                            capture_output=True, text=True, cwd=REPO, timeout=150)
+    result = subprocess.run(
+        [sys.executable, '-m', 'ppe_ros.ros.bag', str(damaged), str(out), '--no-progress'],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=150,
+    )
     peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     check_run(result.returncode, result.stderr, damaged, out, (what, length), clean_inputs, clean_outputs)
     assert result.returncode == {'rosbag2 sqlite3': 1, 'zstd file': 2, 'bare mcap': 2}[kind], result.stderr

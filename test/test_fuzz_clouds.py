@@ -64,11 +64,21 @@ def encode(points: np.ndarray, kind: str) -> Layout:
         dtype = np.dtype({'names': ['x', 'y', 'z'], 'formats': ['<f8'] * 3, 'offsets': [0, 8, 16], 'itemsize': 24})
         fields = (('x', 0, FLOAT64, 1), ('y', 8, FLOAT64, 1), ('z', 16, FLOAT64, 1))
     else:  # Ouster-like: padding, intensity, ring
-        dtype = np.dtype({'names': ['x', 'y', 'z', 'intensity', 'ring'],
-                          'formats': ['<f4', '<f4', '<f4', '<f4', '<u2'], 'offsets': [0, 4, 8, 16, 20],
-                          'itemsize': 32})
-        fields = (('x', 0, FLOAT32, 1), ('y', 4, FLOAT32, 1), ('z', 8, FLOAT32, 1), ('intensity', 16, FLOAT32, 1),
-                  ('ring', 20, 4, 1))
+        dtype = np.dtype(
+            {
+                'names': ['x', 'y', 'z', 'intensity', 'ring'],
+                'formats': ['<f4', '<f4', '<f4', '<f4', '<u2'],
+                'offsets': [0, 4, 8, 16, 20],
+                'itemsize': 32,
+            }
+        )
+        fields = (
+            ('x', 0, FLOAT32, 1),
+            ('y', 4, FLOAT32, 1),
+            ('z', 8, FLOAT32, 1),
+            ('intensity', 16, FLOAT32, 1),
+            ('ring', 20, 4, 1),
+        )
     table = np.zeros((height, width), dtype)
     with np.errstate(over='ignore', invalid='ignore'):
         for index, axis in enumerate('xyz'):
@@ -80,8 +90,9 @@ def encode(points: np.ndarray, kind: str) -> Layout:
 
 def mutate_values(rng: np.random.Generator, points: np.ndarray) -> tuple[np.ndarray, str]:
     points = points.copy()
-    special = rng.choice(['nan', 'inf', '-inf', 'huge', 'float32_max', 'tiny', 'zero', 'all_nan', 'all_zero',
-                          'extreme_mix', 'scale'])
+    special = rng.choice(
+        ['nan', 'inf', '-inf', 'huge', 'float32_max', 'tiny', 'zero', 'all_nan', 'all_zero', 'extreme_mix', 'scale']
+    )
     mask = rng.random(points.shape[:2]) < rng.choice([0.05, 0.3, 0.9])
     axis = rng.integers(0, 3)
     if special == 'nan':
@@ -112,8 +123,23 @@ def mutate_values(rng: np.random.Generator, points: np.ndarray) -> tuple[np.ndar
 def mutate_layout(rng: np.random.Generator, cloud: Layout) -> tuple[Layout, str]:
     fields = list(cloud.fields)
     index = int(rng.integers(0, len(fields))) if fields else 0
-    operation = rng.choice(['datatype', 'offset', 'count', 'name', 'drop', 'duplicate', 'point_step', 'row_step',
-                            'data_length', 'bigendian', 'height_width', 'byte_flip', 'no_fields'])
+    operation = rng.choice(
+        [
+            'datatype',
+            'offset',
+            'count',
+            'name',
+            'drop',
+            'duplicate',
+            'point_step',
+            'row_step',
+            'data_length',
+            'bigendian',
+            'height_width',
+            'byte_flip',
+            'no_fields',
+        ]
+    )
     if operation == 'datatype' and fields:
         name, offset, _, count = fields[index]
         fields[index] = (name, offset, int(rng.choice([-1, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 255])), count)
@@ -146,12 +172,24 @@ def mutate_layout(rng: np.random.Generator, cloud: Layout) -> tuple[Layout, str]
         return replace(cloud, fields=tuple(fields), is_bigendian=not cloud.is_bigendian), 'layout:bigendian_flip'
     elif operation == 'height_width':
         height, width = cloud.height, cloud.width
-        height, width = [(0, width), (height, 0), (1, height * width), (width, height), (height * width, 1),
-                         (2, height * width // 2), (height + 1, width), (-1, width), (2**20, 2**20),
-                         (2**31, 2), (3, -5)][int(rng.integers(0, 11))]
+        height, width = [
+            (0, width),
+            (height, 0),
+            (1, height * width),
+            (width, height),
+            (height * width, 1),
+            (2, height * width // 2),
+            (height + 1, width),
+            (-1, width),
+            (2**20, 2**20),
+            (2**31, 2),
+            (3, -5),
+        ][int(rng.integers(0, 11))]
         row_step = cloud.row_step if rng.random() < 0.5 else cloud.point_step * abs(width)
-        return (replace(cloud, fields=tuple(fields), height=height, width=width, row_step=row_step),
-                f'layout:height={height},width={width}')
+        return (
+            replace(cloud, fields=tuple(fields), height=height, width=width, row_step=row_step),
+            f'layout:height={height},width={width}',
+        )
     elif operation == 'byte_flip' and cloud.data:
         data = bytearray(cloud.data)
         positions = rng.integers(0, len(data), size=int(rng.integers(1, 64)))
@@ -193,21 +231,29 @@ def to_message(cloud: Layout, types=TYPES, sec: int = 7, frame_id: str = 'fuzz')
         data = array.array('B', cloud.data)
     else:
         store = types.typestore.types
-        header = store['std_msgs/msg/Header'](stamp=store['builtin_interfaces/msg/Time'](sec=sec, nanosec=0),
-                                              frame_id=frame_id)
+        header = store['std_msgs/msg/Header'](
+            stamp=store['builtin_interfaces/msg/Time'](sec=sec, nanosec=0), frame_id=frame_id
+        )
         data = np.frombuffer(cloud.data, np.uint8).copy()
     return types.PointCloud2(
-        header=header, height=cloud.height, width=cloud.width,
+        header=header,
+        height=cloud.height,
+        width=cloud.width,
         fields=[types.PointField(name=n, offset=o, datatype=d, count=c) for n, o, d, c in cloud.fields],
-        is_bigendian=cloud.is_bigendian, point_step=cloud.point_step, row_step=cloud.row_step, data=data,
-        is_dense=False)
+        is_bigendian=cloud.is_bigendian,
+        point_step=cloud.point_step,
+        row_step=cloud.row_step,
+        data=data,
+        is_dense=False,
+    )
 
 
 def sendable(cloud: Layout) -> bool:
     """Whether rclpy can serialize the layout (uint32 sizes, offsets and counts, uint8 datatypes)."""
     uint32 = range(2**32)
-    return (all(size in uint32 for size in (cloud.height, cloud.width, cloud.point_step, cloud.row_step))
-            and all(o in uint32 and c in uint32 and d in range(256) for _, o, d, c in cloud.fields))
+    return all(size in uint32 for size in (cloud.height, cloud.width, cloud.point_step, cloud.row_step)) and all(
+        o in uint32 and c in uint32 and d in range(256) for _, o, d, c in cloud.fields
+    )
 
 
 def check_outputs(frame, msg) -> None:
@@ -323,10 +369,18 @@ def test_the_node_survives_malformed_clouds_interleaved_with_good_ones():
     rclpy.init(context=context, domain_id=int(os.environ['ROS_DOMAIN_ID']))
     executor = SingleThreadedExecutor(context=context)
     namespace = f'/fuzz_{os.getpid()}'
-    node = ExtractorNode(context=context, namespace=namespace,
-                         parameter_overrides=[rclpy.parameter.Parameter(name, value=value) for name, value in
-                                              (('min_plane_points', 10), ('input_reliability', 'reliable'),
-                                               ('max_points', PARAMS.max_points))])
+    node = ExtractorNode(
+        context=context,
+        namespace=namespace,
+        parameter_overrides=[
+            rclpy.parameter.Parameter(name, value=value)
+            for name, value in (
+                ('min_plane_points', 10),
+                ('input_reliability', 'reliable'),
+                ('max_points', PARAMS.max_points),
+            )
+        ],
+    )
     probe = rclpy.create_node('fuzz_probe', context=context, namespace=namespace)
     try:
         executor.add_node(node)
@@ -344,8 +398,9 @@ def test_the_node_survives_malformed_clouds_interleaved_with_good_ones():
             return True
 
         assert spin_until(node.ready.is_set, 240.0), 'warm-up did not finish'
-        assert spin_until(lambda: publisher.get_subscription_count() and node._plane_table_pub.get_subscription_count(),
-                          10.0)
+        assert spin_until(
+            lambda: publisher.get_subscription_count() and node._plane_table_pub.get_subscription_count(), 10.0
+        )
 
         def handled():
             counts = node.frame_counts()
@@ -368,7 +423,10 @@ def test_the_node_survives_malformed_clouds_interleaved_with_good_ones():
         assert all(worker.is_alive() for worker in node._workers)
         values = {kv.key: kv.value for kv in node.diagnostics_status().values}
         assert (values['frames_processed'], values['frames_skipped'], values['frames_failed']) == (
-            str(expected['processed']), str(expected['skipped']), str(expected['failed']))
+            str(expected['processed']),
+            str(expected['skipped']),
+            str(expected['failed']),
+        )
         assert values['worker_threads_alive'] == '1'
     finally:
         executor.remove_node(probe)

@@ -44,8 +44,21 @@ SUBPROCESS_MAX_RSS_KB = 1024 * 1024
 INFO_SAMPLE = 5
 INTRINSICS = (50.0, 50.0, 4.0, 3.0)
 
-NASTY_NUMBERS = ['0', '1', '-1', '2', '2147483648', '4294967296', '18446744073709551616', '99999999999', '1e9',
-                 'nan', 'inf', 'x', '']
+NASTY_NUMBERS = [
+    '0',
+    '1',
+    '-1',
+    '2',
+    '2147483648',
+    '4294967296',
+    '18446744073709551616',
+    '99999999999',
+    '1e9',
+    'nan',
+    'inf',
+    'x',
+    '',
+]
 
 
 def _grid(rows: int = 6, cols: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -81,8 +94,12 @@ def _npy(array: np.ndarray) -> bytes:
 OUSTER_METADATA = {
     'lidar_origin_to_beam_origin_mm': 15.8,
     'lidar_to_sensor_transform': [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
-    'data_format': {'pixels_per_column': 6, 'columns_per_frame': 8, 'column_window': [0, 7],
-                    'pixel_shift_by_row': [0, 1, 2, 3, 4, 5]},
+    'data_format': {
+        'pixels_per_column': 6,
+        'columns_per_frame': 8,
+        'column_window': [0, 7],
+        'pixel_shift_by_row': [0, 1, 2, 3, 4, 5],
+    },
 }
 
 
@@ -132,11 +149,26 @@ def _edit_pcd_header(content: bytes, rng: np.random.Generator) -> bytes:
 
 def _edit_npy_header(content: bytes, rng: np.random.Generator) -> bytes:
     end = content.index(b'\n') + 1
-    shapes = ['(1000000, 1000000, 3)', '(0, 8, 3)', '(6, 8)', '(6, 8, 3, 1)', '()', '(-1, 8, 3)', '(6, 8, 4)',
-              '(3, 8, 3)', '(12, 8, 3)', '(6, 8, 2**40)', '(60000, 60000, 3)', '(6, 8, 6)']
+    shapes = [
+        '(1000000, 1000000, 3)',
+        '(0, 8, 3)',
+        '(6, 8)',
+        '(6, 8, 3, 1)',
+        '()',
+        '(-1, 8, 3)',
+        '(6, 8, 4)',
+        '(3, 8, 3)',
+        '(12, 8, 3)',
+        '(6, 8, 2**40)',
+        '(60000, 60000, 3)',
+        '(6, 8, 6)',
+    ]
     descrs = ["'<f8'", "'<i8'", "'|O'", "'<U3'", "'<f2'", "'>f4'", "'|b1'", "'<c16'", "'V12'", "[('x', '<f4')]"]
-    header = {'descr': str(rng.choice(descrs)), 'fortran_order': str(rng.choice(['False', 'True'])),
-              'shape': str(rng.choice(shapes))}
+    header = {
+        'descr': str(rng.choice(descrs)),
+        'fortran_order': str(rng.choice(['False', 'True'])),
+        'shape': str(rng.choice(shapes)),
+    }
     text = '{' + ', '.join(f"'{k}': {v}" for k, v in header.items()) + ', }'
     raw = text.encode('latin-1')
     raw += b' ' * (-(len(raw) + 11) % 64) + b'\n'
@@ -148,7 +180,7 @@ def _edit_png_header(content: bytes, rng: np.random.Generator) -> bytes:
     width, height = int(rng.choice(sizes)), int(rng.choice(sizes))
     bit_depth, colour = [(16, 0), (8, 0), (1, 0), (16, 2), (8, 4), (16, 0)][int(rng.integers(6))]
     idat_at = content.index(b'IDAT')
-    idat = content[idat_at + 4: idat_at + 4 + struct.unpack('>I', content[idat_at - 4:idat_at])[0]]
+    idat = content[idat_at + 4 : idat_at + 4 + struct.unpack('>I', content[idat_at - 4 : idat_at])[0]]
     return _png_chunks(width, height, idat, bit_depth, colour)
 
 
@@ -156,9 +188,19 @@ def _edit_json(content: bytes, rng: np.random.Generator) -> bytes:
     metadata = json.loads(content)
     choices = [None, [], [1, 2], 'text', -1, 0, 1e308, True, {}, 2**64, 15]
     value = choices[int(rng.integers(len(choices)))]
-    key = str(rng.choice(['lidar_origin_to_beam_origin_mm', 'lidar_to_sensor_transform', 'data_format',
-                          'data_format.pixels_per_column', 'data_format.columns_per_frame',
-                          'data_format.column_window', 'data_format.pixel_shift_by_row']))
+    key = str(
+        rng.choice(
+            [
+                'lidar_origin_to_beam_origin_mm',
+                'lidar_to_sensor_transform',
+                'data_format',
+                'data_format.pixels_per_column',
+                'data_format.columns_per_frame',
+                'data_format.column_window',
+                'data_format.pixel_shift_by_row',
+            ]
+        )
+    )
     target, _, leaf = key.rpartition('.')
     holder = metadata[target] if target else metadata
     if rng.random() < 0.15:
@@ -182,7 +224,7 @@ def mutate(kind: str, content: bytes, rng: np.random.Generator) -> tuple[str, by
         for position in rng.integers(0, min(header, len(data)), size=int(rng.integers(1, 3))):
             data[position] ^= int(rng.integers(1, 256))
     elif how == 'truncate':
-        data = data[:int(rng.integers(0, len(data)))]
+        data = data[: int(rng.integers(0, len(data)))]
     elif how == 'append':
         data += bytes(rng.integers(0, 256, size=int(rng.integers(1, 64)), dtype=np.uint8))
     elif kind.startswith('pcd'):
@@ -244,8 +286,10 @@ def issue_bombs(root: Path) -> list[Path]:
     folder.mkdir()
     (folder / 'zeros_12000.png').write_bytes(_png_chunks(12000, 12000, _zero_rows_deflated(12000, 2 * 12000 + 1)))
     (folder / 'claims_1e10.png').write_bytes(_png_chunks(100000, 100000, zlib.compress(b'\0' * 16)))  # 69 bytes
-    header = (b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 9000\nHEIGHT 10000\n'
-              b'POINTS 90000000\nDATA binary_compressed\n')
+    header = (
+        b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 9000\nHEIGHT 10000\n'
+        b'POINTS 90000000\nDATA binary_compressed\n'
+    )
     (folder / 'claims_1gb.pcd').write_bytes(header + struct.pack('<II', 4096, 1_080_000_000) + bytes(4096))
     raw = repr({'descr': '<f8', 'fortran_order': False, 'shape': (1000000, 1000000, 3)}).encode()
     raw += b' ' * (-(len(raw) + 11) % 64) + b'\n'
@@ -298,11 +342,16 @@ def _run_ppe(runs: list[list[str]], cwd: Path, parallel: int = 3) -> list[tuple[
     env = {**os.environ, 'PYTHONPATH': os.pathsep.join(sys.path)}
     for first in range(0, len(runs), parallel):
         started = []
-        for index, args in enumerate(runs[first:first + parallel], start=first):
+        for index, args in enumerate(runs[first : first + parallel], start=first):
             err_path = cwd / f'.stderr_{index}.txt'
             with open(err_path, 'wb') as err:
-                process = subprocess.Popen([sys.executable, '-m', 'ppe_ros.cli', *args], cwd=cwd,
-                                           stdout=subprocess.DEVNULL, stderr=err, env=env)
+                process = subprocess.Popen(
+                    [sys.executable, '-m', 'ppe_ros.cli', *args],
+                    cwd=cwd,
+                    stdout=subprocess.DEVNULL,
+                    stderr=err,
+                    env=env,
+                )
             started.append((process, err_path))
         for process, err_path in started:
             _, status, usage = os.wait4(process.pid, 0)
@@ -359,7 +408,7 @@ def test_ppe_info_and_extract_on_mutated_files_exit_0_or_2_in_bounded_memory(tmp
         _check_cli_outcome('info', code, err, rss_kb, what)
         if isinstance(what, Path):  # the issue's bombs
             assert code == 2 and 'at most 50000000 points' in err, err
-    for (code, err, rss_kb), (out, expected) in zip(results[len(expectations):], extract_runs, strict=True):
+    for (code, err, rss_kb), (out, expected) in zip(results[len(expectations) :], extract_runs, strict=True):
         _check_cli_outcome('extract', code, err, rss_kb, out)
         assert code == expected, err
         names = sorted(p.name for p in out.iterdir())
@@ -376,5 +425,6 @@ def test_ppe_info_and_extract_on_mutated_files_exit_0_or_2_in_bounded_memory(tmp
             else:
                 with Image.open(out / name) as image:
                     image.verify()
-    print(f'peak resident memory of a ppe subprocess: {peak_kb / 1024:.0f} MB '
-          f'(bound {SUBPROCESS_MAX_RSS_KB // 1024} MB)')
+    print(
+        f'peak resident memory of a ppe subprocess: {peak_kb / 1024:.0f} MB (bound {SUBPROCESS_MAX_RSS_KB // 1024} MB)'
+    )

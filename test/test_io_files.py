@@ -251,8 +251,9 @@ def test_hand_written_binary_pcd_with_padding_field_and_viewpoint(tmp_path: Path
 
 def test_intensity_is_ground_truth_only_when_it_holds_plane_ids(tmp_path: Path) -> None:
     points, labels = _grid()
-    measured = save_pcd(tmp_path / 'measured.pcd', points,
-                        extra_fields={'intensity': np.full((3, 4), 0.37, dtype=np.float32)})
+    measured = save_pcd(
+        tmp_path / 'measured.pcd', points, extra_fields={'intensity': np.full((3, 4), 0.37, dtype=np.float32)}
+    )
     assert load_scan(measured).labels is None  # a real intensity is not a label
     with pytest.raises(ScanFileError, match='intensity field is not whole numbers'):
         load_scan(measured, intensity_labels=True)
@@ -268,7 +269,7 @@ def _literal_lzf(payload: bytes) -> bytes:
     """An LZF block made of literal runs only (independent of ppe_ros's compressor)."""
     out = bytearray()
     for start in range(0, len(payload), 32):
-        chunk = payload[start:start + 32]
+        chunk = payload[start : start + 32]
         out.append(len(chunk) - 1)
         out += chunk
     return bytes(out)
@@ -292,8 +293,13 @@ def test_lzf_back_references_and_round_trip() -> None:
     block = bytes([2]) + b'abc' + bytes([(5 << 5) | 0, 2])
     assert lzf_decompress(block, 10).tobytes() == b'abcabcabca'
     rng = np.random.default_rng(1)
-    for data in (b'', b'a', bytes(1000), rng.integers(0, 4, 5000).astype(np.uint8).tobytes(),
-                 rng.integers(0, 256, 3000).astype(np.uint8).tobytes()):
+    for data in (
+        b'',
+        b'a',
+        bytes(1000),
+        rng.integers(0, 4, 5000).astype(np.uint8).tobytes(),
+        rng.integers(0, 256, 3000).astype(np.uint8).tobytes(),
+    ):
         assert lzf_decompress(lzf_compress(data), len(data)).tobytes() == data
     assert len(lzf_compress(bytes(10000))) < 200
     with pytest.raises(ValueError, match='back-reference before the start'):
@@ -309,8 +315,13 @@ def test_lzf_back_references_and_round_trip() -> None:
 @pytest.mark.parametrize('encoding', ['ascii', 'binary', 'binary_compressed'])
 def test_truncated_pcd_says_expected_and_found(tmp_path: Path, encoding: str) -> None:
     points, labels = _grid(20, 30)
-    full = save_pcd(tmp_path / 'full.pcd', points, labels=labels, binary=encoding != 'ascii',
-                    compressed=encoding == 'binary_compressed')
+    full = save_pcd(
+        tmp_path / 'full.pcd',
+        points,
+        labels=labels,
+        binary=encoding != 'ascii',
+        compressed=encoding == 'binary_compressed',
+    )
     raw = full.read_bytes()
     cut = tmp_path / 'cut.pcd'
     cut.write_bytes(raw[: len(raw) - 100])
@@ -461,8 +472,9 @@ def test_depth_png_calibration_files_next_to_it(tmp_path: Path) -> None:
     with pytest.raises(ScanFileError, match=rf'^{icl / "camera.K"}: unusable camera matrix: focal lengths must be'):
         load_scan(icl / 'frame.png')
     (icl / 'camera.K').unlink()
-    (icl / 'calib_params.xml').write_text('<opencv_storage><IR_intrinsic_params><data>nan 0 1 0 1 1 0 0 1</data>'
-                                          '</IR_intrinsic_params></opencv_storage>')
+    (icl / 'calib_params.xml').write_text(
+        '<opencv_storage><IR_intrinsic_params><data>nan 0 1 0 1 1 0 0 1</data></IR_intrinsic_params></opencv_storage>'
+    )
     with pytest.raises(ScanFileError, match=r'calib_params\.xml: unusable camera matrix: intrinsics must be finite'):
         load_scan(icl / 'frame.png')
 
@@ -567,42 +579,86 @@ def _peak_allocation(function) -> int:
     return peak
 
 
-@pytest.mark.parametrize(('name', 'content', 'message'), [
-    # a 280-byte-scale PNG claiming 12000 x 12000 (the issue's file was all zeros, 280 KB)
-    ('zeros.png', _png_bytes(12000, 12000, b'x\x9c' + bytes(100)),
-     r'zeros\.png: declares a 12000 x 12000 depth image .* = 144000000 points; at most 50000000 points'),
-    ('bomb.png', _png_bytes(100000, 100000, b'x\x9c' + bytes(10)),
-     r'bomb\.png: declares a 100000 x 100000 depth image'),
-    ('thin.png', _png_bytes(200000, 2, b'x\x9c' + bytes(10)), r'thin\.png: declares a 2 x 200000 depth image .* at '
-     r'most 100000 rows and columns'),
-    ('ratio.png', _png_bytes(5000, 5000, b'x\x9c' + bytes(10)), r'ratio\.png: corrupt PNG: a file of \d+ bytes cannot '
-     r'hold the declared 5000 x 5000 image .*deflate expands at most 1032-fold'),
-    ('huge.npy', _npy_with_header((1000000, 1000000, 3)),
-     r'huge\.npy: declares a 1000000 x 1000000 grid \(\.npy shape\) = 1000000000000 points; at most 50000000'),
-    ('short.npy', _npy_with_header((1000, 1000, 3), data=bytes(800)),
-     r'short\.npy: truncated \.npy data: the header declares shape \(1000, 1000, 3\) of float64 = 24000000 bytes, '
-     r'the file holds 800'),
-    ('gig.pcd', _header('x y z', '4 4 4', 'F F F', 10000, 9000, 'binary_compressed')
-     + struct.pack('<II', 20, 1080000000) + bytes(20),
-     r'gig\.pcd: PCD header declares 90000000 points .* at most 50000000 points per scan'),
-    ('lzf.pcd', _header('x y z', '4 4 4', 'F F F', 1000, 1000, 'binary_compressed') + struct.pack('<II', 100, 12000000)
-     + bytes(100), r'lzf\.pcd: corrupt DATA binary_compressed: 100 compressed bytes cannot expand to the declared '
-     r'12000000 raw bytes \(LZF expands at most 88-fold\)'),
-    ('wide.pcd', _header('x y z', '4 4 4', 'F F F', 200000, 2, 'binary'), r'wide\.pcd: PCD header declares a 2 × '
-     r'200000 grid; at most 100000 rows and columns'),
-    ('ascii.pcd', _header('x y z', '4 4 4', 'F F F', 5000, 5000, 'ascii') + b'1 2 3\n', r'ascii\.pcd: truncated DATA '
-     r'ascii: expected 75000000 values .* found only 6 bytes of text'),
-    ('count.pcd', _header('x y z', '4 4 4', 'F F F', 2, 2, 'binary').replace(b'COUNT 1 1 1', b'COUNT 1 1 2147483648'),
-     r'count\.pcd: PCD header COUNT declares 2147483650 values per point; at most 4096'),
-])
+@pytest.mark.parametrize(
+    ('name', 'content', 'message'),
+    [
+        # a 280-byte-scale PNG claiming 12000 x 12000 (the issue's file was all zeros, 280 KB)
+        (
+            'zeros.png',
+            _png_bytes(12000, 12000, b'x\x9c' + bytes(100)),
+            r'zeros\.png: declares a 12000 x 12000 depth image .* = 144000000 points; at most 50000000 points',
+        ),
+        (
+            'bomb.png',
+            _png_bytes(100000, 100000, b'x\x9c' + bytes(10)),
+            r'bomb\.png: declares a 100000 x 100000 depth image',
+        ),
+        (
+            'thin.png',
+            _png_bytes(200000, 2, b'x\x9c' + bytes(10)),
+            r'thin\.png: declares a 2 x 200000 depth image .* at '
+            r'most 100000 rows and columns',
+        ),
+        (
+            'ratio.png',
+            _png_bytes(5000, 5000, b'x\x9c' + bytes(10)),
+            r'ratio\.png: corrupt PNG: a file of \d+ bytes cannot '
+            r'hold the declared 5000 x 5000 image .*deflate expands at most 1032-fold',
+        ),
+        (
+            'huge.npy',
+            _npy_with_header((1000000, 1000000, 3)),
+            r'huge\.npy: declares a 1000000 x 1000000 grid \(\.npy shape\) = 1000000000000 points; at most 50000000',
+        ),
+        (
+            'short.npy',
+            _npy_with_header((1000, 1000, 3), data=bytes(800)),
+            r'short\.npy: truncated \.npy data: the header declares shape \(1000, 1000, 3\) of float64 = '
+            r'24000000 bytes, the file holds 800',
+        ),
+        (
+            'gig.pcd',
+            _header('x y z', '4 4 4', 'F F F', 10000, 9000, 'binary_compressed')
+            + struct.pack('<II', 20, 1080000000)
+            + bytes(20),
+            r'gig\.pcd: PCD header declares 90000000 points .* at most 50000000 points per scan',
+        ),
+        (
+            'lzf.pcd',
+            _header('x y z', '4 4 4', 'F F F', 1000, 1000, 'binary_compressed')
+            + struct.pack('<II', 100, 12000000)
+            + bytes(100),
+            r'lzf\.pcd: corrupt DATA binary_compressed: 100 compressed bytes cannot expand to the declared '
+            r'12000000 raw bytes \(LZF expands at most 88-fold\)',
+        ),
+        (
+            'wide.pcd',
+            _header('x y z', '4 4 4', 'F F F', 200000, 2, 'binary'),
+            r'wide\.pcd: PCD header declares a 2 × '
+            r'200000 grid; at most 100000 rows and columns',
+        ),
+        (
+            'ascii.pcd',
+            _header('x y z', '4 4 4', 'F F F', 5000, 5000, 'ascii') + b'1 2 3\n',
+            r'ascii\.pcd: truncated DATA '
+            r'ascii: expected 75000000 values .* found only 6 bytes of text',
+        ),
+        (
+            'count.pcd',
+            _header('x y z', '4 4 4', 'F F F', 2, 2, 'binary').replace(b'COUNT 1 1 1', b'COUNT 1 1 2147483648'),
+            r'count\.pcd: PCD header COUNT declares 2147483650 values per point; at most 4096',
+        ),
+    ],
+)
 def test_declared_sizes_are_checked_before_allocating(tmp_path: Path, name: str, content: bytes, message: str) -> None:
     path = tmp_path / name
     path.write_bytes(content)
 
     def load() -> None:
         with pytest.raises(ScanFileError, match=message):
-            load_scan(path, intrinsics=(500.0, 500.0, 320.0, 240.0), units='mm') if name.endswith('.png') \
-                else load_scan(path)
+            load_scan(path, intrinsics=(500.0, 500.0, 320.0, 240.0), units='mm') if name.endswith(
+                '.png'
+            ) else load_scan(path)
 
     assert _peak_allocation(load) < 4_000_000  # bytes: nothing of the declared size was allocated
 
@@ -639,8 +695,11 @@ def test_labels_npy_with_a_huge_or_damaged_header_is_refused_before_reading(tmp_
     gt.write_bytes(_npy_with_header((1000000, 1000000), '<i8'))
 
     def load() -> None:
-        with pytest.raises(ScanFileError, match=r'gt\.npy: ground-truth labels have shape \(1000000, 1000000\), '
-                                                r'the scan is \(3, 4\)'):
+        with pytest.raises(
+            ScanFileError,
+            match=r'gt\.npy: ground-truth labels have shape \(1000000, 1000000\), '
+            r'the scan is \(3, 4\)',
+        ):
             load_scan(scan, gt=gt)
 
     assert _peak_allocation(load) < 4_000_000
@@ -656,8 +715,11 @@ def test_empty_npy_files_are_a_scan_file_error(tmp_path: Path, which: str) -> No
     np.save(scan, points)
     empty = {'scan': scan, 'gt': tmp_path / 'gt.npy', 'sidecar': tmp_path / 'scan_labels.npy'}[which]
     empty.write_bytes(b'')
-    with pytest.raises(ScanFileError, match=rf'{empty.name}: not a readable .* \(no \.npy header; empty or not a '
-                                            rf'\.npy file\)'):
+    with pytest.raises(
+        ScanFileError,
+        match=rf'{empty.name}: not a readable .* \(no \.npy header; empty or not a '
+        rf'\.npy file\)',
+    ):
         load_scan(scan, gt=empty if which == 'gt' else None)
 
 
@@ -690,8 +752,12 @@ def _ouster_fixture(tmp_path: Path) -> tuple[Path, dict]:
     metadata = {
         'lidar_origin_to_beam_origin_mm': 15.8,
         'lidar_to_sensor_transform': [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
-        'data_format': {'pixels_per_column': 4, 'columns_per_frame': 8, 'column_window': [0, 7],
-                        'pixel_shift_by_row': [0, 1, 2, 3]},
+        'data_format': {
+            'pixels_per_column': 4,
+            'columns_per_frame': 8,
+            'column_window': [0, 7],
+            'pixel_shift_by_row': [0, 1, 2, 3],
+        },
     }
     return tmp_path / 'os_frame1_xyz_m.npy', metadata
 
@@ -704,22 +770,39 @@ def test_ouster_sidecar_is_read(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.linalg.norm(scan.origins[..., :2], axis=-1), 0.0158)
 
 
-@pytest.mark.parametrize(('edit', 'message'), [
-    (lambda m: m.update(data_format=None), 'data_format must be a JSON object; found null'),
-    (lambda m: m.update(data_format=[4, 8]), 'data_format must be a JSON object; found list'),
-    (lambda m: m.update(lidar_origin_to_beam_origin_mm=None), 'lidar_origin_to_beam_origin_mm must be a finite '
-     'number; found null'),
-    (lambda m: m.update(lidar_origin_to_beam_origin_mm='15'), 'lidar_origin_to_beam_origin_mm must be a finite number'),
-    (lambda m: m['data_format'].update(pixels_per_column=None), 'data_format.pixels_per_column must be a positive '
-     'integer; found null'),
-    (lambda m: m['data_format'].update(pixel_shift_by_row=[0, None, 2, 3]),
-     r'data_format.pixel_shift_by_row\[1\] must be a finite'),
-    (lambda m: m['data_format'].update(pixel_shift_by_row=[0, 1]),
-     r'data_format.pixel_shift_by_row must be 4 numbers \(one per row\); found 2 values'),
-    (lambda m: m.update(lidar_to_sensor_transform=list(range(15))), r'lidar_to_sensor_transform must be 16 numbers '
-     r'\(a row-major 4 x 4 matrix\); found 15 values'),
-    (lambda m: m.clear(), 'not Ouster sensor metadata'),
-])
+@pytest.mark.parametrize(
+    ('edit', 'message'),
+    [
+        (lambda m: m.update(data_format=None), 'data_format must be a JSON object; found null'),
+        (lambda m: m.update(data_format=[4, 8]), 'data_format must be a JSON object; found list'),
+        (
+            lambda m: m.update(lidar_origin_to_beam_origin_mm=None),
+            'lidar_origin_to_beam_origin_mm must be a finite number; found null',
+        ),
+        (
+            lambda m: m.update(lidar_origin_to_beam_origin_mm='15'),
+            'lidar_origin_to_beam_origin_mm must be a finite number',
+        ),
+        (
+            lambda m: m['data_format'].update(pixels_per_column=None),
+            'data_format.pixels_per_column must be a positive integer; found null',
+        ),
+        (
+            lambda m: m['data_format'].update(pixel_shift_by_row=[0, None, 2, 3]),
+            r'data_format.pixel_shift_by_row\[1\] must be a finite',
+        ),
+        (
+            lambda m: m['data_format'].update(pixel_shift_by_row=[0, 1]),
+            r'data_format.pixel_shift_by_row must be 4 numbers \(one per row\); found 2 values',
+        ),
+        (
+            lambda m: m.update(lidar_to_sensor_transform=list(range(15))),
+            r'lidar_to_sensor_transform must be 16 numbers '
+            r'\(a row-major 4 x 4 matrix\); found 15 values',
+        ),
+        (lambda m: m.clear(), 'not Ouster sensor metadata'),
+    ],
+)
 def test_ouster_sidecar_with_null_or_wrong_fields_names_the_file(tmp_path: Path, edit, message: str) -> None:
     scan_path, metadata = _ouster_fixture(tmp_path)
     edit(metadata)
@@ -744,7 +827,7 @@ class _FullDisk:
 
         data = bytes(data)
         if len(data) > self.room:
-            self.stream.write(data[:self.room])
+            self.stream.write(data[: self.room])
             self.room = 0
             raise self.error or OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         self.room -= len(data)
@@ -768,8 +851,9 @@ def full_disk(monkeypatch: pytest.MonkeyPatch, room: int, error: BaseException |
     monkeypatch.setattr(files, '_open_for_writing', lambda path: _FullDisk(original(path), room, error))
 
 
-def test_save_pcd_on_a_full_disk_leaves_no_file_and_keeps_the_old_one(tmp_path: Path,
-                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+def test_save_pcd_on_a_full_disk_leaves_no_file_and_keeps_the_old_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     points, labels = _grid(20, 30)
     full_disk(monkeypatch, room=500)
     target = tmp_path / 'out.pcd'

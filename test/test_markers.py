@@ -40,9 +40,16 @@ def flat_scene(labels: np.ndarray, depth: float = 2.0) -> tuple[np.ndarray, Plan
     offsets = -(depth + np.arange(num_planes, dtype=float))
     centroids = np.array([points[labels == j + 1].mean(axis=0) for j in range(num_planes)])
     counts = np.bincount(labels.ravel(), minlength=num_planes + 1)[1:]
-    planes = PlaneSet(labels=labels, normals=normals, offsets=offsets, centroids=centroids,
-                      point_counts=counts, sse=np.zeros(num_planes), rmse=np.zeros(num_planes),
-                      covariances=np.tile(np.eye(3) * 1e-4, (num_planes, 1, 1)))
+    planes = PlaneSet(
+        labels=labels,
+        normals=normals,
+        offsets=offsets,
+        centroids=centroids,
+        point_counts=counts,
+        sse=np.zeros(num_planes),
+        rmse=np.zeros(num_planes),
+        covariances=np.tile(np.eye(3) * 1e-4, (num_planes, 1, 1)),
+    )
     return points, planes
 
 
@@ -51,14 +58,22 @@ def polygon_room(height: int = 128, width: int = 1024, sides: int = 28, seed: in
 
     Returns points (NaN = no return, 5 %), and a PlaneSet built from the true planes (sides + 2 of them).
     """
-    points, labels, normals, offsets = polygon_room_lidar_scan(height, width, sides=sides, no_return_fraction=0.05,
-                                                               seed=seed)
+    points, labels, normals, offsets = polygon_room_lidar_scan(
+        height, width, sides=sides, no_return_fraction=0.05, seed=seed
+    )
     num_planes = len(normals)
     counts = np.bincount(labels.ravel(), minlength=num_planes + 1)[1:]
     centroids = np.array([points[labels == j + 1].mean(axis=0) for j in range(num_planes)])
-    planes = PlaneSet(labels=labels, normals=normals, offsets=offsets, centroids=centroids,
-                      point_counts=counts, sse=np.zeros(num_planes), rmse=np.zeros(num_planes),
-                      covariances=np.zeros((num_planes, 3, 3)))
+    planes = PlaneSet(
+        labels=labels,
+        normals=normals,
+        offsets=offsets,
+        centroids=centroids,
+        point_counts=counts,
+        sse=np.zeros(num_planes),
+        rmse=np.zeros(num_planes),
+        covariances=np.zeros((num_planes, 3, 3)),
+    )
     return points, planes
 
 
@@ -105,10 +120,12 @@ def test_hole_is_kept_not_a_convex_hull():
 
 
 def test_three_corner_cells_and_mixed_labels():
-    labels = np.array([
-        [1, 1, 2],
-        [1, 2, 2],
-    ])
+    labels = np.array(
+        [
+            [1, 1, 2],
+            [1, 2, 2],
+        ]
+    )
     points, planes = flat_scene(labels)
     geometry = plane_geometry(points, planes)
     # cell 0 has corners 1,1,1,2 -> one triangle of plane 1; cell 1 has 1,2,2,2 -> one of plane 2
@@ -142,14 +159,16 @@ def test_vertices_are_ray_plane_intersections_wound_towards_the_normal():
     for corner in range(3):
         on_plane = np.einsum('ij,ij->i', geometry.triangles[:, corner], normals) - offsets
         np.testing.assert_allclose(on_plane, 0.0, atol=1e-9)
-    cross = np.cross(geometry.triangles[:, 1] - geometry.triangles[:, 0],
-                     geometry.triangles[:, 2] - geometry.triangles[:, 0])
+    cross = np.cross(
+        geometry.triangles[:, 1] - geometry.triangles[:, 0], geometry.triangles[:, 2] - geometry.triangles[:, 0]
+    )
     assert np.all(np.einsum('ij,ij->i', cross, normals) > 0)
     # a mirrored grid (columns reversed) flips the cells' natural winding; the output must not flip
     mirrored = PlaneSet(**{**planes.__dict__, 'labels': planes.labels[:, ::-1]})
     mirrored_triangles = plane_geometry(points[:, ::-1], mirrored).triangles
-    cross = np.cross(mirrored_triangles[:, 1] - mirrored_triangles[:, 0],
-                     mirrored_triangles[:, 2] - mirrored_triangles[:, 0])
+    cross = np.cross(
+        mirrored_triangles[:, 1] - mirrored_triangles[:, 0], mirrored_triangles[:, 2] - mirrored_triangles[:, 0]
+    )
     assert np.all(np.einsum('ij,ij->i', cross, normals) > 0)
     # every vertex lies on the ray through some measured point of its plane
     valid = planes.labels > 0
@@ -166,8 +185,9 @@ def test_ray_origin_moves_the_intersections():
     origin = np.array([0.0, 0.0, 1.0])  # halfway to the plane z = 2
     geometry = plane_geometry(points, planes, ray_origin=origin)
     # the measured points are on the plane already, so the intersections are the points themselves
-    np.testing.assert_allclose(np.sort(geometry.triangles.reshape(-1, 3), axis=0)[[0, -1]],
-                               [points[0, 0], points[2, 2]], atol=1e-12)
+    np.testing.assert_allclose(
+        np.sort(geometry.triangles.reshape(-1, 3), axis=0)[[0, -1]], [points[0, 0], points[2, 2]], atol=1e-12
+    )
     noisy = points.copy()
     noisy[..., 2] += 0.05
     noisy[..., :2] *= 2.05 / 2.0  # same rays from the origin, 5 cm beyond the plane
@@ -196,8 +216,10 @@ def test_per_pixel_ray_origins_move_each_pixels_intersection():
     """Ouster beams start off the axis: a pixel's vertex is where the ray from its own start meets the plane."""
     points, planes = flat_scene(np.ones((4, 5), np.int32))
     same = np.broadcast_to([0.0, 0.0, 1.0], points.shape)
-    np.testing.assert_array_equal(plane_geometry(points, planes, ray_origin=same).triangles,
-                                  plane_geometry(points, planes, ray_origin=np.array([0.0, 0.0, 1.0])).triangles)
+    np.testing.assert_array_equal(
+        plane_geometry(points, planes, ray_origin=same).triangles,
+        plane_geometry(points, planes, ray_origin=np.array([0.0, 0.0, 1.0])).triangles,
+    )
     noisy = points.copy()
     noisy[..., 2] += 0.05  # 5 cm beyond the plane z = 2, straight behind each point
     origins = noisy.copy()
@@ -253,11 +275,14 @@ def test_no_planes_and_tiny_grids_give_empty_geometry():
     assert plane_geometry(np.zeros((4, 4, 3)), empty).num_planes == 0
 
 
-@pytest.mark.parametrize(('kwargs', 'message'), [
-    ({'stride': 0}, 'stride'),
-    ({'ray_origin': [0.0, 1.0]}, 'ray_origin'),
-    ({'ray_origin': [0.0, np.nan, 0.0]}, 'ray_origin'),
-])
+@pytest.mark.parametrize(
+    ('kwargs', 'message'),
+    [
+        ({'stride': 0}, 'stride'),
+        ({'ray_origin': [0.0, 1.0]}, 'ray_origin'),
+        ({'ray_origin': [0.0, np.nan, 0.0]}, 'ray_origin'),
+    ],
+)
 def test_bad_arguments_are_rejected(kwargs, message):
     points, planes = flat_scene(np.ones((3, 3), np.int32))
     with pytest.raises(ValueError, match=message):
@@ -295,8 +320,12 @@ def test_marker_array_layout_headers_and_colours(two_plane_markers):
     markers = types.decode_markers(cdr).markers
     assert [(m.ns, m.id, m.type, m.action) for m in markers] == [
         ('', 0, ARROW, DELETEALL),
-        (MESH_NAMESPACE, 1, TRIANGLE_LIST, 0), (OUTLINE_NAMESPACE, 1, LINE_LIST, 0), (NORMAL_NAMESPACE, 1, ARROW, 0),
-        (MESH_NAMESPACE, 2, TRIANGLE_LIST, 0), (OUTLINE_NAMESPACE, 2, LINE_LIST, 0), (NORMAL_NAMESPACE, 2, ARROW, 0),
+        (MESH_NAMESPACE, 1, TRIANGLE_LIST, 0),
+        (OUTLINE_NAMESPACE, 1, LINE_LIST, 0),
+        (NORMAL_NAMESPACE, 1, ARROW, 0),
+        (MESH_NAMESPACE, 2, TRIANGLE_LIST, 0),
+        (OUTLINE_NAMESPACE, 2, LINE_LIST, 0),
+        (NORMAL_NAMESPACE, 2, ARROW, 0),
     ]
     for marker in markers:
         for header in (marker.header, marker.texture.header):
@@ -355,7 +384,12 @@ def test_plane_without_triangles_gets_only_its_arrow():
     cdr = marker_array_cdr(geometry, planes, StampedFrame(0, 0, 'f'), colors=np.array([1, 2]))
     markers = rosbags_message_types().decode_markers(cdr).markers
     assert [(m.ns, m.id) for m in markers] == [
-        ('', 0), (NORMAL_NAMESPACE, 1), (MESH_NAMESPACE, 2), (OUTLINE_NAMESPACE, 2), (NORMAL_NAMESPACE, 2)]
+        ('', 0),
+        (NORMAL_NAMESPACE, 1),
+        (MESH_NAMESPACE, 2),
+        (OUTLINE_NAMESPACE, 2),
+        (NORMAL_NAMESPACE, 2),
+    ]
     assert all(len(m.points) > 0 for m in markers[1:])  # RViz rejects empty triangle lists
 
 

@@ -72,15 +72,18 @@ def test_no_returns_stay_unlabelled_and_count_in_the_fraction(three_planes):
     assert np.all(result.labels[:, 20:] > 0)
 
 
-@pytest.mark.parametrize(('kwargs', 'message'), [
-    ({'distance': 0.0}, 'distance'),
-    ({'distance': float('nan')}, 'distance'),
-    ({'min_remaining_fraction': 1.0}, 'min_remaining_fraction'),
-    ({'max_trials': 0}, 'max_trials'),
-    ({'confidence': 1.0}, 'confidence'),
-    ({'seed': -1}, 'seed'),
-    ({'max_scored_points': 2}, 'max_scored_points'),
-])
+@pytest.mark.parametrize(
+    ('kwargs', 'message'),
+    [
+        ({'distance': 0.0}, 'distance'),
+        ({'distance': float('nan')}, 'distance'),
+        ({'min_remaining_fraction': 1.0}, 'min_remaining_fraction'),
+        ({'max_trials': 0}, 'max_trials'),
+        ({'confidence': 1.0}, 'confidence'),
+        ({'seed': -1}, 'seed'),
+        ({'max_scored_points': 2}, 'max_scored_points'),
+    ],
+)
 def test_bad_parameters_are_rejected(three_planes, kwargs, message):
     with pytest.raises(ValueError, match=message):
         extract_planes_msac(three_planes.points, **kwargs)

@@ -85,8 +85,9 @@ class Harness:
         self.probe = rclpy.create_node('probe', context=context, namespace=namespace)
         executor.add_node(self.probe)
         self.received = {'labeled_points': [], 'markers': [], 'planes': [], 'diagnostics': []}
-        self.probe.create_subscription(PointCloud2, 'planes/labeled_points',
-                                       self.received['labeled_points'].append, RELIABLE)
+        self.probe.create_subscription(
+            PointCloud2, 'planes/labeled_points', self.received['labeled_points'].append, RELIABLE
+        )
         self.probe.create_subscription(MarkerArray, 'planes/markers', self.received['markers'].append, RELIABLE)
         self.probe.create_subscription(PointCloud2, 'planes', self.received['planes'].append, RELIABLE)
         self.probe.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
@@ -100,10 +101,12 @@ class Harness:
 
     def connected(self) -> bool:
         node = self.node
-        return (self.publisher.get_subscription_count() > 0
-                and node._labeled_points_pub.get_subscription_count() > 0
-                and node._markers_pub.get_subscription_count() > 0
-                and node._plane_table_pub.get_subscription_count() > 0)
+        return (
+            self.publisher.get_subscription_count() > 0
+            and node._labeled_points_pub.get_subscription_count() > 0
+            and node._markers_pub.get_subscription_count() > 0
+            and node._plane_table_pub.get_subscription_count() > 0
+        )
 
     def send(self, msg, *, wait_for: str = 'planes', timeout: float = 20.0):
         """Publish a cloud and wait until the node has counted it (and, by default, a plane table arrived)."""
@@ -164,8 +167,9 @@ def test_every_output_carries_the_input_header(ros_context, executor, namespace,
     table = harness.received['planes'][-1]
     assert header_of(table) == expected and (table.height, table.width) == (1, 3)
     rows = pointcloud2_to_structured(table)[0]
-    np.testing.assert_allclose(np.linalg.norm(np.stack([rows['normal_x'], rows['normal_y'], rows['normal_z']]),
-                                              axis=0), 1.0)
+    np.testing.assert_allclose(
+        np.linalg.norm(np.stack([rows['normal_x'], rows['normal_y'], rows['normal_z']]), axis=0), 1.0
+    )
     assert rows['point_count'].sum() == (labels > 0).sum()
 
     markers = harness.received['markers'][-1].markers
@@ -182,8 +186,7 @@ def test_every_output_carries_the_input_header(ros_context, executor, namespace,
     assert status.level == DiagnosticStatus.OK and status.hardware_id == 'os_lidar'
     assert values['frames_processed'] == '1' and values['frames_skipped'] == '0'
     assert values['input_topic'] == f'{namespace}/points'
-    for key in ('input_rate_hz', 'processing_time_mean_ms', 'processing_time_max_ms', 'frames_dropped',
-                'last_error'):
+    for key in ('input_rate_hz', 'processing_time_mean_ms', 'processing_time_max_ms', 'frames_dropped', 'last_error'):
         assert key in values
 
 
@@ -208,8 +211,9 @@ def test_outputs_nobody_subscribes_to_are_not_built(ros_context, executor, names
     harness = Harness(ros_context, executor, namespace)
     outputs = harness.node._wanted_outputs(harness.node.params)
     assert (outputs.labeled_points, outputs.markers, outputs.plane_table) == (True, True, True)
-    harness.probe.destroy_subscription(next(s for s in harness.probe.subscriptions
-                                            if s.topic_name.endswith('planes/markers')))
+    harness.probe.destroy_subscription(
+        next(s for s in harness.probe.subscriptions if s.topic_name.endswith('planes/markers'))
+    )
     assert spin_until(executor, lambda: harness.node._markers_pub.get_subscription_count() == 0)
     assert harness.node._wanted_outputs(harness.node.params).markers is False
 
@@ -242,14 +246,18 @@ def bad_clouds(points):
     all_nan = make_cloud(np.full((6, 8, 3), np.nan))
     too_large = make_cloud(np.ones((60, 40, 3)))
     return [
-        ('unorganized', unorganized), ('invalid_cloud', no_z), ('invalid_cloud', unsupported),
-        ('invalid_cloud', bad_row_step), ('invalid_cloud', short_data), ('empty', empty),
-        ('no_valid_points', all_nan), ('too_large', too_large),
+        ('unorganized', unorganized),
+        ('invalid_cloud', no_z),
+        ('invalid_cloud', unsupported),
+        ('invalid_cloud', bad_row_step),
+        ('invalid_cloud', short_data),
+        ('empty', empty),
+        ('no_valid_points', all_nan),
+        ('too_large', too_large),
     ]
 
 
-def test_bad_clouds_are_skipped_counted_and_the_node_keeps_running(ros_context, executor, namespace,
-                                                                   scan_points):
+def test_bad_clouds_are_skipped_counted_and_the_node_keeps_running(ros_context, executor, namespace, scan_points):
     harness = Harness(ros_context, executor, namespace, overrides=[Parameter('max_points', value=2000)])
     cases = bad_clouds(scan_points)
     for number, (kind, msg) in enumerate(cases, start=1):
@@ -258,8 +266,13 @@ def test_bad_clouds_are_skipped_counted_and_the_node_keeps_running(ros_context, 
         assert counts['skipped'] == number, kind
         assert kind in counts['last_error'], counts['last_error']
     counts = harness.node.frame_counts()
-    assert counts['skipped_by_kind'] == {'unorganized': 1, 'invalid_cloud': 4, 'empty': 1, 'no_valid_points': 1,
-                                         'too_large': 1}
+    assert counts['skipped_by_kind'] == {
+        'unorganized': 1,
+        'invalid_cloud': 4,
+        'empty': 1,
+        'no_valid_points': 1,
+        'too_large': 1,
+    }
     assert counts['processed'] == 0 and counts['failed'] == 0
     assert harness.received['planes'] == []
     harness.send(make_cloud(scan_points))  # still alive and extracting
@@ -348,16 +361,17 @@ def test_invalid_start_parameters_raise_a_clear_error(ros_context):
 def test_params_file_is_loaded(tmp_path):
     """The layout of config/extractor.yaml; a key 'extractor' applies to the node in the root namespace."""
     path = tmp_path / 'params.yaml'
-    path.write_text('extractor:\n  ros__parameters:\n    marker_alpha: 0.75\n    max_points: 12\n'
-                    '    max_neighbor_distance: 2\n')
+    path.write_text(
+        'extractor:\n  ros__parameters:\n    marker_alpha: 0.75\n    max_points: 12\n    max_neighbor_distance: 2\n'
+    )
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=int(os.environ['ROS_DOMAIN_ID']),
-               args=['--ros-args', '--params-file', str(path)])
+    rclpy.init(
+        context=context, domain_id=int(os.environ['ROS_DOMAIN_ID']), args=['--ros-args', '--params-file', str(path)]
+    )
     node = None
     try:
         node = ExtractorNode(context=context)
-        assert (node.params.marker_alpha, node.params.max_points, node.params.max_neighbor_distance) == (
-            0.75, 12, 2.0)
+        assert (node.params.marker_alpha, node.params.max_points, node.params.max_neighbor_distance) == (0.75, 12, 2.0)
         assert node.ready.wait(READY_TIMEOUT_S)
         assert node.frame_counts()['failed'] == 0  # the warm-up ignores max_points
     finally:
@@ -452,8 +466,9 @@ def test_two_workers_extract_at_once_and_publish_in_arrival_order(ros_context, e
     assert not result.successful and 'workers' in result.reason
 
 
-def test_workers_fall_back_to_one_under_the_workqueue_threading_layer(ros_context, executor, namespace,
-                                                                      scan_points, monkeypatch):
+def test_workers_fall_back_to_one_under_the_workqueue_threading_layer(
+    ros_context, executor, namespace, scan_points, monkeypatch
+):
     """numba's workqueue layer aborts on concurrent parallel launches: the node runs one worker instead."""
     import numba
 
@@ -498,8 +513,10 @@ def test_bag_replay_at_recorded_timestamps(ros_context, executor, namespace, sca
     from rclpy.serialization import deserialize_message
     from rosbags.highlevel import AnyReader
 
-    clouds = [make_cloud(scan_points + 0.001 * k, frame_id=f'lidar_{k % 2}', sec=1_700_000_100 + k,
-                         nanosec=1000 * k) for k in range(5)]
+    clouds = [
+        make_cloud(scan_points + 0.001 * k, frame_id=f'lidar_{k % 2}', sec=1_700_000_100 + k, nanosec=1000 * k)
+        for k in range(5)
+    ]
     bag = tmp_path / 'clouds'
     write_bag(bag, clouds, period_ns=300_000_000)
     harness = Harness(ros_context, executor, namespace)
@@ -527,15 +544,17 @@ def test_bag_replay_at_recorded_timestamps(ros_context, executor, namespace, sca
     for array, expected in zip(harness.received['markers'], sent, strict=True):
         assert {header_of(m) for m in array.markers} == {expected}
         assert {(m.texture.header.frame_id, m.texture.header.stamp.sec) for m in array.markers} == {
-            (expected[2], expected[0])}
+            (expected[2], expected[0])
+        }
     assert harness.node.frame_counts()['dropped'] == 0
 
 
 def test_unknown_parameter_names_and_non_ros_arguments():
     from ppe_ros.ros.node import _non_ros_arguments, unknown_parameter_names
 
-    assert unknown_parameter_names(['max_error_increment', 'use_sim_time', 'qos_overrides./points.reliability',
-                                    'min_plane_point', 'zzz']) == ['min_plane_point', 'zzz']
+    assert unknown_parameter_names(
+        ['max_error_increment', 'use_sim_time', 'qos_overrides./points.reliability', 'min_plane_point', 'zzz']
+    ) == ['min_plane_point', 'zzz']
     argv = ['extractor', '--help', '--ros-args', '-p', 'a:=1', '--params-file', 'f.yaml', '--', 'x']
     assert _non_ros_arguments(argv) == ['--help', 'x']
     assert _non_ros_arguments(['extractor', '--ros-args', '-r', 'points:=/lidar']) == []
@@ -552,8 +571,9 @@ def byte_swapped_cloud(points, sec):
 
 
 @pytest.mark.parametrize('order', ['skip_first', 'failure_first'])
-def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(ros_context, executor, namespace,
-                                                                              scan_points, order, monkeypatch):
+def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(
+    ros_context, executor, namespace, scan_points, order, monkeypatch
+):
     """Issue 17 item 1: a warning and an error from the throttled logger killed the worker thread."""
     import ppe_ros.core.extraction as extraction
 
@@ -561,20 +581,22 @@ def test_a_skipped_and_a_failed_frame_in_either_order_leave_the_worker_serving(r
 
     def extract_or_fail(points, **kwargs):  # the failing frame, whatever the core does with swapped bytes
         if not np.isfinite(points).all(axis=2).any() or np.nanmax(np.abs(points)) > 1e6:
-            raise SystemError('CPUDispatcher(<function _seed_errors at 0x1>) returned a result with an '
-                              'exception set') from ZeroDivisionError('division by zero')
+            raise SystemError(
+                'CPUDispatcher(<function _seed_errors at 0x1>) returned a result with an exception set'
+            ) from ZeroDivisionError('division by zero')
         return real_extract(points, **kwargs)
 
     monkeypatch.setattr(extraction, 'extract_planes', extract_or_fail)
     harness = Harness(ros_context, executor, namespace)
     unorganized = unprojectable_cloud(scan_points, make_cloud(scan_points, sec=10).header)
     swapped = byte_swapped_cloud(scan_points, sec=11)
-    for msg in ([unorganized, swapped] if order == 'skip_first' else [swapped, unorganized]):
+    for msg in [unorganized, swapped] if order == 'skip_first' else [swapped, unorganized]:
         harness.send(msg, wait_for='')
         if msg is swapped:  # one line naming the frame and the reason inside the kernel
             assert harness.node.frame_counts()['last_error'] == (
                 "frame failed (stamp 11.000000005 s, frame_id 'swapped'): ZeroDivisionError: division by zero "
-                '(in the compiled kernel _seed_errors)')
+                '(in the compiled kernel _seed_errors)'
+            )
     counts = harness.node.frame_counts()
     assert (counts['skipped'], counts['failed']) == (1, 1), counts
     for sec in (20, 21, 22):  # every good cloud after them gets its outputs
@@ -598,8 +620,9 @@ def test_the_issues_repro_with_the_real_extractor(ros_context, executor, namespa
     assert counts['skipped'] == 2 and counts['processed'] + counts['failed'] == 4, counts
 
 
-def test_an_unexpected_exception_in_the_worker_is_a_failed_frame(ros_context, executor, namespace, scan_points,
-                                                                 monkeypatch):
+def test_an_unexpected_exception_in_the_worker_is_a_failed_frame(
+    ros_context, executor, namespace, scan_points, monkeypatch
+):
     harness = Harness(ros_context, executor, namespace)
     node = harness.node
     real_process = node._process
@@ -615,8 +638,9 @@ def test_an_unexpected_exception_in_the_worker_is_a_failed_frame(ros_context, ex
     harness.send(make_cloud(scan_points, frame_id='broken', sec=30), wait_for='')
     counts = node.frame_counts()
     assert counts['failed'] == 1
-    assert counts['last_error'] == ("frame failed (stamp 30.000000005 s, frame_id 'broken'): "
-                                    'internal error: RuntimeError: a defect in the node')
+    assert counts['last_error'] == (
+        "frame failed (stamp 30.000000005 s, frame_id 'broken'): internal error: RuntimeError: a defect in the node"
+    )
     status = harness.latest_status()
     assert status.level == DiagnosticStatus.ERROR and 'a defect in the node' in status.message
     harness.send(make_cloud(scan_points, sec=31))
@@ -624,8 +648,9 @@ def test_an_unexpected_exception_in_the_worker_is_a_failed_frame(ros_context, ex
 
 
 @pytest.mark.filterwarnings('ignore::pytest.PytestUnhandledThreadExceptionWarning')  # the thread it ends
-def test_diagnostics_say_error_when_a_worker_thread_is_not_running(ros_context, executor, namespace, scan_points,
-                                                                   monkeypatch):
+def test_diagnostics_say_error_when_a_worker_thread_is_not_running(
+    ros_context, executor, namespace, scan_points, monkeypatch
+):
     harness = Harness(ros_context, executor, namespace)
     node = harness.node
     assert values_of(node.diagnostics_status())['worker_threads_alive'] == '1'
@@ -685,6 +710,7 @@ def _shut_down_before(original):
     def hook(self, *args, **kwargs):
         rclpy.get_default_context().try_shutdown()  # what rclpy's SIGINT/SIGTERM handler does
         return original(self, *args, **kwargs)
+
     return hook
 
 
@@ -692,18 +718,31 @@ def _sigint_before(original):
     def hook(self, *args, **kwargs):
         os.kill(os.getpid(), signal.SIGINT)
         return original(self, *args, **kwargs)
+
     return hook
 
 
-@pytest.mark.parametrize('point', ['declare_parameter', 'create_publisher', 'create_subscription', 'create_timer',
-                                   '_start_workers', 'sigint_in_create_publisher', 'sigint_in_rclpy_init'])
+@pytest.mark.parametrize(
+    'point',
+    [
+        'declare_parameter',
+        'create_publisher',
+        'create_subscription',
+        'create_timer',
+        '_start_workers',
+        'sigint_in_create_publisher',
+        'sigint_in_rclpy_init',
+    ],
+)
 def test_main_exits_0_quietly_when_stopped_during_start_up(monkeypatch, capfd, point, namespace):
     """Issue 17 item 10: a signal during ExtractorNode.__init__ made create_publisher raise RCLError (exit 1)."""
     from ppe_ros.ros import node as node_module
 
     if point == 'sigint_in_rclpy_init':
+
         def interrupted_init(*args, **kwargs):
             raise KeyboardInterrupt
+
         monkeypatch.setattr(node_module.rclpy, 'init', interrupted_init)
     elif point.startswith('sigint_in_'):
         name = point.removeprefix('sigint_in_')
@@ -735,8 +774,11 @@ def wait_counted(executor, node, key: str, count: int, timeout: float = 20.0) ->
 
 def bare_node(context, executor, namespace, overrides=()):
     """An extractor with no subscriber on its outputs, and a probe that only publishes clouds."""
-    node = ExtractorNode(context=context, namespace=namespace,
-                         parameter_overrides=[Parameter('input_reliability', value='reliable'), *overrides])
+    node = ExtractorNode(
+        context=context,
+        namespace=namespace,
+        parameter_overrides=[Parameter('input_reliability', value='reliable'), *overrides],
+    )
     executor.add_node(node)
     probe = rclpy.create_node('probe', context=context, namespace=namespace)
     executor.add_node(probe)
@@ -769,8 +811,9 @@ def test_without_subscribers_the_node_idles_and_says_so(ros_context, executor, n
 
 
 def test_process_without_subscribers_extracts_anyway(ros_context, executor, namespace, scan_points):
-    node, _, publisher = bare_node(ros_context, executor, namespace,
-                                   [Parameter('process_without_subscribers', value=True)])
+    node, _, publisher = bare_node(
+        ros_context, executor, namespace, [Parameter('process_without_subscribers', value=True)]
+    )
     publisher.publish(make_cloud(scan_points))
     assert wait_counted(executor, node, 'processed', 1)
     assert node.frame_counts()['idle'] == 0
@@ -778,8 +821,9 @@ def test_process_without_subscribers_extracts_anyway(ros_context, executor, name
     assert values['idle'] == 'false' and float(values['time_since_last_output_s']) < 20.0
 
 
-def test_diagnostics_warn_when_the_output_rate_falls_below_the_set_fraction(ros_context, executor, namespace,
-                                                                            scan_points, monkeypatch):
+def test_diagnostics_warn_when_the_output_rate_falls_below_the_set_fraction(
+    ros_context, executor, namespace, scan_points, monkeypatch
+):
     """Issue 19 item 6: output rate and time since the last output; WARN below min_output_rate_fraction."""
     from ppe_ros.ros import node as node_module
 
@@ -811,11 +855,26 @@ def test_output_rate_check_needs_enough_frames_and_leaves_idle_frames_out():
     from ppe_ros.ros.diagnostics import ReportWindow
 
     def window(received, published, idle=0, span_s=5.0):
-        return ReportWindow(received=received, skipped=0, failed=0, dropped=0, times_ms=np.zeros(0),
-                            input_rate_hz=received / span_s, output_rate_hz=published / span_s,
-                            to_extract_in_rate_window=received - idle, idle_in_rate_window=idle, totals={},
-                            skipped_by_kind={}, last_error='', last_error_age_s=math.nan,
-                            since_last_output_s=math.nan, last_planes=0, last_frame_id='', busy=0, busy_peak=0)
+        return ReportWindow(
+            received=received,
+            skipped=0,
+            failed=0,
+            dropped=0,
+            times_ms=np.zeros(0),
+            input_rate_hz=received / span_s,
+            output_rate_hz=published / span_s,
+            to_extract_in_rate_window=received - idle,
+            idle_in_rate_window=idle,
+            totals={},
+            skipped_by_kind={},
+            last_error='',
+            last_error_age_s=math.nan,
+            since_last_output_s=math.nan,
+            last_planes=0,
+            last_frame_id='',
+            busy=0,
+            busy_peak=0,
+        )
 
     assert window(50, 24).output_rate_too_low(0.5) and not window(50, 25).output_rate_too_low(0.5)
     assert not window(2, 0).output_rate_too_low(0.5)  # too few frames to tell
@@ -828,16 +887,20 @@ def test_qos_overrides_set_the_input_and_output_qos(ros_context, executor, names
     """Issue 19 item 4: rclpy's QoS override parameters, for the (resolved) input and output topics."""
     from rclpy.qos import ReliabilityPolicy as Reliability
 
-    overrides = [Parameter(f'qos_overrides.{namespace}/points.subscription.reliability', value='reliable'),
-                 Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=3),
-                 Parameter(f'qos_overrides.{namespace}/planes.publisher.reliability', value='best_effort'),
-                 Parameter(f'qos_overrides.{namespace}/planes/markers.publisher.depth', value=4),
-                 Parameter('qos_overrides./elsewhere/points.subscription.reliability', value='reliable')]
+    overrides = [
+        Parameter(f'qos_overrides.{namespace}/points.subscription.reliability', value='reliable'),
+        Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=3),
+        Parameter(f'qos_overrides.{namespace}/planes.publisher.reliability', value='best_effort'),
+        Parameter(f'qos_overrides.{namespace}/planes/markers.publisher.depth', value=4),
+        Parameter('qos_overrides./elsewhere/points.subscription.reliability', value='reliable'),
+    ]
     node = ExtractorNode(context=ros_context, namespace=namespace, parameter_overrides=overrides)
     executor.add_node(node)
     assert node.params.input_reliability == 'best_effort'  # the override wins over it
     assert (node._subscription.qos_profile.reliability, node._subscription.qos_profile.depth) == (
-        Reliability.RELIABLE, 3)
+        Reliability.RELIABLE,
+        3,
+    )
     assert node._plane_table_pub.qos_profile.reliability == Reliability.BEST_EFFORT
     assert node._markers_pub.qos_profile.depth == 4
     assert node._labeled_points_pub.qos_profile.reliability == Reliability.RELIABLE  # not overridden
@@ -850,14 +913,19 @@ def test_qos_overrides_set_the_input_and_output_qos(ros_context, executor, names
 def test_input_reliability_change_keeps_the_depth_override(ros_context, executor, namespace):
     from rclpy.qos import ReliabilityPolicy as Reliability
 
-    node = ExtractorNode(context=ros_context, namespace=namespace, parameter_overrides=[
-        Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=2)])
+    node = ExtractorNode(
+        context=ros_context,
+        namespace=namespace,
+        parameter_overrides=[Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=2)],
+    )
     executor.add_node(node)
     assert node._subscription.qos_profile.reliability == Reliability.BEST_EFFORT
     [result] = node.set_parameters([Parameter('input_reliability', value='reliable')])
     assert result.successful
     assert (node._subscription.qos_profile.reliability, node._subscription.qos_profile.depth) == (
-        Reliability.RELIABLE, 2)
+        Reliability.RELIABLE,
+        2,
+    )
 
 
 # ------------------------------------------------------------------ ray origins from the Ouster metadata
@@ -867,14 +935,20 @@ def ouster_metadata(rows: int, columns: int, nested: bool = False) -> dict:
     legacy = {
         'lidar_origin_to_beam_origin_mm': 15.8,
         'lidar_to_sensor_transform': [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
-        'data_format': {'pixels_per_column': rows, 'columns_per_frame': columns, 'column_window': [0, columns - 1],
-                        'pixel_shift_by_row': [(3 * i) % columns for i in range(rows)]},
+        'data_format': {
+            'pixels_per_column': rows,
+            'columns_per_frame': columns,
+            'column_window': [0, columns - 1],
+            'pixel_shift_by_row': [(3 * i) % columns for i in range(rows)],
+        },
     }
     if not nested:
         return legacy
-    return {'beam_intrinsics': {'lidar_origin_to_beam_origin_mm': legacy['lidar_origin_to_beam_origin_mm']},
-            'lidar_intrinsics': {'lidar_to_sensor_transform': legacy['lidar_to_sensor_transform']},
-            'lidar_data_format': legacy['data_format']}
+    return {
+        'beam_intrinsics': {'lidar_origin_to_beam_origin_mm': legacy['lidar_origin_to_beam_origin_mm']},
+        'lidar_intrinsics': {'lidar_to_sensor_transform': legacy['lidar_to_sensor_transform']},
+        'lidar_data_format': legacy['data_format'],
+    }
 
 
 def test_ouster_metadata_of_either_layout_gives_the_file_loaders_ray_starts():
@@ -894,13 +968,19 @@ def test_ouster_metadata_of_either_layout_gives_the_file_loaders_ray_starts():
         assert origins.for_cloud(4, 9, 'os_sensor') is None
 
 
-@pytest.mark.parametrize(('text', 'message'), [
-    ('{', 'not JSON'),
-    ('[1, 2]', 'expected an object'),
-    ('{"data_format": {}}', 'missing lidar_origin_to_beam_origin_mm, lidar_to_sensor_transform'),
-    ('{"lidar_origin_to_beam_origin_mm": "x", "lidar_to_sensor_transform": [], "data_format": '
-     '{"pixels_per_column": 4, "columns_per_frame": 8}}', 'must be'),
-])
+@pytest.mark.parametrize(
+    ('text', 'message'),
+    [
+        ('{', 'not JSON'),
+        ('[1, 2]', 'expected an object'),
+        ('{"data_format": {}}', 'missing lidar_origin_to_beam_origin_mm, lidar_to_sensor_transform'),
+        (
+            '{"lidar_origin_to_beam_origin_mm": "x", "lidar_to_sensor_transform": [], "data_format": '
+            '{"pixels_per_column": 4, "columns_per_frame": 8}}',
+            'must be',
+        ),
+    ],
+)
 def test_bad_ouster_metadata_is_a_clear_error(text, message):
     from ppe_ros.io.errors import ScanFileError
     from ppe_ros.ros.sensor_metadata import OusterRayOrigins
@@ -909,8 +989,9 @@ def test_bad_ouster_metadata_is_a_clear_error(text, message):
         OusterRayOrigins(text)
 
 
-def test_the_node_uses_the_metadata_ray_starts_unless_ray_origin_is_set(ros_context, executor, namespace,
-                                                                       scan_points, monkeypatch):
+def test_the_node_uses_the_metadata_ray_starts_unless_ray_origin_is_set(
+    ros_context, executor, namespace, scan_points, monkeypatch
+):
     """Issue 19 item 8: the driver's latched metadata (std_msgs/String JSON) on `metadata`."""
     import json
 
@@ -975,8 +1056,9 @@ def test_ppe_warmup_prints_its_steps():
     import subprocess
     import sys
 
-    result = subprocess.run([sys.executable, '-m', 'ppe_ros.cli', 'warmup', '--sensor', 'none'], capture_output=True,
-                            text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, '-m', 'ppe_ros.cli', 'warmup', '--sensor', 'none'], capture_output=True, text=True, timeout=600
+    )
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith('| step | seconds |\n|---|---|\n| sensor none | ')
     assert '| sensor none |' in result.stdout and '| PCD files (LZF) |' in result.stdout

@@ -45,16 +45,32 @@ def unique_domain_id(offset: int) -> int:
 class ExtractorProcess:
     """``extractor --ros-args --params-file config/extractor.yaml`` with its output collected by a thread."""
 
-    def __init__(self, domain_id: int, *extra_args: str, interrupt_on: str | None = None,
-                 interrupt_signal: int = signal.SIGINT, env: dict[str, str] | None = None,
-                 preexec_fn: Any = None) -> None:
+    def __init__(
+        self,
+        domain_id: int,
+        *extra_args: str,
+        interrupt_on: str | None = None,
+        interrupt_signal: int = signal.SIGINT,
+        env: dict[str, str] | None = None,
+        preexec_fn: Any = None,
+    ) -> None:
         """``interrupt_on``: the reader thread sends ``interrupt_signal`` the moment a line containing it is read."""
         assert EXTRACTOR.is_file(), f'{EXTRACTOR} is missing: run `make venv` (editable install)'
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-                   PYTHONUNBUFFERED='1', RCUTILS_LOGGING_BUFFERED_STREAM='0', **(env or {}))
+        env = dict(
+            os.environ,
+            ROS_DOMAIN_ID=str(domain_id),
+            ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+            PYTHONUNBUFFERED='1',
+            RCUTILS_LOGGING_BUFFERED_STREAM='0',
+            **(env or {}),
+        )
         self.process = subprocess.Popen(
             [str(EXTRACTOR), '--ros-args', '--params-file', str(CONFIG), *extra_args],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=preexec_fn,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            preexec_fn=preexec_fn,
         )
         self.lines: list[str] = []
         self._interrupt_on = interrupt_on
@@ -135,8 +151,9 @@ def test_console_script_answers_over_dds_and_exits_cleanly(client_factory, stop_
         assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
         executor, probe = client_factory(domain_id)
         tables = []
-        probe.create_subscription(PointCloud2, '/planes', tables.append,
-                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+        probe.create_subscription(
+            PointCloud2, '/planes', tables.append, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        )
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
         # the node builds /planes only once it sees our subscription; resend until a table arrives
@@ -166,8 +183,9 @@ def test_two_workers_publish_in_order_and_stop_cleanly_while_busy(client_factory
         assert '2 worker(s)' in extractor.output
         executor, probe = client_factory(domain_id)
         tables = []
-        probe.create_subscription(PointCloud2, '/planes', tables.append,
-                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        probe.create_subscription(
+            PointCloud2, '/planes', tables.append, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        )
         reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         publisher = probe.create_publisher(PointCloud2, '/points', reliable)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
@@ -217,16 +235,18 @@ def test_skipped_frames_do_not_stop_the_process(client_factory):
         assert extractor.ready.wait(READY_TIMEOUT_S), extractor.output
         executor, probe = client_factory(domain_id)
         # a subscriber on an output: with none the node idles and does not look at the clouds (issue 19 item 5)
-        probe.create_subscription(PointCloud2, '/planes', lambda msg: None,
-                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+        probe.create_subscription(
+            PointCloud2, '/planes', lambda msg: None, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        )
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0)
         organized = make_cloud(sec=1)  # flattened, with a ring field of no beam numbers: no range image
         flat = pointcloud2_to_structured(organized).reshape(-1)
         ringed = np.zeros(len(flat), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
         ringed['x'], ringed['y'], ringed['z'], ringed['ring'] = flat['x'], flat['y'], flat['z'], -5
-        unorganized = structured_to_pointcloud2(ringed, header=organized.header, msg_class=PointCloud2,
-                                                field_class=PointField)
+        unorganized = structured_to_pointcloud2(
+            ringed, header=organized.header, msg_class=PointCloud2, field_class=PointField
+        )
         deadline = time.monotonic() + 30.0
         while 'frame skipped: unorganized cloud' not in extractor.output and time.monotonic() < deadline:
             publisher.publish(unorganized)
@@ -250,8 +270,13 @@ def test_help_prints_the_topics_and_parameters_and_starts_nothing():
 def test_unreadable_params_file_exits_with_code_2_without_a_traceback(tmp_path):
     missing = tmp_path / 'missing.yaml'
     env = dict(os.environ, ROS_DOMAIN_ID=str(unique_domain_id(70)), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([str(EXTRACTOR), '--ros-args', '--params-file', str(missing)], capture_output=True,
-                            text=True, timeout=60, env=env)
+    result = subprocess.run(
+        [str(EXTRACTOR), '--ros-args', '--params-file', str(missing)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
     assert result.returncode == 2, result.stdout + result.stderr
     assert 'extractor: error: invalid ROS arguments' in result.stderr and str(missing) in result.stderr
     assert 'Traceback' not in result.stderr
@@ -263,8 +288,11 @@ def test_unknown_parameter_names_are_warned_about():
     extractor = ExtractorProcess(unique_domain_id(80), '-p', 'max_error_incremnt:=0.1')
     try:
         deadline = time.monotonic() + READY_TIMEOUT_S
-        while 'ignoring unknown parameter' not in extractor.output and extractor.process.poll() is None \
-                and time.monotonic() < deadline:
+        while (
+            'ignoring unknown parameter' not in extractor.output
+            and extractor.process.poll() is None
+            and time.monotonic() < deadline
+        ):
             time.sleep(0.05)
     finally:
         exit_code = extractor.stop(signal.SIGINT, timeout=READY_TIMEOUT_S)
@@ -311,11 +339,15 @@ def test_a_signal_inside_the_node_constructor_exits_0_without_a_traceback(tmp_pa
     shuts the context down; Python's KeyboardInterrupt follows only for a SIGINT whose inherited disposition
     is not "ignore" (a background job of a shell script, some launchers and supervisors: ignored)."""
     (tmp_path / 'sitecustomize.py').write_text(SLOW_CALL_HOOK)
-    env = {'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]),
-           'PPE_TEST_SLOW_CALL': call}
+    env = {'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]), 'PPE_TEST_SLOW_CALL': call}
     sig = signal.SIGTERM if stop_signal == 'SIGTERM' else signal.SIGINT
-    extractor = ExtractorProcess(unique_domain_id(85), interrupt_on='TEST HOOK: in call', interrupt_signal=sig,
-                                 env=env, preexec_fn=_ignore_sigint if stop_signal.endswith('ignored') else None)
+    extractor = ExtractorProcess(
+        unique_domain_id(85),
+        interrupt_on='TEST HOOK: in call',
+        interrupt_signal=sig,
+        env=env,
+        preexec_fn=_ignore_sigint if stop_signal.endswith('ignored') else None,
+    )
     try:
         exit_code = extractor.process.wait(timeout=READY_TIMEOUT_S)
     finally:
@@ -357,15 +389,23 @@ def test_qos_overrides_reach_the_ros_graph_and_unknown_ones_are_warned_about(cli
     from rclpy.qos import ReliabilityPolicy as Reliability
 
     domain_id = unique_domain_id(20)
-    extractor = ExtractorProcess(domain_id, '-p', 'qos_overrides./points.subscription.reliability:=reliable',
-                                 '-p', 'qos_overrides./planes.publisher.reliability:=best_effort',
-                                 '-p', 'qos_overrides./nowhere.subscription.depth:=2')
+    extractor = ExtractorProcess(
+        domain_id,
+        '-p',
+        'qos_overrides./points.subscription.reliability:=reliable',
+        '-p',
+        'qos_overrides./planes.publisher.reliability:=best_effort',
+        '-p',
+        'qos_overrides./nowhere.subscription.depth:=2',
+    )
     try:
         executor, probe = client_factory(domain_id)
 
         def endpoints():
-            return (extractor_endpoints(probe.get_subscriptions_info_by_topic('/points')),
-                    extractor_endpoints(probe.get_publishers_info_by_topic('/planes')))
+            return (
+                extractor_endpoints(probe.get_subscriptions_info_by_topic('/points')),
+                extractor_endpoints(probe.get_publishers_info_by_topic('/planes')),
+            )
 
         assert spin_until(executor, lambda: all(endpoints()), READY_TIMEOUT_S), extractor.output
         [subscription], [table_publisher] = endpoints()
@@ -394,9 +434,15 @@ def test_idle_without_subscribers_then_outputs_rate_diagnostics_and_an_rviz_draw
         executor, probe = client_factory(domain_id)
         statuses = []
         probe.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda msg: statuses.extend({kv.key: kv.value for kv in s.values} | {'_message': s.message}
-                                        for s in msg.status if s.name == 'extractor: plane extraction'), 10)
+            DiagnosticArray,
+            '/diagnostics',
+            lambda msg: statuses.extend(
+                {kv.key: kv.value for kv in s.values} | {'_message': s.message}
+                for s in msg.status
+                if s.name == 'extractor: plane extraction'
+            ),
+            10,
+        )
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
 
@@ -415,17 +461,20 @@ def test_idle_without_subscribers_then_outputs_rate_diagnostics_and_an_rviz_draw
         assert (idle['idle'], idle['frames_processed'], idle['time_since_last_output_s']) == ('true', '0', 'nan')
         assert idle['_message'].startswith('idle: no subscriber on any output')
         tables = []
-        probe.create_subscription(PointCloud2, '/planes', tables.append,
-                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
-        busy = latest(lambda s: int(s['frames_processed']) >= 5 and float(s['output_rate_hz']) > 0, 60.0,
-                      publish=True)
+        probe.create_subscription(
+            PointCloud2, '/planes', tables.append, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        )
+        busy = latest(lambda s: int(s['frames_processed']) >= 5 and float(s['output_rate_hz']) > 0, 60.0, publish=True)
         assert busy is not None and tables, f'{statuses[-3:]}\n{extractor.output}'
         assert busy['idle'] == 'false' and float(busy['time_since_last_output_s']) < 5.0
         assert 0.0 < float(busy['output_rate_hz']) <= float(busy['input_rate_hz']) + 1.0
         table = tables[-1]
         assert [(f.name, f.offset, f.datatype, f.count) for f in table.fields[:4]] == [
-            ('x', 0, PointField.FLOAT32, 1), ('y', 4, PointField.FLOAT32, 1), ('z', 8, PointField.FLOAT32, 1),
-            ('rgb', 12, PointField.FLOAT32, 1)]
+            ('x', 0, PointField.FLOAT32, 1),
+            ('y', 4, PointField.FLOAT32, 1),
+            ('z', 8, PointField.FLOAT32, 1),
+            ('rgb', 12, PointField.FLOAT32, 1),
+        ]
         records = pointcloud2_to_structured(table)[0]
         np.testing.assert_allclose(records['x'], records['centroid_x'], rtol=1e-6)
         # no input: the age grows and, once the last output left the 5 s rate window, the rate is 0

@@ -15,8 +15,18 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'resource', 'ppe_ros', 'config', 'launch', 'rviz', 'README.md',
-                 'LICENSE')
+PACKAGE_FILES = (
+    'package.xml',
+    'setup.py',
+    'setup.cfg',
+    'resource',
+    'ppe_ros',
+    'config',
+    'launch',
+    'rviz',
+    'README.md',
+    'LICENSE',
+)
 LAUNCH_FILE = REPO / 'launch' / 'extractor.launch.py'
 RVIZ_FILE = REPO / 'rviz' / 'ppe_ros.rviz'
 
@@ -48,8 +58,15 @@ ROSDEP_KEYS = {
 #: every header builtin_interfaces/Time; the markers are serialized to CDR directly).
 DEPENDS_WITHOUT_IMPORT = {'geometry_msgs', 'builtin_interfaces'}
 #: pip name of every third-party package ppe_ros imports that is not ROS (what workspace users pip install).
-PIP_NAMES = {'numba': 'numba', 'llvmlite': 'llvmlite', 'rosbags': 'rosbags', 'yaml': 'pyyaml', 'tqdm': 'tqdm',
-             'PIL': 'pillow', 'matplotlib': 'matplotlib'}
+PIP_NAMES = {
+    'numba': 'numba',
+    'llvmlite': 'llvmlite',
+    'rosbags': 'rosbags',
+    'yaml': 'pyyaml',
+    'tqdm': 'tqdm',
+    'PIL': 'pillow',
+    'matplotlib': 'matplotlib',
+}
 
 
 def exec_depends() -> set[str]:
@@ -62,9 +79,22 @@ def test_package_xml_declares_ament_python_and_dependencies():
     assert root.findtext('name') == 'ppe_ros'
     assert root.find('export/build_type').text == 'ament_python'
     exec_deps = exec_depends()
-    for dep in ('rclpy', 'sensor_msgs', 'visualization_msgs', 'std_msgs', 'geometry_msgs', 'diagnostic_msgs',
-                'python3-numpy', 'python3-numba', 'python3-rosbags-pip', 'python3-yaml', 'python3-tqdm', 'python3-pil',
-                'python3-matplotlib', 'rcl_interfaces'):
+    for dep in (
+        'rclpy',
+        'sensor_msgs',
+        'visualization_msgs',
+        'std_msgs',
+        'geometry_msgs',
+        'diagnostic_msgs',
+        'python3-numpy',
+        'python3-numba',
+        'python3-rosbags-pip',
+        'python3-yaml',
+        'python3-tqdm',
+        'python3-pil',
+        'python3-matplotlib',
+        'rcl_interfaces',
+    ):
         assert dep in exec_deps, dep
     assert 'python3-pytest' in {e.text for e in root.findall('test_depend')}
     assert root.findtext('license') == 'Apache-2.0'
@@ -237,8 +267,11 @@ def stubbed_launch_modules() -> dict[str, types.ModuleType]:
         'launch': {'LaunchDescription': _LaunchDescription},
         'launch.actions': {'DeclareLaunchArgument': type('DeclareLaunchArgument', (_Recorded,), {})},
         'launch.conditions': {'IfCondition': _IfCondition},
-        'launch.substitutions': {'LaunchConfiguration': _LaunchConfiguration,
-                                 'PathJoinSubstitution': _PathJoinSubstitution, 'PythonExpression': _PythonExpression},
+        'launch.substitutions': {
+            'LaunchConfiguration': _LaunchConfiguration,
+            'PathJoinSubstitution': _PathJoinSubstitution,
+            'PythonExpression': _PythonExpression,
+        },
         'launch_ros': {},
         'launch_ros.actions': {'Node': type('Node', (_Recorded,), {})},
         'launch_ros.substitutions': {'FindPackageShare': _FindPackageShare},
@@ -346,15 +379,18 @@ def test_rviz_config_shows_the_labelled_cloud_the_markers_and_the_plane_centroid
 
     displays = rviz_displays(RVIZ_FILE)
     assert set(displays) == {f'/{LABELED_POINTS_TOPIC}', f'/{MARKERS_TOPIC}', f'/{PLANE_TABLE_TOPIC}'}
-    labeled, markers, table = (displays[f'/{topic}'] for topic in (LABELED_POINTS_TOPIC, MARKERS_TOPIC,
-                                                                    PLANE_TABLE_TOPIC))
+    labeled, markers, table = (
+        displays[f'/{topic}'] for topic in (LABELED_POINTS_TOPIC, MARKERS_TOPIC, PLANE_TABLE_TOPIC)
+    )
     assert labeled['Class'] == table['Class'] == 'rviz_default_plugins/PointCloud2'
     assert markers['Class'] == 'rviz_default_plugins/MarkerArray'
     assert set(markers['Namespaces']) == {MESH_NAMESPACE, OUTLINE_NAMESPACE, NORMAL_NAMESPACE}
     for display in displays.values():  # the node publishes reliable, volatile
         assert display['Enabled'] is True
-        assert (display['Topic']['Reliability Policy'], display['Topic']['Durability Policy']) == ('Reliable',
-                                                                                                   'Volatile')
+        assert (display['Topic']['Reliability Policy'], display['Topic']['Durability Policy']) == (
+            'Reliable',
+            'Volatile',
+        )
     # RViz's XYZ transformer reads float32 x y z only; RGB8 reads a 4-byte 'rgb' field
     for display, fields in ((labeled, LABELED_POINTS_FIELDS), (table, PLANE_TABLE_DTYPE.names)):
         assert (display['Position Transformer'], display['Color Transformer']) == ('XYZ', 'RGB8')

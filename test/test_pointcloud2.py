@@ -90,13 +90,24 @@ def _points(height: int = 3, width: int = 5) -> np.ndarray:
     return points
 
 
-def _packed(points: np.ndarray, layout: dict[str, tuple[int, str]], point_step: int, row_pad: int = 0,
-            extra: dict[str, np.ndarray] | None = None) -> bytes:
+def _packed(
+    points: np.ndarray,
+    layout: dict[str, tuple[int, str]],
+    point_step: int,
+    row_pad: int = 0,
+    extra: dict[str, np.ndarray] | None = None,
+) -> bytes:
     """Bytes of an organized cloud with fields at given offsets, 0xEE filler in the padding."""
     height, width, _ = points.shape
     names = list(layout)
-    dtype = np.dtype({'names': names, 'formats': [layout[n][1] for n in names],
-                      'offsets': [layout[n][0] for n in names], 'itemsize': point_step})
+    dtype = np.dtype(
+        {
+            'names': names,
+            'formats': [layout[n][1] for n in names],
+            'offsets': [layout[n][0] for n in names],
+            'itemsize': point_step,
+        }
+    )
     table = np.zeros((height, width), dtype=dtype)
     raw = table.view(np.uint8).reshape(height, width * point_step)
     raw[:] = 0xEE
@@ -118,13 +129,17 @@ def test_rclpy_message_to_numpy_to_rosbags_message() -> None:
     points = _points()
     labels = np.arange(15, dtype=np.int64).reshape(3, 5)
     colours = label_colors(labels)
-    sent = xyz_to_pointcloud2(points, header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField,
-                              labels=labels, rgb=colours)
+    sent = xyz_to_pointcloud2(
+        points, header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField, labels=labels, rgb=colours
+    )
     assert isinstance(sent.data, array.array)
     assert (sent.height, sent.width, sent.point_step, sent.row_step) == (3, 5, 20, 100)
     assert [(f.name, f.offset, f.datatype, f.count) for f in sent.fields] == [
-        ('x', 0, FLOAT32, 1), ('y', 4, FLOAT32, 1), ('z', 8, FLOAT32, 1),
-        ('label', 12, UINT32, 1), ('rgb', 16, FLOAT32, 1),
+        ('x', 0, FLOAT32, 1),
+        ('y', 4, FLOAT32, 1),
+        ('z', 8, FLOAT32, 1),
+        ('label', 12, UINT32, 1),
+        ('rgb', 16, FLOAT32, 1),
     ]
     assert sent.is_dense is False  # one NaN point
     np.testing.assert_array_equal(pointcloud2_to_xyz(sent), points.astype(np.float32))
@@ -138,8 +153,14 @@ def test_rclpy_message_to_numpy_to_rosbags_message() -> None:
     assert np.array_equal(table['rgb'].view(np.uint32), colours)
 
     # the same content built directly as a rosbags message equals what came through CDR
-    rebuilt = xyz_to_pointcloud2(xyz, header=_header('rosbags'), msg_class=BAG_CLOUD, field_class=BAG_FIELD,
-                                 labels=table['label'], rgb=table['rgb'].view(np.uint32))
+    rebuilt = xyz_to_pointcloud2(
+        xyz,
+        header=_header('rosbags'),
+        msg_class=BAG_CLOUD,
+        field_class=BAG_FIELD,
+        labels=table['label'],
+        rgb=table['rgb'].view(np.uint32),
+    )
     assert rebuilt.header == received.header
     assert rebuilt.fields == received.fields
     for attribute in ('height', 'width', 'is_bigendian', 'point_step', 'row_step', 'is_dense'):
@@ -150,35 +171,53 @@ def test_rclpy_message_to_numpy_to_rosbags_message() -> None:
 def test_rosbags_message_to_numpy_to_rclpy_message() -> None:
     points = _points(4, 2)
     labels = np.array([[1, 2], [3, 4], [0, 0], [7, 8]], dtype=np.uint32)
-    sent = xyz_to_pointcloud2(points, header=_header('rosbags'), msg_class=BAG_CLOUD, field_class=BAG_FIELD,
-                              labels=labels)
+    sent = xyz_to_pointcloud2(
+        points, header=_header('rosbags'), msg_class=BAG_CLOUD, field_class=BAG_FIELD, labels=labels
+    )
     assert isinstance(sent.data, np.ndarray) and sent.data.dtype == np.uint8
     received = deserialize_message(bytes(TYPESTORE.serialize_cdr(sent, CLOUD_TYPE)), PointCloud2)
     xyz = pointcloud2_to_xyz(received)
     np.testing.assert_array_equal(xyz, points.astype(np.float32))
-    rebuilt = xyz_to_pointcloud2(xyz, header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField,
-                                 labels=pointcloud2_to_structured(received)['label'])
+    rebuilt = xyz_to_pointcloud2(
+        xyz,
+        header=_header('rclpy'),
+        msg_class=PointCloud2,
+        field_class=PointField,
+        labels=pointcloud2_to_structured(received)['label'],
+    )
     assert rebuilt == received
 
 
 def test_structured_table_one_point_per_plane() -> None:
-    table = np.zeros(3, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('normal_x', '<f4'), ('normal_y', '<f4'),
-                               ('normal_z', '<f4'), ('point_count', '<u4')])
+    table = np.zeros(
+        3,
+        dtype=[
+            ('x', '<f4'),
+            ('y', '<f4'),
+            ('z', '<f4'),
+            ('normal_x', '<f4'),
+            ('normal_y', '<f4'),
+            ('normal_z', '<f4'),
+            ('point_count', '<u4'),
+        ],
+    )
     table['x'] = [1, 2, 3]
     table['normal_z'] = 1.0
     table['point_count'] = [100, 2000, 30000]
     for flavour in FLAVOURS:
         cloud_class, field_class = _classes(flavour)
-        message = structured_to_pointcloud2(table, header=_header(flavour), msg_class=cloud_class,
-                                            field_class=field_class)
+        message = structured_to_pointcloud2(
+            table, header=_header(flavour), msg_class=cloud_class, field_class=field_class
+        )
         assert (message.height, message.width, message.is_dense) == (1, 3, True)
         assert not is_organized(message)
         assert [f.name for f in message.fields][-1] == 'point_count' and message.fields[-1].datatype == UINT32
         back = pointcloud2_to_structured(message)
         assert back.shape == (1, 3) and np.array_equal(back[0], table)
         # a frame without planes: an empty table is published and can be read back
-        empty = structured_to_pointcloud2(table[:0], header=_header(flavour), msg_class=cloud_class,
-                                          field_class=field_class)
+        empty = structured_to_pointcloud2(
+            table[:0], header=_header(flavour), msg_class=cloud_class, field_class=field_class
+        )
         assert (empty.height, empty.width, len(empty.data)) == (1, 0, 0)
         assert pointcloud2_to_structured(empty, allow_empty=True).shape == (1, 0)
         with pytest.raises(PointCloudError, match='empty cloud: height 1, width 0'):
@@ -198,18 +237,26 @@ def test_structured_to_pointcloud2_keeps_big_endian_values_and_counts() -> None:
     assert np.array_equal(back['vec'], table['vec'])
     assert pointcloud2_to_xyz(message)[1, 1, 0] == 4.5
     with pytest.raises(ValueError, match='not a PointField datatype'):
-        structured_to_pointcloud2(table, header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField,
-                                  datatypes={'ring': 12})
+        structured_to_pointcloud2(
+            table, header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField, datatypes={'ring': 12}
+        )
     with pytest.raises(ValueError, match='cannot carry'):
-        structured_to_pointcloud2(np.zeros(2, dtype=[('x', 'i8')]), header=_header('rclpy'),
-                                  msg_class=PointCloud2, field_class=PointField)
+        structured_to_pointcloud2(
+            np.zeros(2, dtype=[('x', 'i8')]), header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField
+        )
 
 
 def test_large_organized_cloud_round_trips() -> None:
     points = np.random.default_rng(0).normal(size=(480, 640, 3))
     labels = np.arange(480 * 640).reshape(480, 640) % 40
-    message = xyz_to_pointcloud2(points, header=_header('rclpy'), msg_class=PointCloud2, field_class=PointField,
-                                 labels=labels, rgb=label_colors(labels))
+    message = xyz_to_pointcloud2(
+        points,
+        header=_header('rclpy'),
+        msg_class=PointCloud2,
+        field_class=PointField,
+        labels=labels,
+        rgb=label_colors(labels),
+    )
     xyz = pointcloud2_to_xyz(message)
     assert (message.height, message.width) == (480, 640)
     np.testing.assert_array_equal(xyz, points.astype(np.float32))
@@ -242,8 +289,9 @@ def test_float64_xyz_with_point_and_row_padding(flavour: str, big_endian: bool) 
     layout = {'z': (0, order + 'f8'), 'x': (16, order + 'f8'), 'y': (24, order + 'f8')}
     data = _packed(points, layout, point_step=40, row_pad=7)
     fields = [('z', 0, FLOAT64, 1), ('x', 16, FLOAT64, 1), ('y', 24, FLOAT64, 1)]
-    message = _message(flavour, fields=fields, height=4, width=3, point_step=40, row_step=127, data=data,
-                       is_bigendian=big_endian)
+    message = _message(
+        flavour, fields=fields, height=4, width=3, point_step=40, row_step=127, data=data, is_bigendian=big_endian
+    )
     xyz = pointcloud2_to_xyz(message)
     assert xyz.shape == (4, 3, 3)  # height rows, width columns
     np.testing.assert_array_equal(xyz, points)
@@ -256,15 +304,34 @@ def test_ouster_like_mixed_fields(flavour: str) -> None:
     height, width = 4, 6
     points = _points(height, width)
     points[2, 1] = [np.inf, 1.0, 1.0]
-    layout = {'x': (0, '<f4'), 'y': (4, '<f4'), 'z': (8, '<f4'), 'intensity': (16, '<f4'), 't': (20, '<u4'),
-              'reflectivity': (24, '<u2'), 'ring': (26, '<u2'), 'ambient': (28, '<u2'), 'range': (32, '<u4')}
+    layout = {
+        'x': (0, '<f4'),
+        'y': (4, '<f4'),
+        'z': (8, '<f4'),
+        'intensity': (16, '<f4'),
+        't': (20, '<u4'),
+        'reflectivity': (24, '<u2'),
+        'ring': (26, '<u2'),
+        'ambient': (28, '<u2'),
+        'range': (32, '<u4'),
+    }
     ring = np.repeat(np.arange(height, dtype=np.uint16)[:, None], width, axis=1)
     t_ns = np.tile(np.arange(width, dtype=np.uint32) * 48828, (height, 1))
     data = _packed(points, layout, 48, extra={'ring': ring, 't': t_ns, 'range': np.full((height, width), 4321)})
-    fields = [('x', 0, 7, 1), ('y', 4, 7, 1), ('z', 8, 7, 1), ('intensity', 16, 7, 1), ('t', 20, 6, 1),
-              ('reflectivity', 24, 4, 1), ('ring', 26, 4, 1), ('ambient', 28, 4, 1), ('range', 32, 6, 1)]
-    message = _message(flavour, fields=fields, height=height, width=width, point_step=48, row_step=48 * width,
-                       data=data)
+    fields = [
+        ('x', 0, 7, 1),
+        ('y', 4, 7, 1),
+        ('z', 8, 7, 1),
+        ('intensity', 16, 7, 1),
+        ('t', 20, 6, 1),
+        ('reflectivity', 24, 4, 1),
+        ('ring', 26, 4, 1),
+        ('ambient', 28, 4, 1),
+        ('range', 32, 6, 1),
+    ]
+    message = _message(
+        flavour, fields=fields, height=height, width=width, point_step=48, row_step=48 * width, data=data
+    )
     xyz = pointcloud2_to_xyz(message, require_organized=True)
     expected = points.astype(np.float32).astype(np.float64)
     expected[2, 1] = np.nan  # a non-finite coordinate makes the whole point "no return"
@@ -281,25 +348,38 @@ def test_beam_fields_are_read_ring_first_then_line(flavour: str, big_endian: boo
     points = _points(1, 6)
     ring = np.array([[3, 1, 4, 1, 5, 9]], dtype=np.uint16)
     line = np.array([[0, 1, 2, 3, 0, 1]], dtype=np.uint8)
-    layout = {'x': (0, order + 'f4'), 'y': (4, order + 'f4'), 'z': (8, order + 'f4'), 'line': (12, 'u1'),
-              'ring': (14, order + 'u2')}
+    layout = {
+        'x': (0, order + 'f4'),
+        'y': (4, order + 'f4'),
+        'z': (8, order + 'f4'),
+        'line': (12, 'u1'),
+        'ring': (14, order + 'u2'),
+    }
     data = _packed(points, layout, 16, extra={'ring': ring, 'line': line})
-    fields = [('x', 0, FLOAT32, 1), ('y', 4, FLOAT32, 1), ('z', 8, FLOAT32, 1), ('line', 12, 2, 1),
-              ('ring', 14, UINT16, 1)]
-    message = _message(flavour, fields=fields, height=1, width=6, point_step=16, row_step=96, data=data,
-                       is_bigendian=big_endian)
+    fields = [
+        ('x', 0, FLOAT32, 1),
+        ('y', 4, FLOAT32, 1),
+        ('z', 8, FLOAT32, 1),
+        ('line', 12, 2, 1),
+        ('ring', 14, UINT16, 1),
+    ]
+    message = _message(
+        flavour, fields=fields, height=1, width=6, point_step=16, row_step=96, data=data, is_bigendian=big_endian
+    )
     values, name = pointcloud2_beams(message)
     assert name == 'ring' and values.dtype == np.uint16 and values.dtype.isnative
     np.testing.assert_array_equal(values, ring)
     np.testing.assert_array_equal(pointcloud2_field(message, 'line'), line)
     assert pointcloud2_field(message, 'intensity') is None
-    livox = _message(flavour, fields=fields[:4], height=1, width=6, point_step=16, row_step=96, data=data,
-                     is_bigendian=big_endian)
+    livox = _message(
+        flavour, fields=fields[:4], height=1, width=6, point_step=16, row_step=96, data=data, is_bigendian=big_endian
+    )
     values, name = pointcloud2_beams(livox)
     assert name == 'line'
     np.testing.assert_array_equal(values, line)
-    plain = _message(flavour, fields=fields[:3], height=1, width=6, point_step=16, row_step=96, data=data,
-                     is_bigendian=big_endian)
+    plain = _message(
+        flavour, fields=fields[:3], height=1, width=6, point_step=16, row_step=96, data=data, is_bigendian=big_endian
+    )
     assert pointcloud2_beams(plain) == (None, None)
 
 
@@ -338,8 +418,10 @@ MALFORMED = {
     'data too long': (dict(data=bytes(50)), r'data has 50 bytes, expected row_step × height = 24 × 2 = 48'),
     'empty width': (dict(width=0, row_step=0, data=b''), r'empty cloud: height 2, width 0'),
     'empty height': (dict(height=0, data=b''), r'empty cloud: height 0, width 2'),
-    'point_step beyond numpy': (dict(point_step=2**31, row_step=2**32 - 1),
-                                r'point_step is 2147483648; at most 2147483647 bytes per point'),
+    'point_step beyond numpy': (
+        dict(point_step=2**31, row_step=2**32 - 1),
+        r'point_step is 2147483648; at most 2147483647 bytes per point',
+    ),
 }
 
 
@@ -387,8 +469,9 @@ def test_label_colors_stable_distinct_and_grey_for_unlabelled() -> None:
     assert len(np.unique(colours)) == 256 and UNLABELLED_COLOR not in colours
     assert np.all(label_colors(np.array([0, -1, -5])) == UNLABELLED_COLOR)
     # the colour of an id does not depend on the other ids in the array
-    assert np.array_equal(label_colors(np.array([[7, 200], [3, 0]])),
-                          [[colours[6], colours[199]], [colours[2], UNLABELLED_COLOR]])
+    assert np.array_equal(
+        label_colors(np.array([[7, 200], [3, 0]])), [[colours[6], colours[199]], [colours[2], UNLABELLED_COLOR]]
+    )
     assert label_colors(np.array([10**9]))[0] == label_colors(np.array([10**9, 1]))[0]
     rgb = np.stack([(colours[:32] >> shift) & 0xFF for shift in (16, 8, 0)], axis=-1).astype(float)
     neighbours = np.abs(np.diff(rgb, axis=0)).sum(axis=1)
@@ -429,6 +512,13 @@ def test_negative_sizes_are_named() -> None:
 def test_a_count_zero_field_does_not_shadow_a_real_one(flavour: str) -> None:
     """count 0 declares no bytes: a later count-0 'x' of another datatype must not hide the real x."""
     points = np.arange(12, dtype='<f4').reshape(2, 2, 3)
-    cloud = _message(flavour, fields=[*_XYZ, ('x', 0, FLOAT64, 0)], height=2, width=2, point_step=12, row_step=24,
-                     data=points.tobytes())
+    cloud = _message(
+        flavour,
+        fields=[*_XYZ, ('x', 0, FLOAT64, 0)],
+        height=2,
+        width=2,
+        point_step=12,
+        row_step=24,
+        data=points.tobytes(),
+    )
     np.testing.assert_array_equal(pointcloud2_to_xyz(cloud), points)

@@ -52,7 +52,8 @@ def make_header(types, frame_id='os_lidar', stamp=STAMP):
         return header
     store = types.typestore.types
     return store['std_msgs/msg/Header'](
-        stamp=store['builtin_interfaces/msg/Time'](sec=stamp[0], nanosec=stamp[1]), frame_id=frame_id)
+        stamp=store['builtin_interfaces/msg/Time'](sec=stamp[0], nanosec=stamp[1]), frame_id=frame_id
+    )
 
 
 @pytest.fixture(scope='module')
@@ -65,8 +66,9 @@ def scan():
 
 
 def cloud(types, points, **kwargs):
-    return xyz_to_pointcloud2(points, header=make_header(types, **kwargs), msg_class=types.PointCloud2,
-                              field_class=types.PointField)
+    return xyz_to_pointcloud2(
+        points, header=make_header(types, **kwargs), msg_class=types.PointCloud2, field_class=types.PointField
+    )
 
 
 # ------------------------------------------------------------------ parameters
@@ -88,28 +90,31 @@ def test_config_yaml_holds_every_parameter_with_the_code_defaults():
     assert len(commented) == len(PARAM_SPECS) and all('#' in line for line in commented)
 
 
-@pytest.mark.parametrize(('name', 'value', 'message'), [
-    ('max_error_increment', -0.5, r'max_error_increment must be in \[0.0'),
-    ('max_error_increment', math.nan, 'must be a number'),
-    ('max_neighbor_distance', -1.0, 'max_neighbor_distance'),
-    ('min_plane_points', -1, 'min_plane_points must be in'),
-    ('min_plane_points', 2.5, 'min_plane_points must be an integer'),
-    ('ray_origin', [0.0, 0.0], 'ray_origin must be a list of 3 finite numbers'),
-    ('ray_origin', [0.0, math.inf, 0.0], 'ray_origin'),
-    ('input_reliability', 'sometimes', "one of 'best_effort', 'reliable'"),
-    ('layout', 'transposed', "layout must be one of 'auto', 'rows_are_beams', 'columns_are_beams'"),
-    ('unorganized_rows', 'ring', "unorganized_rows must be one of 'auto', 'rings', 'elevation'"),
-    ('azimuth_bins', -1, 'azimuth_bins must be in'),
-    ('azimuth_start', math.inf, 'azimuth_start must be in'),
-    ('angular_resolution', 0.0, 'angular_resolution must be in'),
-    ('lost_point_tolerance', -0.1, 'lost_point_tolerance must be in'),
-    ('publish_markers', 'yes', 'publish_markers must be true or false'),
-    ('marker_alpha', 1.5, r'marker_alpha must be in \[0.0, 1.0\]'),
-    ('marker_mesh_stride', 0, 'marker_mesh_stride'),
-    ('max_points', 0, 'max_points'),
-    ('numba_threads', -1, 'numba_threads'),
-    ('workers', 0, 'workers'),
-])
+@pytest.mark.parametrize(
+    ('name', 'value', 'message'),
+    [
+        ('max_error_increment', -0.5, r'max_error_increment must be in \[0.0'),
+        ('max_error_increment', math.nan, 'must be a number'),
+        ('max_neighbor_distance', -1.0, 'max_neighbor_distance'),
+        ('min_plane_points', -1, 'min_plane_points must be in'),
+        ('min_plane_points', 2.5, 'min_plane_points must be an integer'),
+        ('ray_origin', [0.0, 0.0], 'ray_origin must be a list of 3 finite numbers'),
+        ('ray_origin', [0.0, math.inf, 0.0], 'ray_origin'),
+        ('input_reliability', 'sometimes', "one of 'best_effort', 'reliable'"),
+        ('layout', 'transposed', "layout must be one of 'auto', 'rows_are_beams', 'columns_are_beams'"),
+        ('unorganized_rows', 'ring', "unorganized_rows must be one of 'auto', 'rings', 'elevation'"),
+        ('azimuth_bins', -1, 'azimuth_bins must be in'),
+        ('azimuth_start', math.inf, 'azimuth_start must be in'),
+        ('angular_resolution', 0.0, 'angular_resolution must be in'),
+        ('lost_point_tolerance', -0.1, 'lost_point_tolerance must be in'),
+        ('publish_markers', 'yes', 'publish_markers must be true or false'),
+        ('marker_alpha', 1.5, r'marker_alpha must be in \[0.0, 1.0\]'),
+        ('marker_mesh_stride', 0, 'marker_mesh_stride'),
+        ('max_points', 0, 'max_points'),
+        ('numba_threads', -1, 'numba_threads'),
+        ('workers', 0, 'workers'),
+    ],
+)
 def test_invalid_values_are_rejected_with_the_reason(name, value, message):
     with pytest.raises(ValueError, match=message):
         ExtractorParams(**{name: value})
@@ -136,14 +141,17 @@ def test_from_yaml_merges_wildcard_and_node_sections(tmp_path):
     assert (params.marker_alpha, params.max_points, params.ray_origin) == (0.2, 7, (0.0, 0.0, 0.1))
 
 
-@pytest.mark.parametrize(('text', 'message'), [
-    ('other:\n  ros__parameters:\n    max_points: 5\n', 'no section for node'),
-    ('extractor:\n  max_points: 5\n', 'must contain "ros__parameters:"'),
-    ('extractor:\n  ros__parameters:\n    max_point: 5\n', r"unknown extractor parameter\(s\) \['max_point'\]"),
-    ('extractor:\n  ros__parameters:\n    marker_alpha: 3.0\n', 'marker_alpha must be in'),
-    ('extractor: [\n', 'not valid YAML'),
-    ('- 1\n', 'must map node names'),
-])
+@pytest.mark.parametrize(
+    ('text', 'message'),
+    [
+        ('other:\n  ros__parameters:\n    max_points: 5\n', 'no section for node'),
+        ('extractor:\n  max_points: 5\n', 'must contain "ros__parameters:"'),
+        ('extractor:\n  ros__parameters:\n    max_point: 5\n', r"unknown extractor parameter\(s\) \['max_point'\]"),
+        ('extractor:\n  ros__parameters:\n    marker_alpha: 3.0\n', 'marker_alpha must be in'),
+        ('extractor: [\n', 'not valid YAML'),
+        ('- 1\n', 'must map node names'),
+    ],
+)
 def test_from_yaml_reports_bad_files(tmp_path, text, message):
     path = tmp_path / 'params.yaml'
     path.write_text(text)
@@ -181,7 +189,12 @@ def test_labeled_points_keep_grid_points_and_colour_each_label(frame, scan):
     assert header_tuple(msg.header) == (*STAMP, 'os_lidar')
     assert (msg.height, msg.width) == scan.shape[:2] and msg.is_dense is False
     assert [(f.name, f.datatype) for f in msg.fields] == [
-        ('x', FLOAT32), ('y', FLOAT32), ('z', FLOAT32), ('label', 6), ('rgb', FLOAT32)]
+        ('x', FLOAT32),
+        ('y', FLOAT32),
+        ('z', FLOAT32),
+        ('label', 6),
+        ('rgb', FLOAT32),
+    ]
     records = pointcloud2_to_structured(msg)
     np.testing.assert_array_equal(records['label'], frame.planes.labels)
     np.testing.assert_allclose(records['x'], scan[..., 0].astype(np.float32))
@@ -198,19 +211,26 @@ def test_plane_table_has_one_documented_point_per_plane(frame):
     assert (msg.height, msg.width) == (1, planes.num_planes)
     assert tuple(f.name for f in msg.fields) == PLANE_TABLE_FIELDS
     # x y z float32 (what RViz draws) and rgb; the rest float64 but the two counts
-    assert all(f.datatype == FLOAT64 for f in msg.fields if f.name not in ('x', 'y', 'z', 'rgb', 'point_count',
-                                                                           'label'))
-    assert [(f.name, f.offset, f.datatype) for f in msg.fields[:4]] == [('x', 0, 7), ('y', 4, 7), ('z', 8, 7),
-                                                                        ('rgb', 12, 7)]
+    assert all(
+        f.datatype == FLOAT64 for f in msg.fields if f.name not in ('x', 'y', 'z', 'rgb', 'point_count', 'label')
+    )
+    assert [(f.name, f.offset, f.datatype) for f in msg.fields[:4]] == [
+        ('x', 0, 7),
+        ('y', 4, 7),
+        ('z', 8, 7),
+        ('rgb', 12, 7),
+    ]
     table = pointcloud2_to_structured(msg)[0]
     np.testing.assert_array_equal(np.stack([table['x'], table['y'], table['z']], 1), planes.centroids.astype('<f4'))
-    np.testing.assert_array_equal(np.stack([table['centroid_x'], table['centroid_y'], table['centroid_z']], 1),
-                                  planes.centroids)
+    np.testing.assert_array_equal(
+        np.stack([table['centroid_x'], table['centroid_y'], table['centroid_z']], 1), planes.centroids
+    )
     labeled = pointcloud2_to_structured(frame.labeled_points)  # a plane's centroid has its colour in the cloud
     for row in table:
         assert set(labeled['rgb'][labeled['label'] == row['label']].view(np.uint32)) == {row['rgb'].view(np.uint32)}
-    np.testing.assert_array_equal(np.stack([table['normal_x'], table['normal_y'], table['normal_z']], 1),
-                                  planes.normals)
+    np.testing.assert_array_equal(
+        np.stack([table['normal_x'], table['normal_y'], table['normal_z']], 1), planes.normals
+    )
     np.testing.assert_array_equal(table['d'], planes.offsets)
     np.testing.assert_array_equal(table['point_count'], planes.point_counts)
     np.testing.assert_array_equal(table['label'], [1, 2, 3])
@@ -224,8 +244,7 @@ def test_plane_table_has_one_documented_point_per_plane(frame):
 def test_markers_decode_with_the_input_header(types, frame):
     markers = types.decode_markers(frame.markers).markers
     assert markers[0].action == 3  # DELETEALL
-    assert [(m.ns, m.id) for m in markers[1:4]] == [(MESH_NAMESPACE, 1), (OUTLINE_NAMESPACE, 1),
-                                                    (NORMAL_NAMESPACE, 1)]
+    assert [(m.ns, m.id) for m in markers[1:4]] == [(MESH_NAMESPACE, 1), (OUTLINE_NAMESPACE, 1), (NORMAL_NAMESPACE, 1)]
     assert len(markers) == 1 + 3 * frame.planes.num_planes
     for marker in markers:
         assert header_tuple(marker.header) == (*STAMP, 'os_lidar')
@@ -248,16 +267,22 @@ def test_rosbags_outputs_serialize(scan):
 
 def test_output_selection_and_parameters_reach_the_outputs(types, scan):
     params = ExtractorParams(min_plane_points=20, marker_alpha=0.25, marker_mesh_stride=2)
-    frame = process_cloud(cloud(types, scan), params, types,
-                          outputs=OutputSelection(labeled_points=False, markers=True, plane_table=False))
+    frame = process_cloud(
+        cloud(types, scan),
+        params,
+        types,
+        outputs=OutputSelection(labeled_points=False, markers=True, plane_table=False),
+    )
     assert frame.labeled_points is None and frame.plane_table is None
     mesh = types.decode_markers(frame.markers).markers[1]
     assert mesh.color.a == 0.25
-    full = process_cloud(cloud(types, scan), params.replace(marker_mesh_stride=1), types,
-                         outputs=OutputSelection(False, True, False))
+    full = process_cloud(
+        cloud(types, scan), params.replace(marker_mesh_stride=1), types, outputs=OutputSelection(False, True, False)
+    )
     assert len(types.decode_markers(full.markers).markers[1].points) > 3 * len(mesh.points)
-    only_table = process_cloud(cloud(types, scan), params.replace(publish_markers=False,
-                                                                   publish_labeled_points=False), types)
+    only_table = process_cloud(
+        cloud(types, scan), params.replace(publish_markers=False, publish_labeled_points=False), types
+    )
     assert only_table.markers is None and only_table.labeled_points is None
     assert only_table.plane_table is not None
 
@@ -291,11 +316,11 @@ def test_no_plane_frame_still_builds_every_output(types):
 
 
 def test_float64_input_and_extra_fields_are_read(types, scan):
-    table = np.zeros(scan.shape[:2], [('intensity', '<f4'), ('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
-                                      ('ring', '<u2')])
+    table = np.zeros(scan.shape[:2], [('intensity', '<f4'), ('x', '<f8'), ('y', '<f8'), ('z', '<f8'), ('ring', '<u2')])
     table['x'], table['y'], table['z'] = scan[..., 0], scan[..., 1], scan[..., 2]
-    msg = structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
-                                    field_class=types.PointField)
+    msg = structured_to_pointcloud2(
+        table, header=make_header(types), msg_class=types.PointCloud2, field_class=types.PointField
+    )
     frame = process_cloud(msg, ExtractorParams(min_plane_points=20), types)
     assert frame.planes.num_planes == 3
 
@@ -325,12 +350,15 @@ def test_a_cloud_of_height_1_without_a_ring_field_is_extracted_on_elevation_bins
 
 def hesai_like_cloud(types, points, rings, *, field='ring'):
     """Height 1, fields x y z intensity <field> timestamp (HesaiLidar_ROS_2.0's layout)."""
-    table = np.zeros(len(points), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'),
-                                   (field, '<u2'), ('timestamp', '<f8')])
+    table = np.zeros(
+        len(points),
+        [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), (field, '<u2'), ('timestamp', '<f8')],
+    )
     table['x'], table['y'], table['z'] = points.T
     table[field] = rings
-    return structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
-                                     field_class=types.PointField)
+    return structured_to_pointcloud2(
+        table, header=make_header(types), msg_class=types.PointCloud2, field_class=types.PointField
+    )
 
 
 @pytest.fixture(scope='module')
@@ -360,16 +388,22 @@ def test_a_hesai_like_cloud_gets_the_planes_of_the_organized_sweep_per_point(typ
 
 def test_a_livox_like_line_field_selects_the_angular_grid(types, sweep):
     points, rings, _ = shuffled(sweep)
-    frame = process_cloud(hesai_like_cloud(types, points, rings % 4, field='line'), ExtractorParams(sensor='lidar'),
-                          types)
+    frame = process_cloud(
+        hesai_like_cloud(types, points, rings % 4, field='line'), ExtractorParams(sensor='lidar'), types
+    )
     assert frame.planes.meta['projection'].method == 'angular_grid'
     assert frame.planes.num_planes >= 4
 
 
 def test_unorganized_rows_rings_without_a_ring_field_is_skipped(types, sweep):
     points, _, _ = shuffled(sweep)
-    expect_skip(types, cloud(types, points), 'unorganized', 'without a ring field, and unorganized_rows is rings',
-                ExtractorParams(unorganized_rows='rings'))
+    expect_skip(
+        types,
+        cloud(types, points),
+        'unorganized',
+        'without a ring field, and unorganized_rows is rings',
+        ExtractorParams(unorganized_rows='rings'),
+    )
 
 
 def test_bad_ring_values_are_skipped_with_the_reason(types, sweep):
@@ -377,8 +411,9 @@ def test_bad_ring_values_are_skipped_with_the_reason(types, sweep):
     table = np.zeros(len(points), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<i4')])
     table['x'], table['y'], table['z'] = points.T
     table['ring'] = rings - 5
-    msg = structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
-                                    field_class=types.PointField)
+    msg = structured_to_pointcloud2(
+        table, header=make_header(types), msg_class=types.PointCloud2, field_class=types.PointField
+    )
     expect_skip(types, msg, 'unorganized', r'cannot be put on a range image \(rings\): rings must lie in 0')
 
 
@@ -390,8 +425,9 @@ def velodyne_like_cloud(types, sweep, *, with_ring=True):
     table['x'], table['y'], table['z'] = firings[..., 0], firings[..., 1], firings[..., 2]
     if with_ring:
         table['ring'] = np.arange(firings.shape[1])[None, :]
-    return structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
-                                     field_class=types.PointField)
+    return structured_to_pointcloud2(
+        table, header=make_header(types), msg_class=types.PointCloud2, field_class=types.PointField
+    )
 
 
 @pytest.mark.parametrize('with_ring', [True, False], ids=['ring_field', 'layout_parameter'])
@@ -421,14 +457,20 @@ def test_all_nan_cloud_is_skipped(types):
 
 
 def test_cloud_over_max_points_is_skipped(types, scan):
-    expect_skip(types, cloud(types, scan), 'too_large', r'24 x 32 = 768 points exceeds max_points = 700',
-                ExtractorParams(max_points=700))
+    expect_skip(
+        types,
+        cloud(types, scan),
+        'too_large',
+        r'24 x 32 = 768 points exceeds max_points = 700',
+        ExtractorParams(max_points=700),
+    )
 
 
 def test_missing_z_is_skipped(types):
     table = np.zeros((4, 5), [('x', '<f4'), ('y', '<f4'), ('intensity', '<f4')])
-    msg = structured_to_pointcloud2(table, header=make_header(types), msg_class=types.PointCloud2,
-                                    field_class=types.PointField)
+    msg = structured_to_pointcloud2(
+        table, header=make_header(types), msg_class=types.PointCloud2, field_class=types.PointField
+    )
     skipped = expect_skip(types, msg, 'invalid_cloud', 'no z field')
     assert str(skipped).startswith('invalid PointCloud2:')
 
@@ -491,8 +533,9 @@ def test_failure_reason_names_the_exception_inside_a_compiled_kernel():
         try:
             raise ZeroDivisionError('division by zero')
         except ZeroDivisionError as cause:
-            raise SystemError('CPUDispatcher(<function _seed_errors at 0x7f>) returned a result with an '
-                              'exception set') from cause
+            raise SystemError(
+                'CPUDispatcher(<function _seed_errors at 0x7f>) returned a result with an exception set'
+            ) from cause
     except SystemError as exc:
         assert failure_reason(exc) == 'ZeroDivisionError: division by zero (in the compiled kernel _seed_errors)'
     assert failure_reason(RuntimeError('kernel exploded')) == 'RuntimeError: kernel exploded'

@@ -183,8 +183,8 @@ def test_a_point_that_lost_its_cell_gets_the_plane_only_when_it_lies_on_it():
     planes = extract_planes(cloud, rings=cloud_rings, sensor='lidar')
     assert planes.meta['projection'].lost_points == 80
     np.testing.assert_array_equal(planes.labels[:n], first.labels)  # the nearer returns kept their cells
-    assert np.all(planes.labels[n:n + 40] == wall_label)  # within the lidar profile's 5 cm
-    assert np.all(planes.labels[n + 40:] == 0)
+    assert np.all(planes.labels[n : n + 40] == wall_label)  # within the lidar profile's 5 cm
+    assert np.all(planes.labels[n + 40 :] == 0)
     strict = extract_planes_unorganized(cloud, cloud_rings, sensor='lidar', lost_point_tolerance=0.005)
     assert np.all(strict.labels[n:] == 0)
     loose = extract_planes_unorganized(cloud, cloud_rings, sensor='lidar', lost_point_tolerance=0.5)
@@ -217,8 +217,9 @@ def test_a_livox_like_cloud_on_the_fixed_angular_grid_finds_its_wall():
     radius = np.radians(35) * np.abs(np.sin(2 * math.pi * 37 * t)) * np.sqrt(rng.uniform(0.2, 1, t.size))
     angle = 2 * math.pi * 5.1 * t
     elevation, azimuth = radius * np.sin(angle), radius * np.cos(angle)
-    direction = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                          np.sin(elevation)], axis=1)
+    direction = np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
     with np.errstate(divide='ignore'):
         to_wall = np.where(direction[:, 0] > 0, 5.0 / direction[:, 0], np.inf)
         to_floor = np.where(direction[:, 2] < 0, -1.5 / direction[:, 2], np.inf)

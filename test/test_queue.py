@@ -54,8 +54,22 @@ def _drive(ops, keys, ints, pi):
     n_out = 0
     for t in range(len(ops)):
         if ops[t] == 0:
-            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, keys[t], ints[t, 0], ints[t, 1],
-                            ints[t, 2], ints[t, 3], ints[t, 4])
+            gsize = _q_push(
+                gkey,
+                gint,
+                gsize,
+                fkey,
+                fint,
+                fnext,
+                bhead,
+                qstate,
+                keys[t],
+                ints[t, 0],
+                ints[t, 1],
+                ints[t, 2],
+                ints[t, 3],
+                ints[t, 4],
+            )
         else:
             while True:
                 if gsize == 0 and qstate[_QCOUNT] > 0:
@@ -174,11 +188,28 @@ def test_a_far_bucket_of_several_chunks_pops_in_order_and_its_chunks_are_reused(
 
 def test_bucket_index_never_decreases_with_the_key():
     rng = np.random.default_rng(7)
-    keys = np.sort(np.concatenate([
-        [0.0, 5e-324, 1e-310, 2.2250738585072014e-308, 1e-300, 1e-12, 0.5, 1.0, 1.0 + 1e-16, 2.0, 1e300,
-         np.finfo(float).max, np.inf],
-        10.0 ** rng.uniform(-320, 300, 20000),
-    ]))
+    keys = np.sort(
+        np.concatenate(
+            [
+                [
+                    0.0,
+                    5e-324,
+                    1e-310,
+                    2.2250738585072014e-308,
+                    1e-300,
+                    1e-12,
+                    0.5,
+                    1.0,
+                    1.0 + 1e-16,
+                    2.0,
+                    1e300,
+                    np.finfo(float).max,
+                    np.inf,
+                ],
+                10.0 ** rng.uniform(-320, 300, 20000),
+            ]
+        )
+    )
     buckets = np.array([_q_bucket(k) for k in keys])
     assert np.all(np.diff(buckets) >= 0)
     assert buckets.min() >= 0 and buckets.max() < _Q_BUCKETS
@@ -189,6 +220,7 @@ def test_bucket_index_never_decreases_with_the_key():
 def test_bucket_index_from_float_bits_equals_the_frexp_formula():
     """_q_bucket reads a normal key's exponent and top fraction bits directly; it must give the
     bucket of the frexp formula (mantissa in [0.5, 1)) for every key, subnormals and edges included."""
+
     def by_frexp(key):
         if not key > 0.0:
             return 0
@@ -198,12 +230,31 @@ def test_bucket_index_from_float_bits_equals_the_frexp_formula():
         return (exponent + 1100) * _Q_PER_OCTAVE + int((mantissa - 0.5) * (2 * _Q_PER_OCTAVE))
 
     rng = np.random.default_rng(11)
-    keys = np.concatenate([
-        [0.0, -0.0, -1.0, np.nan, np.inf, 5e-324, 1e-310, np.nextafter(2.2250738585072014e-308, 0.0),
-         2.2250738585072014e-308, 0.5, np.nextafter(0.5, 1.0), 0.625, np.nextafter(0.625, 0.0), 0.75, 0.875,
-         np.nextafter(1.0, 0.0), 1.0, np.finfo(float).max],
-        10.0 ** rng.uniform(-323, 308, 50000),
-    ])
+    keys = np.concatenate(
+        [
+            [
+                0.0,
+                -0.0,
+                -1.0,
+                np.nan,
+                np.inf,
+                5e-324,
+                1e-310,
+                np.nextafter(2.2250738585072014e-308, 0.0),
+                2.2250738585072014e-308,
+                0.5,
+                np.nextafter(0.5, 1.0),
+                0.625,
+                np.nextafter(0.625, 0.0),
+                0.75,
+                0.875,
+                np.nextafter(1.0, 0.0),
+                1.0,
+                np.finfo(float).max,
+            ],
+            10.0 ** rng.uniform(-323, 308, 50000),
+        ]
+    )
     assert [_q_bucket(k) for k in keys] == [by_frexp(k) for k in keys]
 
 

@@ -94,9 +94,7 @@ def cast_scan(
 def truth_partition(truth: np.ndarray) -> list[tuple[int, ...]]:
     """The pixel sets (sorted linear ids) of the true planes, sorted."""
     flat = truth.reshape(-1)
-    return sorted(
-        tuple(int(k) for k in np.flatnonzero(flat == label)) for label in np.unique(flat[flat >= 0])
-    )
+    return sorted(tuple(int(k) for k in np.flatnonzero(flat == label)) for label in np.unique(flat[flat >= 0]))
 
 
 def plane_count_of(image: np.ndarray, valid: np.ndarray) -> int:
@@ -131,9 +129,7 @@ def _is_connected(cells: frozenset[tuple[int, int]]) -> bool:
 def _fixed_non_i_tetrominoes() -> set[frozenset[tuple[int, int]]]:
     """All fixed tetrominoes (translation classes) by enumerating 4-cell subsets of a 4x4 box, minus I."""
     box = list(itertools.product(range(4), range(4)))
-    shapes = {
-        _normalized(cells) for cells in itertools.combinations(box, 4) if _is_connected(frozenset(cells))
-    }
+    shapes = {_normalized(cells) for cells in itertools.combinations(box, 4) if _is_connected(frozenset(cells))}
     assert len(shapes) == 19  # 2 I + 1 O + 4 T + 4 S/Z + 8 L/J
     straight = {frozenset((0, c) for c in range(4)), frozenset((r, 0) for r in range(4))}
     return shapes - straight
@@ -234,17 +230,13 @@ def test_fit_of_noisy_rays_is_the_minimum():
     # Dense grid around the optimum never beats it.
     deltas = np.linspace(-0.05, 0.05, 21)
     d_theta, d_phi, d_offset = np.meshgrid(deltas, deltas, deltas, indexing='ij')
-    grid_sse = _sse_of_plane(
-        _unit(theta + d_theta, phi + d_phi), offset + d_offset, origins, directions, ranges
-    )
+    grid_sse = _sse_of_plane(_unit(theta + d_theta, phi + d_phi), offset + d_offset, origins, directions, ranges)
     assert grid_sse.min() >= sse * (1 - 1e-12)
 
     # Random perturbations at every scale never lower the SSE.
     for scale in (1e-7, 1e-5, 1e-3, 1e-1):
         params = center + scale * rng.normal(size=(500, 3))
-        perturbed = _sse_of_plane(
-            _unit(params[:, 0], params[:, 1]), params[:, 2], origins, directions, ranges
-        )
+        perturbed = _sse_of_plane(_unit(params[:, 0], params[:, 1]), params[:, 2], origins, directions, ranges)
         assert perturbed.min() >= sse * (1 - 1e-12)
 
     # A coarse global search over all normal directions and offsets finds nothing better either.
@@ -270,9 +262,7 @@ def test_fit_from_four_rays_of_a_seed_matches_the_definition():
     origins = np.zeros((4, 3))
     directions, ranges = _rays_to_plane([1.0, 0.2, -0.1], 4.0, origins, rng, noise=0.05)
     sse, normal, offset = reference_fit(origins, directions, ranges)
-    assert _sse_of_plane(normal, offset, origins, directions, ranges) == pytest.approx(
-        sse, rel=1e-9, abs=1e-20
-    )
+    assert _sse_of_plane(normal, offset, origins, directions, ranges) == pytest.approx(sse, rel=1e-9, abs=1e-20)
     theta, phi = math.acos(normal[2]), math.atan2(normal[1], normal[0])
     params = np.array([theta, phi, offset]) + 1e-3 * rng.normal(size=(2000, 3))
     perturbed = _sse_of_plane(_unit(params[:, 0], params[:, 1]), params[:, 2], origins, directions, ranges)
@@ -300,9 +290,7 @@ def test_fit_keeps_the_lowest_of_several_local_minima():
     golden = np.pi * (3 - np.sqrt(5))
     z = 1 - 2 * (np.arange(count) + 0.5) / count
     radius = np.sqrt(1 - z**2)
-    sphere = np.stack(
-        [radius * np.cos(golden * np.arange(count)), radius * np.sin(golden * np.arange(count)), z], 1
-    )
+    sphere = np.stack([radius * np.cos(golden * np.arange(count)), radius * np.sin(golden * np.arange(count)), z], 1)
     grid_minimum = min(
         float(np.min(_sse_of_plane(sphere, np.full(count, d), np.zeros((4, 3)), directions, ranges)))
         for d in np.linspace(-8.0, 8.0, 801)
@@ -380,11 +368,7 @@ def test_actions_array_has_the_shared_dtype():
     array = result.actions_array()
     assert array.dtype == ACTION_DTYPE
     assert array.dtype.names == ('kind', 'a', 'b', 'increment')
-    assert (
-        array.dtype['kind'] == np.int8
-        and array.dtype['a'] == np.int64
-        and array.dtype['increment'] == np.float64
-    )
+    assert array.dtype['kind'] == np.int8 and array.dtype['a'] == np.int64 and array.dtype['increment'] == np.float64
     kinds = {'create': 0, 'extend': 1, 'merge': 2}
     assert [kinds[action.kind] for action in result.actions] == array['kind'].tolist()
     assert [action.a for action in result.actions] == array['a'].tolist()
@@ -544,9 +528,7 @@ def test_max_neighbor_distance_stops_joining_across_a_depth_jump():
     sides = {k: (k % width < 4) for k in range(points.shape[0] * width)}
     limited = reference_extract(points, max_error_increment=None, max_planes=1, max_neighbor_distance=0.6)
     final = plane_sets(limited.snapshot('n=1'))
-    assert sorted(final.values()) == sorted(
-        tuple(k for k in sides if sides[k] == left) for left in (True, False)
-    )
+    assert sorted(final.values()) == sorted(tuple(k for k in sides if sides[k] == left) for left in (True, False))
     for action in limited.actions:
         if action.kind == 'create':
             assert len({sides[k] for k in tetromino_pixels(action.a, action.b, width)}) == 1
@@ -577,11 +559,7 @@ def test_error_and_count_snapshots_follow_their_definitions():
     for n in counts:
         snapshot = result.snapshot(f'n={n}')
         reached = next(
-            (
-                k
-                for k in range(len(increments) + 1)
-                if plane_count_of(result.state_after(k), result.valid) <= n
-            ),
+            (k for k in range(len(increments) + 1) if plane_count_of(result.state_after(k), result.valid) <= n),
             len(increments),
         )
         assert snapshot.steps == reached

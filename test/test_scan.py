@@ -39,8 +39,9 @@ def _random_scan(rng, height, width):
 def test_ray_model_equals_its_numpy_definition(origin_kind):
     rng = np.random.default_rng(3)
     points = _random_scan(rng, 37, 53)
-    origins = {'none': None, 'point': np.array([0.3, -0.1, 1.2]),
-               'per_ray': rng.normal(0.0, 0.05, points.shape)}[origin_kind]
+    origins = {'none': None, 'point': np.array([0.3, -0.1, 1.2]), 'per_ray': rng.normal(0.0, 0.05, points.shape)}[
+        origin_kind
+    ]
     if origins is not None:
         # a zero-length ray (endpoint at its start) is invalid
         start = origins if origins.ndim == 1 else origins[4, 5]

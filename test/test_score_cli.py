@@ -39,8 +39,14 @@ def test_perfect_prediction(scene, tmp_path, capsys):
     pred = _write_prediction(tmp_path / 'perfect.npz', scan.labels - 9)
     result = _score_json(capsys, path, pred)
     assert result['f'] == 1.0 and result['k'] == 1.0
-    assert (result['n_gt'], result['n_correct'], result['n_over'], result['n_under'], result['n_missed'],
-            result['n_noise']) == (3, 3, 0, 0, 0, 0)
+    assert (
+        result['n_gt'],
+        result['n_correct'],
+        result['n_over'],
+        result['n_under'],
+        result['n_missed'],
+        result['n_noise'],
+    ) == (3, 3, 0, 0, 0, 0)
     assert result['rmse'] < 1e-6  # noise-free: every plane fits exactly
     assert result['gt_min_label'] == 10
 
@@ -58,8 +64,14 @@ def test_split_merged_missed_and_spurious_regions(scene, tmp_path, capsys):
     # labels 11 and 12 merged into one predicted plane -> under-segmented
     pred[(gt == 11) | (gt == 12)] = 3
     result = _score_json(capsys, path, _write_prediction(tmp_path / 'bad.npz', pred))
-    assert (result['n_gt'], result['n_correct'], result['n_over'], result['n_under'], result['n_missed'],
-            result['n_noise']) == (3, 0, 1, 1, 0, 0)
+    assert (
+        result['n_gt'],
+        result['n_correct'],
+        result['n_over'],
+        result['n_under'],
+        result['n_missed'],
+        result['n_noise'],
+    ) == (3, 0, 1, 1, 0, 0)
     assert result['f'] == 0.0 and result['k'] == 0.0
     assert result['rmse'] > 0.01  # the merged plane does not fit two walls
     # now: 10 correct, 11 missed (no plane), 12 covered by a plane of mostly unlabelled pixels is missed too,
@@ -70,7 +82,12 @@ def test_split_merged_missed_and_spurious_regions(scene, tmp_path, capsys):
     pred[rows[:10], cols[:10]] = 7
     result = _score_json(capsys, path, _write_prediction(tmp_path / 'partial.npz', pred))
     assert (result['n_correct'], result['n_over'], result['n_under'], result['n_missed'], result['n_noise']) == (
-        1, 0, 0, 2, 1)
+        1,
+        0,
+        0,
+        2,
+        1,
+    )
     assert result['f'] == pytest.approx(1 / 3)
     assert result['k'] == pytest.approx(sizes[10] / sum(sizes.values()))
 
@@ -138,8 +155,12 @@ def test_damaged_or_huge_predictions_are_one_line_errors(scene, tmp_path, capsys
     raw = bytearray(corrupt.read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     corrupt.write_bytes(bytes(raw))
-    for bad, message in ((empty, 'no .npy header'), (huge, 'at most 50000000 points'), (cut, 'not a readable .npz'),
-                         (corrupt, 'not a readable .npz')):
+    for bad, message in (
+        (empty, 'no .npy header'),
+        (huge, 'at most 50000000 points'),
+        (cut, 'not a readable .npz'),
+        (corrupt, 'not a readable .npz'),
+    ):
         assert main(['score', str(path), str(bad)]) == 2
         err = capsys.readouterr().err
         assert err.startswith(f'ppe score: error: {bad}') and message in err and err.count('\n') == 1, err

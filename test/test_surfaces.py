@@ -64,7 +64,6 @@ def test_a_step_of_twelve_centimetres_is_never_one_surface_at_a_tolerance_of_fiv
         assert merge_cost(_moments(a, zero_a), _moments(flat, zero_b), 0.05) < 0.05
 
 
-
 def test_a_small_piece_whose_own_plane_is_tilted_by_noise_joins_the_large_plane_it_lies_on():
     """The step between two pieces is measured at each piece's mean (the smaller of the two): a small
     piece's noisy normal, extrapolated to a far mean, must not split a surface; a step still does."""
@@ -83,8 +82,14 @@ def _floor_revolution(rows: int = 12, cols: int = 96, seed: int = 0) -> np.ndarr
     """A full lidar revolution (column j at azimuth 2 pi (j + 0.5) / cols) of the floor z = -1, 5 mm noise."""
     azimuth = 2.0 * np.pi * (np.arange(cols) + 0.5) / cols
     elevation = np.radians(np.linspace(-40.0, -10.0, rows))
-    directions = np.stack([np.cos(elevation)[:, None] * np.cos(azimuth), np.cos(elevation)[:, None] * np.sin(azimuth),
-                           np.sin(elevation)[:, None] * np.ones(cols)], axis=-1)
+    directions = np.stack(
+        [
+            np.cos(elevation)[:, None] * np.cos(azimuth),
+            np.cos(elevation)[:, None] * np.sin(azimuth),
+            np.sin(elevation)[:, None] * np.ones(cols),
+        ],
+        axis=-1,
+    )
     ranges = -1.0 / directions[..., 2] + np.random.default_rng(seed).normal(0.0, 0.005, (rows, cols))
     return directions * ranges[..., None]
 
@@ -126,6 +131,7 @@ def test_absorbed_rays_cross_the_seam_only_when_the_columns_wrap():
     assert (plain[cols < 3] == -1).all()
     assert (wrapped[cols < 3] == 0).all()
 
+
 # ------------------------------------------------------------------ consolidation against the reference
 
 
@@ -134,8 +140,19 @@ def _wall_behind_a_post(noise: float, seed: int):
     post = face_from_polygon([[2.0, -0.1, -1.0], [2.0, -0.1, 3.0], [2.0, 0.1, 3.0], [2.0, 0.1, -1.0]])
     panel = face_from_polygon([[3.88, 0.6, 0.3], [3.88, 0.6, 1.2], [3.88, 1.4, 1.2], [3.88, 1.4, 0.3]])
     faces = [plane([0, 0, 1], 0.0), plane([-1, 0, 0], -4.0), post, panel]
-    return cast_scan(faces, rows=24, cols=40, position=(0.0, 0.0, 1.0), yaw_deg=8.0, pitch_deg=10.0, roll_deg=3.0,
-                     azimuth_fov_deg=70.0, elevation_fov_deg=50.0, noise=noise, seed=seed)
+    return cast_scan(
+        faces,
+        rows=24,
+        cols=40,
+        position=(0.0, 0.0, 1.0),
+        yaw_deg=8.0,
+        pitch_deg=10.0,
+        roll_deg=3.0,
+        azimuth_fov_deg=70.0,
+        elevation_fov_deg=50.0,
+        noise=noise,
+        seed=seed,
+    )
 
 
 def _blocks(truth: np.ndarray, block: int) -> np.ndarray:
@@ -195,7 +212,6 @@ def test_noise_model_sigmas_follow_the_formula():
         NoiseModel(constant=-1.0)
 
 
-
 @pytest.mark.parametrize('true_factor', [0.05, 1.0, 3.0])
 def test_the_noise_scale_is_the_ratio_of_the_scans_random_noise_to_the_model(true_factor):
     """Second differences along rows see the independent noise only: a per-row bias and a smooth bend
@@ -214,7 +230,6 @@ def test_the_noise_scale_is_the_ratio_of_the_scans_random_noise_to_the_model(tru
     assert np.isnan(estimate_noise_scale(ranges[:2, :10], sigmas[:2, :10]))  # too few triples
     profile = SensorProfile(name='test', noise=model, noise_scale_bounds=(0.1, 2.0))
     assert profile.with_overrides(noise_scale_bounds=None).noise_for(np.zeros((2, 2, 3))) is model
-
 
 
 def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_ones_to_the_tolerance():
@@ -260,17 +275,28 @@ def test_the_depth_profile_scales_its_model_to_a_clean_rendered_frame(shared_dat
     scores = {}
     for name, used in (('scaled', profile), ('model', dataclasses.replace(profile, noise_scale_bounds=None))):
         planes = extract_planes(scan.points, origins=scan.origins, sensor=used)
-        scores[name] = score_segmentation(planes.labels, scan.labels, valid=scan.valid,
-                                          gt_min_label=int(scan.meta.get('min_plane_label', 1))).f
+        scores[name] = score_segmentation(
+            planes.labels, scan.labels, valid=scan.valid, gt_min_label=int(scan.meta.get('min_plane_label', 1))
+        ).f
     assert scores['scaled'] >= 0.85
     assert scores['scaled'] > scores['model'] + 0.2
 
+
 def test_a_constant_noise_model_scales_the_increments_by_one_over_sigma_squared():
-    scan_data = cast_scan([plane([0, 0, 1], 0.0), plane([-1, 0, 0], -3.0)], rows=16, cols=20,
-                          position=(0, 0, 1), pitch_deg=15, roll_deg=7, noise=0.01, seed=2)
+    scan_data = cast_scan(
+        [plane([0, 0, 1], 0.0), plane([-1, 0, 0], -3.0)],
+        rows=16,
+        cols=20,
+        position=(0, 0, 1),
+        pitch_deg=15,
+        roll_deg=7,
+        noise=0.01,
+        seed=2,
+    )
     plain = extract_plane_hierarchy(scan_data.points, origins=scan_data.origins)
-    scaled = extract_plane_hierarchy(scan_data.points, origins=scan_data.origins,
-                                     noise=NoiseModel(constant=0.1, minimum=1e-6))
+    scaled = extract_plane_hierarchy(
+        scan_data.points, origins=scan_data.origins, noise=NoiseModel(constant=0.1, minimum=1e-6)
+    )
     np.testing.assert_array_equal(plain.actions['kind'], scaled.actions['kind'])
     np.testing.assert_array_equal(plain.actions['a'], scaled.actions['a'])
     np.testing.assert_allclose(scaled.actions['increment'] * 0.01, plain.actions['increment'], rtol=1e-6, atol=1e-15)
@@ -284,19 +310,34 @@ def test_a_constant_noise_model_scales_the_increments_by_one_over_sigma_squared(
 def test_sensor_none_keeps_the_old_defaults_and_paper_is_the_reference_setting():
     scan_data = _wall_behind_a_post(noise=0.01, seed=0)
     default = extract_planes(scan_data.points, origins=scan_data.origins)
-    explicit = extract_planes(scan_data.points, origins=scan_data.origins, max_error_increment=0.01,
-                              max_neighbor_distance=np.inf, min_plane_points=4)
+    explicit = extract_planes(
+        scan_data.points,
+        origins=scan_data.origins,
+        max_error_increment=0.01,
+        max_neighbor_distance=np.inf,
+        min_plane_points=4,
+    )
     np.testing.assert_array_equal(default.labels, explicit.labels)
     paper = extract_planes(scan_data.points, origins=scan_data.origins, sensor='paper')
-    reference = extract_planes(scan_data.points, origins=scan_data.origins, max_error_increment=0.0484,
-                               max_neighbor_distance=0.18, min_plane_points=4)
+    reference = extract_planes(
+        scan_data.points,
+        origins=scan_data.origins,
+        max_error_increment=0.0484,
+        max_neighbor_distance=0.18,
+        min_plane_points=4,
+    )
     np.testing.assert_array_equal(paper.labels, reference.labels)
 
 
 def test_profiles_and_overrides():
     assert sensor_profile('lidar') is PROFILES['lidar']
-    custom = SensorProfile(name='mine', noise=NoiseModel(constant=0.01), max_error_increment=9.0,
-                           surface_tolerance=0.02, min_plane_points=10)
+    custom = SensorProfile(
+        name='mine',
+        noise=NoiseModel(constant=0.01),
+        max_error_increment=9.0,
+        surface_tolerance=0.02,
+        min_plane_points=10,
+    )
     assert sensor_profile(custom) is custom
     with pytest.raises(ValueError, match="'lidar'"):
         sensor_profile('sonar')
@@ -327,8 +368,16 @@ def test_lidar_profile_keeps_faces_whole_and_apart_on_a_noisy_scan_with_beam_bia
 
 def test_a_bumpy_blob_is_not_reported_as_planes():
     rows, cols = 30, 40
-    scan_data = cast_scan([plane([-1, 0, 0], -4.0)], rows=rows, cols=cols, position=(0, 0, 0), azimuth_fov_deg=40,
-                          elevation_fov_deg=30, noise=0.0, seed=0)
+    scan_data = cast_scan(
+        [plane([-1, 0, 0], -4.0)],
+        rows=rows,
+        cols=cols,
+        position=(0, 0, 0),
+        azimuth_fov_deg=40,
+        elevation_fov_deg=30,
+        noise=0.0,
+        seed=0,
+    )
     rng = np.random.default_rng(2)
     points = scan_data.points.copy()
     # in front of the left half of the wall, a rough bush 1 m closer: 20 cm random relief along the rays
@@ -337,14 +386,22 @@ def test_a_bumpy_blob_is_not_reported_as_planes():
     points = scan_data.origins + (points - scan_data.origins) * ((ranges + relief) / ranges)[..., None]
     planes = extract_planes(points, origins=scan_data.origins, sensor='lidar')
     assert (planes.labels[:, : cols // 2] > 0).mean() < 0.25
-    assert (planes.labels[:, cols // 2 + 2:] > 0).mean() > 0.9
+    assert (planes.labels[:, cols // 2 + 2 :] > 0).mean() > 0.9
 
 
 def test_systematic_covariance_grows_with_the_surface_deviation_and_vanishes_without_it():
     from ppe_ros.core.surfaces import systematic_covariances
 
-    scan_data = cast_scan([plane([-1, 0, 0], -4.0)], rows=30, cols=40, position=(0, 0, 0), azimuth_fov_deg=40,
-                          elevation_fov_deg=30, noise=0.0, seed=0)
+    scan_data = cast_scan(
+        [plane([-1, 0, 0], -4.0)],
+        rows=30,
+        cols=40,
+        position=(0, 0, 0),
+        azimuth_fov_deg=40,
+        elevation_fov_deg=30,
+        noise=0.0,
+        seed=0,
+    )
     rows = np.indices((30, 40))[0]
     labels_all = np.ones((30, 40), np.int32)
 
@@ -374,8 +431,9 @@ def test_profile_covariances_are_wider_than_the_fit_alone_on_a_biased_scan():
     biased = ranges + rng.normal(0, 0.05, (ranges.shape[0], 1)) + rng.normal(0, 0.01, ranges.shape)
     points = scan_data.origins + (scan_data.points - scan_data.origins) * (biased / ranges)[..., None]
     with_model = extract_planes(points, origins=scan_data.origins, sensor='lidar')
-    fit_only = extract_planes(points, origins=scan_data.origins,
-                              sensor=dataclasses.replace(PROFILES['lidar'], correlation_length=None))
+    fit_only = extract_planes(
+        points, origins=scan_data.origins, sensor=dataclasses.replace(PROFILES['lidar'], correlation_length=None)
+    )
     np.testing.assert_array_equal(with_model.labels, fit_only.labels)
     biggest = 0
     assert np.trace(with_model.covariances[biggest]) > 2 * np.trace(fit_only.covariances[biggest])

@@ -31,13 +31,26 @@ def wall_scene(distance: float = 10.0, *, floor: float | None = None, post: bool
     """A big wall at x = distance (and optionally a floor at z = -floor and a post in front)."""
     builder = SurfaceSceneBuilder()
     wall = builder.surface('wall')
-    builder.add(wall, np.array([(distance, -3 * distance, -2 * distance), (distance, 3 * distance, -2 * distance),
-                                (distance, 3 * distance, 2 * distance), (distance, -3 * distance, 2 * distance)]))
+    builder.add(
+        wall,
+        np.array(
+            [
+                (distance, -3 * distance, -2 * distance),
+                (distance, 3 * distance, -2 * distance),
+                (distance, 3 * distance, 2 * distance),
+                (distance, -3 * distance, 2 * distance),
+            ]
+        ),
+    )
     if floor is not None:
         builder.new_group()
         ground = builder.surface('floor')
-        builder.add(ground, np.array([(-200.0, -200.0, -floor), (200.0, -200.0, -floor), (200.0, 200.0, -floor),
-                                      (-200.0, 200.0, -floor)]))
+        builder.add(
+            ground,
+            np.array(
+                [(-200.0, -200.0, -floor), (200.0, -200.0, -floor), (200.0, 200.0, -floor), (-200.0, 200.0, -floor)]
+            ),
+        )
     if post:
         builder.new_group()
         label = builder.surface('post', clutter=True)
@@ -78,8 +91,9 @@ def test_same_seed_gives_identical_scans_and_other_seeds_differ():
     assert not np.array_equal(np.nan_to_num(first.points), np.nan_to_num(other.points))
     depth = generate_depth_scan(seed=2, width=80, height=60)
     np.testing.assert_array_equal(depth.points, generate_depth_scan(seed=2, width=80, height=60).points)
-    assert not np.array_equal(np.nan_to_num(depth.points),
-                              np.nan_to_num(generate_depth_scan(seed=3, width=80, height=60).points))
+    assert not np.array_equal(
+        np.nan_to_num(depth.points), np.nan_to_num(generate_depth_scan(seed=3, width=80, height=60).points)
+    )
 
 
 def test_sensor_seed_fixes_the_calibration_errors_across_scans():
@@ -87,8 +101,10 @@ def test_sensor_seed_fixes_the_calibration_errors_across_scans():
     second = generate_lidar_scan(seed=2, model='os1-32', cols=64, sensor_seed=9)
     assert first.params['beam_range_bias'] == second.params['beam_range_bias']
     assert first.params['beam_elevation_error_deg'] == second.params['beam_elevation_error_deg']
-    assert first.params['beam_range_bias'] != generate_lidar_scan(seed=1, model='os1-32', cols=64).params[
-        'beam_range_bias']
+    assert (
+        first.params['beam_range_bias']
+        != generate_lidar_scan(seed=1, model='os1-32', cols=64).params['beam_range_bias']
+    )
 
 
 def test_a_small_lidar_grid_is_fast():
@@ -110,8 +126,9 @@ def test_lidar_grid_and_beam_origins_are_ouster_like():
     np.testing.assert_array_equal(grid.elevation_deg, OS1_128_ALTITUDES_DEG)
     assert np.ptp(np.diff(grid.elevation_deg)) > 0.05  # not uniform
     np.testing.assert_allclose(grid.azimuth_deg[:3], [0.0, -360 / 1024, -720 / 1024])
-    scan = generate_lidar_scan(wall_scene(), seed=0, model='os1-32', cols=64, sensor_pose=ORIGIN_POSE,
-                               errors=LidarErrorModel.exact())
+    scan = generate_lidar_scan(
+        wall_scene(), seed=0, model='os1-32', cols=64, sensor_pose=ORIGIN_POSE, errors=LidarErrorModel.exact()
+    )
     np.testing.assert_allclose(np.linalg.norm(scan.origins[..., :2], axis=-1), 0.015806, rtol=1e-12)
     assert np.all(scan.origins[..., 2] == 0.0)
     # Exact model: every returned point lies on the wall, along the nominal beam from its origin.
@@ -140,27 +157,33 @@ def test_per_beam_range_bias_is_the_mean_residual_per_beam_on_a_flat_wall():
 
 def test_per_beam_elevation_error_tilts_the_true_beams():
     errors = LidarErrorModel.exact(beam_elevation_sigma_deg=0.05)
-    scan = generate_lidar_scan(wall_scene(300.0, floor=2.0), seed=1, model='os1-128', cols=64,
-                               sensor_pose=ORIGIN_POSE, errors=errors)
+    scan = generate_lidar_scan(
+        wall_scene(300.0, floor=2.0), seed=1, model='os1-128', cols=64, sensor_pose=ORIGIN_POSE, errors=errors
+    )
     grid = lidar_grid('os1-128', 64)
     down = grid.elevation_deg < -2.0
     # On the floor z = -2 (ray starts at z = 0) the cast ray's elevation is asin(-2 / t).
     true_elevation = np.degrees(np.arcsin(-2.0 / scan.true_ranges[down]))
     drawn = np.array(scan.params['beam_elevation_error_deg'])[down]
-    np.testing.assert_allclose(true_elevation - grid.elevation_deg[down, None], np.broadcast_to(drawn[:, None],
-                               true_elevation.shape), atol=1e-9)
+    np.testing.assert_allclose(
+        true_elevation - grid.elevation_deg[down, None],
+        np.broadcast_to(drawn[:, None], true_elevation.shape),
+        atol=1e-9,
+    )
     assert np.std(drawn) > 0.02
     # The points are stored along the nominal beams, so they leave the floor by about -r cos(el) * error.
     height = scan.points[down][..., 2] + 2.0
-    expected = -scan.true_ranges[down] * np.radians(drawn)[:, None] * np.cos(np.radians(grid.elevation_deg[down]))[
-        :, None]
+    expected = (
+        -scan.true_ranges[down] * np.radians(drawn)[:, None] * np.cos(np.radians(grid.elevation_deg[down]))[:, None]
+    )
     np.testing.assert_allclose(height, expected, atol=2e-3)
 
 
 def test_grazing_noise_follows_the_model_sigma():
     errors = LidarErrorModel.exact(range_sigma=0.01, grazing_sigma=0.003)
-    scan = generate_lidar_scan(wall_scene(400.0, floor=1.8), seed=2, model='os1-128', cols=512,
-                               sensor_pose=ORIGIN_POSE, errors=errors)
+    scan = generate_lidar_scan(
+        wall_scene(400.0, floor=1.8), seed=2, model='os1-128', cols=512, sensor_pose=ORIGIN_POSE, errors=errors
+    )
     on_floor = scan.labels == scan.scene.faces[1].label
     direction = (scan.points - scan.origins) / scan.ranges()[..., None]
     cos_incidence = np.abs(direction[..., 2])
@@ -175,8 +198,9 @@ def test_grazing_noise_follows_the_model_sigma():
 
 def test_surface_undulation_has_the_model_amplitude_and_is_smooth():
     errors = LidarErrorModel.exact(surface_amplitude=0.008)
-    scan = generate_lidar_scan(wall_scene(12.0), seed=4, model='os1-128', cols=1024, sensor_pose=ORIGIN_POSE,
-                               errors=errors)
+    scan = generate_lidar_scan(
+        wall_scene(12.0), seed=4, model='os1-128', cols=1024, sensor_pose=ORIGIN_POSE, errors=errors
+    )
     on_wall = np.isfinite(scan.points[..., 0])
     height = scan.points[..., 0] - 12.0  # the wall's normal is x
     rms = float(np.sqrt(np.nanmean(height[on_wall] ** 2)))
@@ -189,8 +213,9 @@ def test_surface_undulation_has_the_model_amplitude_and_is_smooth():
 
 def test_dropouts_grow_at_grazing_incidence_and_range_is_limited():
     errors = LidarErrorModel.exact(dropout_rate=0.02, grazing_dropout_deg=88.0, grazing_dropout_width_deg=0.5)
-    scan = generate_lidar_scan(wall_scene(400.0, floor=1.8), seed=6, model='os1-128', cols=512,
-                               sensor_pose=ORIGIN_POSE, errors=errors)
+    scan = generate_lidar_scan(
+        wall_scene(400.0, floor=1.8), seed=6, model='os1-128', cols=512, sensor_pose=ORIGIN_POSE, errors=errors
+    )
     floor_label = scan.scene.faces[1].label
     hits_floor = scan.face_labels == floor_label
     cos_incidence = 1.8 / scan.true_ranges
@@ -209,8 +234,9 @@ def test_dropouts_grow_at_grazing_incidence_and_range_is_limited():
     # Beyond max_range nothing returns (the wall at 400 m), no-returns are NaN with label 0.
     assert not returned[scan.face_labels == scan.scene.faces[0].label].any()
     assert np.all(scan.labels[~returned] == 0)
-    far = generate_lidar_scan(wall_scene(95.0), seed=0, model='os1-32', cols=64, sensor_pose=ORIGIN_POSE,
-                              errors=LidarErrorModel.exact())
+    far = generate_lidar_scan(
+        wall_scene(95.0), seed=0, model='os1-32', cols=64, sensor_pose=ORIGIN_POSE, errors=LidarErrorModel.exact()
+    )
     assert np.isfinite(far.points[..., 0]).any()
 
 
@@ -257,8 +283,10 @@ def test_clutter_is_unlabelled_and_errors_are_realistic(street_scan):
     assert np.all(scan.labels[on_clutter] == CLUTTER_LABEL)
     assert np.all(np.isin(scan.labels[returned & ~on_clutter], [UNLABELLED_LABEL, *range(10, scan.labels.max() + 1)]))
     assert not np.any(scan.labels[returned & ~on_clutter] == CLUTTER_LABEL)
-    kinds = {scan.surface_names[int(label)].rstrip('0123456789').rstrip('_') for label in
-             np.unique(scan.face_labels[on_clutter])}
+    kinds = {
+        scan.surface_names[int(label)].rstrip('0123456789').rstrip('_')
+        for label in np.unique(scan.face_labels[on_clutter])
+    }
     assert {'tree_left', 'tree_right'} & kinds and any(kind.startswith('car') for kind in kinds)
     assert 0.5 < returned.mean() < 0.99  # sky and dropouts
     # Labelled points are near their surface's plane (undulation, noise, biases), but not on it.
@@ -272,8 +300,14 @@ def test_clutter_is_unlabelled_and_errors_are_realistic(street_scan):
 
 
 def test_an_occluded_wall_is_one_label_in_several_connected_pieces():
-    scan = generate_lidar_scan(wall_scene(10.0, post=True), seed=0, model='os1-32', cols=512,
-                               sensor_pose=ORIGIN_POSE, errors=LidarErrorModel.exact())
+    scan = generate_lidar_scan(
+        wall_scene(10.0, post=True),
+        seed=0,
+        model='os1-32',
+        cols=512,
+        sensor_pose=ORIGIN_POSE,
+        errors=LidarErrorModel.exact(),
+    )
     wall = scan.scene.faces[0].label
     assert set(np.unique(scan.labels[scan.labels > 0])) == {wall, CLUTTER_LABEL}
     regions, region_surfaces = scan.connected_labels()
@@ -294,8 +328,14 @@ def test_surfaces_seen_in_too_few_pixels_are_label_3(street_scan):
     minimum = scan.params['min_surface_pixels']
     counts = dict(zip(*np.unique(scan.labels[scan.labels >= 10], return_counts=True), strict=True))
     assert min(counts.values()) >= minimum
-    small = np.isin(scan.face_labels, [label for label in np.unique(scan.face_labels) if label not in counts
-                                       and label not in scan.clutter_labels and label > 0])
+    small = np.isin(
+        scan.face_labels,
+        [
+            label
+            for label in np.unique(scan.face_labels)
+            if label not in counts and label not in scan.clutter_labels and label > 0
+        ],
+    )
     assert np.all(scan.labels[small & np.isfinite(scan.points[..., 0])] == UNLABELLED_LABEL)
 
 
@@ -314,8 +354,9 @@ def test_perfect_segmentation_of_a_street_scores_f_and_k_of_one(street_scan):
 
 def camera_at_wall(distance: float, errors: DepthErrorModel, *, width: int = 160, height: int = 120, seed: int = 0):
     """A camera at the origin looking along +x at a wall ``distance`` metres away."""
-    return generate_depth_scan(wall_scene(distance), seed=seed, width=width, height=height, sensor_pose=ORIGIN_POSE,
-                               errors=errors)
+    return generate_depth_scan(
+        wall_scene(distance), seed=seed, width=width, height=height, sensor_pose=ORIGIN_POSE, errors=errors
+    )
 
 
 @pytest.mark.parametrize('distance', [1.0, 4.0])
@@ -338,8 +379,9 @@ def test_disparity_is_quantised_in_eighths_of_a_pixel():
     # Visible steps: on a floor seen at full resolution the disparity changes by b / h = 0.06 px per
     # row, less than a step, so neighbouring rows often report the same depth; without quantisation never.
     scene = wall_scene(6.0, floor=1.2)
-    quantised = generate_depth_scan(scene, sensor_pose=ORIGIN_POSE,
-                                    errors=DepthErrorModel.exact(disparity_step_px=0.125))
+    quantised = generate_depth_scan(
+        scene, sensor_pose=ORIGIN_POSE, errors=DepthErrorModel.exact(disparity_step_px=0.125)
+    )
     exact = generate_depth_scan(scene, sensor_pose=ORIGIN_POSE, errors=DepthErrorModel.exact())
     floor = quantised.scene.faces[1].label
 
@@ -382,8 +424,9 @@ def test_projector_shadows_and_depth_edges_drop_out():
     board = builder.surface('board')
     builder.add(board, np.array([(1.0, -0.1, -1), (1.0, 0.1, -1), (1.0, 0.1, 1), (1.0, -0.1, 1)]))
     scene = builder.build()
-    shadow = generate_depth_scan(scene, width=160, height=120, sensor_pose=ORIGIN_POSE,
-                                 errors=DepthErrorModel.exact(projector_offset=0.075))
+    shadow = generate_depth_scan(
+        scene, width=160, height=120, sensor_pose=ORIGIN_POSE, errors=DepthErrorModel.exact(projector_offset=0.075)
+    )
     plain = generate_depth_scan(scene, width=160, height=120, sensor_pose=ORIGIN_POSE, errors=DepthErrorModel.exact())
     assert np.isfinite(plain.points[..., 2]).all()
     lost = ~np.isfinite(shadow.points[..., 2])
@@ -393,8 +436,13 @@ def test_projector_shadows_and_depth_edges_drop_out():
     lost_columns = np.flatnonzero(lost[60])
     assert lost_columns.size > 3 and lost_columns.max() < on_board.min()
     assert np.all(shadow.face_labels[lost] == wall)
-    edges = generate_depth_scan(scene, width=160, height=120, sensor_pose=ORIGIN_POSE,
-                                errors=DepthErrorModel.exact(edge_dropout_probability=1.0))
+    edges = generate_depth_scan(
+        scene,
+        width=160,
+        height=120,
+        sensor_pose=ORIGIN_POSE,
+        errors=DepthErrorModel.exact(edge_dropout_probability=1.0),
+    )
     dropped = ~np.isfinite(edges.points[60, :, 2])
     assert set(np.flatnonzero(dropped)) == {on_board.min() - 1, on_board.min(), on_board.max(), on_board.max() + 1}
 
@@ -452,8 +500,10 @@ def test_lidar_dataset_files_load_with_beam_origins_and_labels(lidar_dataset):
     seeds = {entry['split']: [] for entry in manifest['scans']}
     for entry in manifest['scans']:
         seeds[entry['split']].append(entry['scene_seed'])
-    assert seeds == {'train': [SENSOR_SEED_SPLITS['train'][0]],
-                     'test': [SENSOR_SEED_SPLITS['test'][0], SENSOR_SEED_SPLITS['test'][0] + 1]}
+    assert seeds == {
+        'train': [SENSOR_SEED_SPLITS['train'][0]],
+        'test': [SENSOR_SEED_SPLITS['test'][0], SENSOR_SEED_SPLITS['test'][0] + 1],
+    }
     assert SENSOR_SEED_SPLITS['train'][1] <= SENSOR_SEED_SPLITS['test'][0]
     entry = manifest['scans'][1]
     loaded = load_scan(lidar_dataset / entry['file'])
@@ -490,14 +540,35 @@ def test_dataset_command_and_eval_on_a_lidar_dataset(tmp_path, capsys, lidar_dat
     from ppe_ros.cli import main
 
     out = tmp_path / 'made'
-    assert main(['dataset', 'make', str(out), '--kind', 'depth_camera', '--rows', '24', '--cols', '32',
-                 '--train', '0', '--test', '1', '--quiet']) == 0
+    assert (
+        main(
+            [
+                'dataset',
+                'make',
+                str(out),
+                '--kind',
+                'depth_camera',
+                '--rows',
+                '24',
+                '--cols',
+                '32',
+                '--train',
+                '0',
+                '--test',
+                '1',
+                '--quiet',
+            ]
+        )
+        == 0
+    )
     assert 'depth_camera scans' in capsys.readouterr().out
     assert main(['dataset', 'make', str(tmp_path / 'bad'), '--kind', 'lidar', '--noise', '20', '--quiet']) == 2
     assert '--noise' in capsys.readouterr().err
     report = tmp_path / 'eval.md'
-    assert main(['eval', str(lidar_dataset), '--methods', 'ppe', 'msac', '--no-sweep', '--quiet',
-                 '--out', str(report)]) == 0
+    assert (
+        main(['eval', str(lidar_dataset), '--methods', 'ppe', 'msac', '--no-sweep', '--quiet', '--out', str(report)])
+        == 0
+    )
     printed = capsys.readouterr().out
     assert 'os1-32 (2 scans)' in printed
     text = report.read_text()
@@ -509,9 +580,15 @@ def test_builder_fast_path_accepts_and_rejects_like_validate_polygon():
 
     rng = np.random.default_rng(0)
     square = np.array([(0.0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
-    candidates = [square, square[::-1], square[[0, 2, 1, 3]], square + [0, 0, 1e-6] * np.array([[0], [0], [1], [0]]),
-                  np.array([(0.0, 0, 0), (1, 0, 0), (2, 0, 0)]), np.array([(0.0, 0, 0), (1, 0, 0), (np.nan, 1, 0)]),
-                  np.array([(0.0, 0, 0), (2, 0, 0), (0.5, 0.5, 0), (0, 2, 0)])]
+    candidates = [
+        square,
+        square[::-1],
+        square[[0, 2, 1, 3]],
+        square + [0, 0, 1e-6] * np.array([[0], [0], [1], [0]]),
+        np.array([(0.0, 0, 0), (1, 0, 0), (2, 0, 0)]),
+        np.array([(0.0, 0, 0), (1, 0, 0), (np.nan, 1, 0)]),
+        np.array([(0.0, 0, 0), (2, 0, 0), (0.5, 0.5, 0), (0, 2, 0)]),
+    ]
     candidates += [rng.normal(size=(int(rng.integers(3, 5)), 3)) for _ in range(40)]
     for vertices in candidates:
         try:
@@ -537,13 +614,16 @@ def test_a_sequence_is_one_world_and_one_sensor_seen_with_new_noise_from_moving_
     assert all(scan.params['beam_range_bias'] == sweeps[0].params['beam_range_bias'] for scan in sweeps)
     assert len({scan.params['noise_seed'] for scan in sweeps}) == 3
     # Same world (scene and surface undulation), new noise: from one pose the undulated ranges agree exactly.
-    again = generate_lidar_scan(make_street_scene(2), seed=2, model='os1-32', cols=128,
-                                sensor_pose=sweeps[1].sensor_pose, noise_seed=77)
+    again = generate_lidar_scan(
+        make_street_scene(2), seed=2, model='os1-32', cols=128, sensor_pose=sweeps[1].sensor_pose, noise_seed=77
+    )
     np.testing.assert_array_equal(again.undulated_ranges, sweeps[1].undulated_ranges)
     returned = np.isfinite(again.points[..., 0]) & np.isfinite(sweeps[1].points[..., 0])
     assert np.any(again.points[returned] != sweeps[1].points[returned])
-    np.testing.assert_array_equal(generate_lidar_scan(seed=2, model='os1-32', cols=128).points,
-                                  generate_lidar_sequence(2, 1, model='os1-32', cols=128)[0].points)
+    np.testing.assert_array_equal(
+        generate_lidar_scan(seed=2, model='os1-32', cols=128).points,
+        generate_lidar_sequence(2, 1, model='os1-32', cols=128)[0].points,
+    )
 
 
 def test_cast_surface_rays_validates_its_input():

@@ -17,8 +17,15 @@ import pytest
 from ppe_ros.core.extraction import extract_plane_hierarchy
 from ppe_ros.core.synthetic import ScanGrid, generate_scan
 
-KERNEL_MODULES = ('ppe_ros.core.extraction', 'ppe_ros.core.fitting', 'ppe_ros.core.scan', 'ppe_ros.core.synthetic',
-                  'ppe_ros.core.msac', 'ppe_ros.io.lzf', 'ppe_ros.ros.markers')
+KERNEL_MODULES = (
+    'ppe_ros.core.extraction',
+    'ppe_ros.core.fitting',
+    'ppe_ros.core.scan',
+    'ppe_ros.core.synthetic',
+    'ppe_ros.core.msac',
+    'ppe_ros.io.lzf',
+    'ppe_ros.ros.markers',
+)
 
 
 def _dispatchers():
@@ -33,8 +40,11 @@ def test_every_kernel_releases_the_gil():
     """Serial kernels are compiled with nogil=True (numba's parallel kernels release it while they run)."""
     found = dict(_dispatchers())
     assert len(found) > 60 and 'ppe_ros.core.extraction._ppe_kernel' in found
-    holding = [name for name, dispatcher in found.items()
-               if not dispatcher.targetoptions.get('nogil') and not dispatcher.targetoptions.get('parallel')]
+    holding = [
+        name
+        for name, dispatcher in found.items()
+        if not dispatcher.targetoptions.get('nogil') and not dispatcher.targetoptions.get('parallel')
+    ]
     assert holding == []
 
 
@@ -45,8 +55,9 @@ def room():
 
 
 def _extract(scan):
-    return extract_plane_hierarchy(scan.points, origins=scan.origins, max_neighbor_distance=0.18,
-                                   max_error_increment=0.0484)
+    return extract_plane_hierarchy(
+        scan.points, origins=scan.origins, max_neighbor_distance=0.18, max_error_increment=0.0484
+    )
 
 
 def test_other_threads_run_while_a_thread_extracts(room):
@@ -94,8 +105,9 @@ def test_concurrent_extractions_match_sequential_ones(room):
     for _ in range(3):
         results: list = [None, None]
         errors: list = []
-        threads = [threading.Thread(target=work, args=(slot, scan, results, errors))
-                   for slot, scan in enumerate((room, other))]
+        threads = [
+            threading.Thread(target=work, args=(slot, scan, results, errors)) for slot, scan in enumerate((room, other))
+        ]
         for thread in threads:
             thread.start()
         for thread in threads:
@@ -112,8 +124,9 @@ def test_concurrent_tiled_extractions_with_different_thread_counts_match_sequent
     scan = generate_scan(seed=4, grid=grid, radial_sigma=0.02)
 
     def tiled(threads):
-        return extract_plane_hierarchy(scan.points, origins=scan.origins, max_error_increment=0.0484, tiles=6,
-                                       threads=threads).actions.tobytes()
+        return extract_plane_hierarchy(
+            scan.points, origins=scan.origins, max_error_increment=0.0484, tiles=6, threads=threads
+        ).actions.tobytes()
 
     expected = tiled(1)
     results: dict = {}

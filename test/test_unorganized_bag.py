@@ -14,8 +14,12 @@ def ringed_cloud(index, points, rings):
     table = np.zeros(rings.shape, [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), ('ring', '<u2')])
     table['x'], table['y'], table['z'] = points[..., 0], points[..., 1], points[..., 2]
     table['ring'] = rings
-    return structured_to_pointcloud2(table, header=header(JAZZY, index), msg_class=JAZZY.types[POINTCLOUD2],
-                                     field_class=JAZZY.types['sensor_msgs/msg/PointField'])
+    return structured_to_pointcloud2(
+        table,
+        header=header(JAZZY, index),
+        msg_class=JAZZY.types[POINTCLOUD2],
+        field_class=JAZZY.types['sensor_msgs/msg/PointField'],
+    )
 
 
 def test_a_bag_of_hesai_and_velodyne_like_clouds_gets_the_nodes_outputs_in_the_inputs_layouts(tmp_path):
@@ -23,8 +27,9 @@ def test_a_bag_of_hesai_and_velodyne_like_clouds_gets_the_nodes_outputs_in_the_i
     points, rings, _ = shuffled(sweep)
     hesai = ringed_cloud(0, points, rings)
     velodyne = ringed_cloud(1, sweep.transpose(1, 0, 2), np.broadcast_to(np.arange(16), (360, 16)))
-    source = write_rosbag2(tmp_path / 'in', [(bag_time(0), serialized(JAZZY, hesai)),
-                                             (bag_time(1), serialized(JAZZY, velodyne))])
+    source = write_rosbag2(
+        tmp_path / 'in', [(bag_time(0), serialized(JAZZY, hesai)), (bag_time(1), serialized(JAZZY, velodyne))]
+    )
     params = tmp_path / 'params.yaml'
     params.write_text('extractor:\n  ros__parameters:\n    sensor: lidar\n')
     assert run_cli([source, tmp_path / 'out', '--params', params]) == 0

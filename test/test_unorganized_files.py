@@ -36,10 +36,13 @@ def test_kitti_bin_round_trip_and_load_scan(tmp_path: Path, sweep):
     np.testing.assert_array_equal(scan.points[0], read)
 
 
-@pytest.mark.parametrize(('content', 'message'), [
-    (b'', 'empty file'),
-    (b'\0' * 17, 'not a whole number of 16-byte points'),
-])
+@pytest.mark.parametrize(
+    ('content', 'message'),
+    [
+        (b'', 'empty file'),
+        (b'\0' * 17, 'not a whole number of 16-byte points'),
+    ],
+)
 def test_damaged_kitti_bin_is_refused_with_the_reason(tmp_path: Path, content, message):
     path = tmp_path / 'bad.bin'
     path.write_bytes(content)
@@ -52,11 +55,17 @@ def test_ppe_extract_labels_every_point_of_a_kitti_bin(tmp_path: Path, sweep, ca
     path = tmp_path / 'sweep.bin'
     write_kitti_bin(path, points)
     out = tmp_path / 'planes.npz'
-    assert main(['extract', str(path), '-o', str(out), '--sensor', 'lidar', '--png', str(tmp_path / 'p.png'),
-                 '--json']) == 0
+    assert (
+        main(['extract', str(path), '-o', str(out), '--sensor', 'lidar', '--png', str(tmp_path / 'p.png'), '--json'])
+        == 0
+    )
     summary = json.loads(capsys.readouterr().out)
-    assert summary['range_image'] == {'shape': [32, 720], 'rows_from': 'elevation', 'azimuth_bins': 720,
-                                      'lost_points': 0}
+    assert summary['range_image'] == {
+        'shape': [32, 720],
+        'rows_from': 'elevation',
+        'azimuth_bins': 720,
+        'lost_points': 0,
+    }
     labels = np.load(out)['labels']
     assert labels.shape == (len(points),)
     organized = extract_planes(sweep.astype(np.float32).astype(np.float64), sensor='lidar')
@@ -88,8 +97,21 @@ def test_ppe_extract_reads_a_pcd_of_height_1_with_a_ring_field(tmp_path: Path, s
 def test_ppe_extract_transposes_a_columns_are_beams_scan(tmp_path: Path, sweep):
     path = tmp_path / 'velodyne.pcd'
     save_pcd(path, np.ascontiguousarray(sweep.transpose(1, 0, 2)))
-    assert main(['extract', str(path), '-o', str(tmp_path / 'planes.npz'), '--sensor', 'lidar',
-                 '--layout', 'columns_are_beams']) == 0
+    assert (
+        main(
+            [
+                'extract',
+                str(path),
+                '-o',
+                str(tmp_path / 'planes.npz'),
+                '--sensor',
+                'lidar',
+                '--layout',
+                'columns_are_beams',
+            ]
+        )
+        == 0
+    )
     labels = np.load(tmp_path / 'planes.npz')['labels']
     organized = extract_planes(load_scan(path).points.transpose(1, 0, 2), sensor='lidar')
     assert labels.shape == (720, 32)

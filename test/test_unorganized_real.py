@@ -34,8 +34,9 @@ TYPES = rosbags_message_types()
 
 def header():
     store = TYPES.typestore.types
-    return store['std_msgs/msg/Header'](stamp=store['builtin_interfaces/msg/Time'](sec=1, nanosec=0),
-                                        frame_id='os_sensor')
+    return store['std_msgs/msg/Header'](
+        stamp=store['builtin_interfaces/msg/Time'](sec=1, nanosec=0), frame_id='os_sensor'
+    )
 
 
 @pytest.fixture(scope='module')
@@ -60,8 +61,11 @@ def params(seam) -> ExtractorParams:
 
 @pytest.fixture(scope='module')
 def organized(sweep, params):
-    return process_cloud(xyz_to_pointcloud2(sweep, header=header(), msg_class=TYPES.PointCloud2,
-                                            field_class=TYPES.PointField), params, TYPES).planes
+    return process_cloud(
+        xyz_to_pointcloud2(sweep, header=header(), msg_class=TYPES.PointCloud2, field_class=TYPES.PointField),
+        params,
+        TYPES,
+    ).planes
 
 
 @pytest.fixture(scope='module')
@@ -71,16 +75,23 @@ def hesai_like(sweep):
     flat = sweep.reshape(-1, 3)
     index = np.flatnonzero(np.isfinite(flat).all(axis=1))
     np.random.default_rng(20).shuffle(index)
-    table = np.zeros(len(index), [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), ('ring', '<u2'),
-                                  ('timestamp', '<f8')])
+    table = np.zeros(
+        len(index),
+        [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), ('ring', '<u2'), ('timestamp', '<f8')],
+    )
     table['x'], table['y'], table['z'] = flat[index].T
     table['ring'] = index // width
     return table, index
 
 
 def as_message(table):
-    return structured_to_pointcloud2(table, header=header(), msg_class=TYPES.PointCloud2, field_class=TYPES.PointField,
-                                     datatypes={'intensity': FLOAT32})
+    return structured_to_pointcloud2(
+        table,
+        header=header(),
+        msg_class=TYPES.PointCloud2,
+        field_class=TYPES.PointField,
+        datatypes={'intensity': FLOAT32},
+    )
 
 
 def test_a_hesai_like_cloud_with_a_ring_field_gives_the_organized_planes(organized, hesai_like, params):
@@ -109,8 +120,10 @@ def test_without_a_ring_field_the_beams_are_found_in_the_elevations(organized, h
 
 def test_a_velodyne_like_transposed_cloud_gives_the_organized_planes(sweep, organized, params):
     firings = sweep.transpose(1, 0, 2)  # one row per firing, the 128 lasers across
-    table = np.zeros(firings.shape[:2], [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'),
-                                         ('ring', '<u2'), ('time', '<f4')])
+    table = np.zeros(
+        firings.shape[:2],
+        [('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), ('ring', '<u2'), ('time', '<f4')],
+    )
     table['x'], table['y'], table['z'] = firings[..., 0], firings[..., 1], firings[..., 2]
     table['ring'] = np.arange(128)[None, :]
     frame = process_cloud(as_message(table), params, TYPES)

@@ -106,8 +106,9 @@ def synpeb_grid(rows: int, cols: int) -> ScanGrid:
     """
     if int(rows) != rows or int(cols) != cols or rows < 2 or cols < 2:
         raise ValueError(f'rows and cols must be integers >= 2; got {rows} x {cols}')
-    return ScanGrid(elevation_deg=np.linspace(30.0, -30.0, int(rows)),
-                    azimuth_deg=-35.0 + (70.0 / cols) * np.arange(cols))
+    return ScanGrid(
+        elevation_deg=np.linspace(30.0, -30.0, int(rows)), azimuth_deg=-35.0 + (70.0 / cols) * np.arange(cols)
+    )
 
 
 def min_region_pixels(rows: int, cols: int) -> int:
@@ -156,8 +157,9 @@ class DatasetScan:
         return f'{self.split}/{self.level}/{self.path.stem}'
 
 
-def _check_synpeb_levels(sigmas: Sequence[float], n_train: int, n_test: int,
-                         angular_sigma_deg: float) -> tuple[list[float], list[str]]:
+def _check_synpeb_levels(
+    sigmas: Sequence[float], n_train: int, n_test: int, angular_sigma_deg: float
+) -> tuple[list[float], list[str]]:
     """The noise levels (radial sigmas, metres) and their folder names; checks the scan counts and the jitter."""
     levels = [float(s) for s in sigmas]
     if not levels or any(not (math.isfinite(s) and s >= 0.0) for s in levels):
@@ -196,8 +198,20 @@ def _write_synpeb_scan(root: Path, split: str, index: int, level: str, scan, com
     return path
 
 
-def _synpeb_manifest(*, seed: int, rows: int, cols: int, angular_sigma_deg: float, n_objects: int, n_train: int,
-                     n_test: int, levels: list[float], names: list[str], min_region: int, entries: list[dict]) -> dict:
+def _synpeb_manifest(
+    *,
+    seed: int,
+    rows: int,
+    cols: int,
+    angular_sigma_deg: float,
+    n_objects: int,
+    n_train: int,
+    n_test: int,
+    levels: list[float],
+    names: list[str],
+    min_region: int,
+    entries: list[dict],
+) -> dict:
     """The ``dataset.json`` content of a SynPEB-style data set."""
     return {
         'format': FORMAT_NAME,
@@ -208,11 +222,13 @@ def _synpeb_manifest(*, seed: int, rows: int, cols: int, angular_sigma_deg: floa
         'n_objects': int(n_objects),
         'n_train': int(n_train),
         'n_test': int(n_test),
-        'levels': [{'name': name, 'radial_sigma': sigma, 'variance_cm2': round((sigma * 100.0) ** 2, 6)}
-                   for sigma, name in zip(levels, names, strict=True)],
+        'levels': [
+            {'name': name, 'radial_sigma': sigma, 'variance_cm2': round((sigma * 100.0) ** 2, 6)}
+            for sigma, name in zip(levels, names, strict=True)
+        ],
         'min_region_pixels': min_region,
         'labels': 'PCD field intensity: ground-truth plane id (>= 10); 3 = visible but no GT plane (a face piece '
-                  f'smaller than {min_region} px); 0 = no return (NaN point)',
+        f'smaller than {min_region} px); 0 = no return (NaN point)',
         'scans': entries,
     }
 
@@ -263,8 +279,18 @@ def make_dataset(
     if kind not in DATASET_KINDS:
         raise ValueError(f'kind must be one of {", ".join(DATASET_KINDS)}; got {kind!r}')
     if kind != 'synpeb':
-        return _make_sensor_dataset(directory, kind=kind, seed=int(seed), n_train=n_train, n_test=n_test, rows=rows,
-                                    cols=cols, n_objects=n_objects, lidar_models=lidar_models, progress=progress)
+        return _make_sensor_dataset(
+            directory,
+            kind=kind,
+            seed=int(seed),
+            n_train=n_train,
+            n_test=n_test,
+            rows=rows,
+            cols=cols,
+            n_objects=n_objects,
+            lidar_models=lidar_models,
+            progress=progress,
+        )
     rows = 500 if rows is None else rows
     cols = 500 if cols is None else cols
     levels, names = _check_synpeb_levels(sigmas, n_train, n_test, angular_sigma_deg)
@@ -281,29 +307,50 @@ def make_dataset(
         for index in range(count):
             scene_seed = scene_seed_for(seed, split, index)
             pose = sensor_pose_for(scene_seed)
-            scene = make_room_scene(scene_seed, keep_clear=pose.position[:2], view_yaw_deg=pose.yaw_deg,
-                                    n_objects=int(n_objects))
+            scene = make_room_scene(
+                scene_seed, keep_clear=pose.position[:2], view_yaw_deg=pose.yaw_deg, n_objects=int(n_objects)
+            )
             for sigma, name in zip(levels, names, strict=True):
-                scan = generate_scan(scene, seed=scene_seed, grid=grid, sensor_pose=pose, radial_sigma=sigma,
-                                     angular_sigma_deg=angular_sigma_deg, min_region_pixels=min_region)
+                scan = generate_scan(
+                    scene,
+                    seed=scene_seed,
+                    grid=grid,
+                    sensor_pose=pose,
+                    radial_sigma=sigma,
+                    angular_sigma_deg=angular_sigma_deg,
+                    min_region_pixels=min_region,
+                )
                 path = _write_synpeb_scan(root, split, index, name, scan, compressed)
-                entries.append({
-                    'file': path.relative_to(root).as_posix(),
-                    'split': split,
-                    'level': name,
-                    'radial_sigma': sigma,
-                    'scene_seed': scene_seed,
-                    'n_planes': len(scan.visible_labels()),
-                    'sensor_pose': pose.to_dict(),
-                })
+                entries.append(
+                    {
+                        'file': path.relative_to(root).as_posix(),
+                        'split': split,
+                        'level': name,
+                        'radial_sigma': sigma,
+                        'scene_seed': scene_seed,
+                        'n_planes': len(scan.visible_labels()),
+                        'sensor_pose': pose.to_dict(),
+                    }
+                )
                 done += 1
                 if progress is not None:
                     progress(done, total)
-    manifest = _synpeb_manifest(seed=seed, rows=rows, cols=cols, angular_sigma_deg=angular_sigma_deg,
-                                n_objects=n_objects, n_train=n_train, n_test=n_test, levels=levels, names=names,
-                                min_region=min_region, entries=entries)
+    manifest = _synpeb_manifest(
+        seed=seed,
+        rows=rows,
+        cols=cols,
+        angular_sigma_deg=angular_sigma_deg,
+        n_objects=n_objects,
+        n_train=n_train,
+        n_test=n_test,
+        levels=levels,
+        names=names,
+        min_region=min_region,
+        entries=entries,
+    )
     (root / MANIFEST_NAME).write_text(json.dumps(manifest, indent=1) + '\n')
     return manifest
+
 
 def sensor_scene_seed(split: str, index: int, *, seed: int = 0) -> int:
     """Scene seed of scan ``index`` of a split of a ``lidar`` / ``depth_camera`` data set.
@@ -334,13 +381,28 @@ def _ouster_metadata(model: str, cols: int, errors) -> dict:
         'beam_azimuth_angles': [0.0] * len(altitudes),
         'lidar_origin_to_beam_origin_mm': errors.beam_origin_radius * 1000.0,
         'lidar_to_sensor_transform': [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
-        'data_format': {'pixels_per_column': len(altitudes), 'columns_per_frame': int(cols),
-                        'column_window': [0, int(cols) - 1], 'pixel_shift_by_row': [0] * len(altitudes)},
+        'data_format': {
+            'pixels_per_column': len(altitudes),
+            'columns_per_frame': int(cols),
+            'column_window': [0, int(cols) - 1],
+            'pixel_shift_by_row': [0] * len(altitudes),
+        },
     }
 
 
-def _make_sensor_dataset(directory, *, kind: str, seed: int, n_train: int, n_test: int, rows: int | None,
-                         cols: int | None, n_objects: int, lidar_models: Sequence[str], progress) -> dict:
+def _make_sensor_dataset(
+    directory,
+    *,
+    kind: str,
+    seed: int,
+    n_train: int,
+    n_test: int,
+    rows: int | None,
+    cols: int | None,
+    n_objects: int,
+    lidar_models: Sequence[str],
+    progress,
+) -> dict:
     from ppe_ros.core.synthetic_real import (
         LIDAR_MODELS,
         DepthErrorModel,
@@ -371,8 +433,10 @@ def _make_sensor_dataset(directory, *, kind: str, seed: int, n_train: int, n_tes
         if isinstance(cols, bool) or int(cols) != cols or cols < 8:
             raise ValueError(f'cols must be an integer >= 8; got {cols!r}')
         lidar_errors = LidarErrorModel()
-        levels = [{'name': m, 'radial_sigma': lidar_errors.range_sigma, 'model': m, 'rows': len(LIDAR_MODELS[m])}
-                  for m in models]
+        levels = [
+            {'name': m, 'radial_sigma': lidar_errors.range_sigma, 'model': m, 'rows': len(LIDAR_MODELS[m])}
+            for m in models
+        ]
         error_params = lidar_errors.to_dict()
         shape_note = f'{cols} columns'
     else:
@@ -382,8 +446,13 @@ def _make_sensor_dataset(directory, *, kind: str, seed: int, n_train: int, n_tes
             if isinstance(value, bool) or int(value) != value or value < 8:
                 raise ValueError(f'{what} must be an integer >= 8; got {value!r}')
         depth_errors = DepthErrorModel()
-        levels = [{'name': DEPTH_CAMERA_LEVEL, 'radial_sigma': depth_errors.axial_noise_coefficient * 2.0**2,
-                   'rows': int(rows)}]
+        levels = [
+            {
+                'name': DEPTH_CAMERA_LEVEL,
+                'radial_sigma': depth_errors.axial_noise_coefficient * 2.0**2,
+                'rows': int(rows),
+            }
+        ]
         error_params = depth_errors.to_dict()
         shape_note = f'{rows} x {cols}'
     root = Path(directory)
@@ -400,32 +469,36 @@ def _make_sensor_dataset(directory, *, kind: str, seed: int, n_train: int, n_tes
             folder.mkdir(parents=True, exist_ok=True)
             if kind == 'lidar':
                 metadata = _ouster_metadata(level['model'], int(cols), lidar_errors)
-                (folder / f"{level['name']}.json").write_text(json.dumps(metadata, indent=1) + '\n')
+                (folder / f'{level["name"]}.json').write_text(json.dumps(metadata, indent=1) + '\n')
             for index in range(count):
                 scene_seed = sensor_scene_seed(split, index, seed=seed)
                 if kind == 'lidar':
-                    scan = generate_lidar_scan(seed=scene_seed, model=level['model'], cols=int(cols),
-                                               errors=lidar_errors)
+                    scan = generate_lidar_scan(
+                        seed=scene_seed, model=level['model'], cols=int(cols), errors=lidar_errors
+                    )
                 else:
                     pose = sensor_pose_for(scene_seed)
                     scene = make_indoor_scene(scene_seed, sensor_pose=pose, n_objects=int(n_objects))
-                    scan = generate_depth_scan(scene, seed=scene_seed, width=int(cols), height=int(rows),
-                                               sensor_pose=pose, errors=depth_errors)
-                path = folder / f"{level['name']}_{index + 1:02d}.npy"
+                    scan = generate_depth_scan(
+                        scene, seed=scene_seed, width=int(cols), height=int(rows), sensor_pose=pose, errors=depth_errors
+                    )
+                path = folder / f'{level["name"]}_{index + 1:02d}.npy'
                 np.save(path, scan.points.astype(np.float32))
                 ground_truth = np.where(scan.labels >= 10, scan.labels, 0).astype(np.int32)
                 np.save(path.with_name(f'{path.stem}_labels.npy'), ground_truth)
-                entries.append({
-                    'file': path.relative_to(root).as_posix(),
-                    'split': split,
-                    'level': level['name'],
-                    'radial_sigma': level['radial_sigma'],
-                    'scene_seed': scene_seed,
-                    'n_planes': len(np.unique(ground_truth[ground_truth >= 10])),
-                    'clutter_fraction': float(np.mean(scan.labels == 2)),
-                    'valid_fraction': float(np.mean(np.isfinite(scan.points[..., 0]))),
-                    'sensor_pose': scan.sensor_pose.to_dict(),
-                })
+                entries.append(
+                    {
+                        'file': path.relative_to(root).as_posix(),
+                        'split': split,
+                        'level': level['name'],
+                        'radial_sigma': level['radial_sigma'],
+                        'scene_seed': scene_seed,
+                        'n_planes': len(np.unique(ground_truth[ground_truth >= 10])),
+                        'clutter_fraction': float(np.mean(scan.labels == 2)),
+                        'valid_fraction': float(np.mean(np.isfinite(scan.points[..., 0]))),
+                        'sensor_pose': scan.sensor_pose.to_dict(),
+                    }
+                )
                 done += 1
                 if progress is not None:
                     progress(done, total)
@@ -441,11 +514,14 @@ def _make_sensor_dataset(directory, *, kind: str, seed: int, n_train: int, n_tes
         'seed_splits': {split: list(bounds) for split, bounds in SENSOR_SEED_SPLITS.items()},
         'levels': levels,
         'errors': error_params,
-        'frame': ('lidar sensor frame: x forward, y left, z up; rows = beams (top first), destaggered'
-                  if kind == 'lidar' else 'camera optical frame: x right, y down, z forward'),
+        'frame': (
+            'lidar sensor frame: x forward, y left, z up; rows = beams (top first), destaggered'
+            if kind == 'lidar'
+            else 'camera optical frame: x right, y down, z forward'
+        ),
         'labels': '<scan>_labels.npy: one ground-truth label (>= 10) per planar surface, the same label for all '
-                  'pieces of a surface an occluder cuts apart; 0 = no ground-truth plane (clutter such as trees, '
-                  'cars, people, plants; surfaces too small to count; no return)',
+        'pieces of a surface an occluder cuts apart; 0 = no ground-truth plane (clutter such as trees, '
+        'cars, people, plants; surfaces too small to count; no return)',
         'shape': shape_note,
         'scans': entries,
     }
@@ -484,15 +560,20 @@ def select_levels(manifest: dict, noise_mm: Sequence[float] | None) -> list[dict
     for wanted in noise_mm:
         match = [lv for lv in levels if abs(lv['radial_sigma'] * 1000.0 - float(wanted)) <= 0.1]
         if not match:
-            have = ', '.join(f"{lv['radial_sigma'] * 1000:.1f}" for lv in levels)
+            have = ', '.join(f'{lv["radial_sigma"] * 1000:.1f}' for lv in levels)
             raise ValueError(f'no noise level of {wanted:g} mm in the data set (levels: {have} mm)')
         if match[0] not in chosen:
             chosen.append(match[0])
     return chosen
 
 
-def iter_scans(directory: str | os.PathLike[str], *, split: str = 'test', noise_mm: Sequence[float] | None = None,
-               max_scans: int | None = None) -> Iterator[DatasetScan]:
+def iter_scans(
+    directory: str | os.PathLike[str],
+    *,
+    split: str = 'test',
+    noise_mm: Sequence[float] | None = None,
+    max_scans: int | None = None,
+) -> Iterator[DatasetScan]:
     """The scans of one split, level by level (levels in manifest order, scans by file name).
 
     Args:
@@ -506,11 +587,18 @@ def iter_scans(directory: str | os.PathLike[str], *, split: str = 'test', noise_
     root = Path(directory)
     manifest = read_manifest(root)
     for level in select_levels(manifest, noise_mm):
-        entries = sorted((e for e in manifest['scans'] if e['split'] == split and e['level'] == level['name']),
-                         key=lambda e: e['file'])
+        entries = sorted(
+            (e for e in manifest['scans'] if e['split'] == split and e['level'] == level['name']),
+            key=lambda e: e['file'],
+        )
         if max_scans is not None:
             entries = entries[:max_scans]
         for entry in entries:
-            yield DatasetScan(path=root / entry['file'], split=split, level=level['name'],
-                              radial_sigma=float(level['radial_sigma']), scene_seed=int(entry['scene_seed']),
-                              n_planes=int(entry['n_planes']))
+            yield DatasetScan(
+                path=root / entry['file'],
+                split=split,
+                level=level['name'],
+                radial_sigma=float(level['radial_sigma']),
+                scene_seed=int(entry['scene_seed']),
+                n_planes=int(entry['n_planes']),
+            )

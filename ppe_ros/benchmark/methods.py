@@ -124,12 +124,18 @@ class PpeMethod(PlaneMethod):
     name = 'ppe'
     description = 'Probabilistic Plane Extraction (this project)'
 
-    def __init__(self, max_neighbor_distance: float = PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE,
-                 max_error_increment: float = PPE_DEFAULT_MAX_ERROR_INCREMENT, *, min_plane_points: int = 4,
-                 sweep_errors: Sequence[float] | None = None,
-                 level_params: Mapping[float, tuple[float, float]] | None = None) -> None:
-        self.max_neighbor_distance = _check_positive(max_neighbor_distance, 'max_neighbor_distance (lmax, m)',
-                                                     allow_inf=True)
+    def __init__(
+        self,
+        max_neighbor_distance: float = PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE,
+        max_error_increment: float = PPE_DEFAULT_MAX_ERROR_INCREMENT,
+        *,
+        min_plane_points: int = 4,
+        sweep_errors: Sequence[float] | None = None,
+        level_params: Mapping[float, tuple[float, float]] | None = None,
+    ) -> None:
+        self.max_neighbor_distance = _check_positive(
+            max_neighbor_distance, 'max_neighbor_distance (lmax, m)', allow_inf=True
+        )
         self.max_error_increment = float(max_error_increment)
         if not (math.isfinite(self.max_error_increment) and self.max_error_increment >= 0.0):
             raise ValueError(f'max_error_increment (e, m^2) must be finite and >= 0; got {max_error_increment!r}')
@@ -145,12 +151,16 @@ class PpeMethod(PlaneMethod):
                 raise ValueError(f'level_params: radial sigma must be finite and >= 0 (m); got {sigma!r}')
             if any(abs(sigma - known) <= LEVEL_MATCH_TOLERANCE for known in self._levels):
                 raise ValueError(f'level_params: two entries for radial sigma {sigma * 1000:g} mm')
-            self._levels[float(sigma)] = PpeMethod(lmax, error, min_plane_points=self.min_plane_points,
-                                                   sweep_errors=self.sweep_errors)
+            self._levels[float(sigma)] = PpeMethod(
+                lmax, error, min_plane_points=self.min_plane_points, sweep_errors=self.sweep_errors
+            )
 
     def parameters(self) -> dict[str, Any]:
-        params: dict[str, Any] = {'lmax': self.max_neighbor_distance, 'e': self.max_error_increment,
-                                  'sqrt_e': math.sqrt(self.max_error_increment)}
+        params: dict[str, Any] = {
+            'lmax': self.max_neighbor_distance,
+            'e': self.max_error_increment,
+            'sqrt_e': math.sqrt(self.max_error_increment),
+        }
         for sigma, method in self._levels.items():
             params[f'at {sigma * 1000:g} mm'] = method.parameters()
         return params
@@ -168,11 +178,13 @@ class PpeMethod(PlaneMethod):
 
         stop = max([self.max_error_increment, *(self.sweep_errors or ())])
         start = time.perf_counter()
-        hierarchy = extract_plane_hierarchy(points, origins=origins, max_neighbor_distance=self.max_neighbor_distance,
-                                            max_error_increment=stop)
+        hierarchy = extract_plane_hierarchy(
+            points, origins=origins, max_neighbor_distance=self.max_neighbor_distance, max_error_increment=stop
+        )
         steps = hierarchy.steps_for_error(self.max_error_increment)
-        planes, residuals = fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps),
-                                              min_plane_points=self.min_plane_points)
+        planes, residuals = fit_pixel_groups(
+            hierarchy.scan, hierarchy.plane_ids(steps), min_plane_points=self.min_plane_points
+        )
         seconds = time.perf_counter() - start
         sweep = None
         if self.sweep_errors is not None:
@@ -183,9 +195,13 @@ class PpeMethod(PlaneMethod):
                 if cut not in by_steps:
                     by_steps[cut] = hierarchy_labels(hierarchy, e, self.min_plane_points)
                 sweep[e] = by_steps[cut]
-        return Segmentation(labels=planes.labels.astype(np.int64), seconds=seconds, residuals=residuals, sweep=sweep,
-                            info={'planes': planes.num_planes, 'actions': steps,
-                                  'extraction_seconds': hierarchy.seconds})
+        return Segmentation(
+            labels=planes.labels.astype(np.int64),
+            seconds=seconds,
+            residuals=residuals,
+            sweep=sweep,
+            info={'planes': planes.num_planes, 'actions': steps, 'extraction_seconds': hierarchy.seconds},
+        )
 
 
 def hierarchy_labels(hierarchy, max_error_increment: float, min_plane_points: int = 4) -> np.ndarray:
@@ -214,8 +230,9 @@ class PpePaperMethod(PpeMethod):
     description = "PPE with the paper's SynPEB parameters (lmax 0.18 m, e 0.0484 m^2)"
 
     def __init__(self, *, min_plane_points: int = 4) -> None:
-        super().__init__(PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE, PPE_DEFAULT_MAX_ERROR_INCREMENT,
-                         min_plane_points=min_plane_points)
+        super().__init__(
+            PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE, PPE_DEFAULT_MAX_ERROR_INCREMENT, min_plane_points=min_plane_points
+        )
 
 
 class MsacMethod(PlaneMethod):
@@ -229,8 +246,14 @@ class MsacMethod(PlaneMethod):
     name = 'msac'
     description = "sequential MSAC, the paper's baseline (own numpy/numba implementation)"
 
-    def __init__(self, distance: float = DEFAULT_DISTANCE, fraction: float = DEFAULT_MIN_REMAINING_FRACTION, *,
-                 seed: int = 0, max_trials: int = 1000) -> None:
+    def __init__(
+        self,
+        distance: float = DEFAULT_DISTANCE,
+        fraction: float = DEFAULT_MIN_REMAINING_FRACTION,
+        *,
+        seed: int = 0,
+        max_trials: int = 1000,
+    ) -> None:
         self.distance = _check_positive(distance, 'distance (m)')
         self.fraction = float(fraction)
         if not 0.0 <= self.fraction < 1.0:
@@ -243,11 +266,15 @@ class MsacMethod(PlaneMethod):
 
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
         start = time.perf_counter()
-        result = extract_planes_msac(points, distance=self.distance, min_remaining_fraction=self.fraction,
-                                     max_trials=self.max_trials, seed=self.seed)
+        result = extract_planes_msac(
+            points,
+            distance=self.distance,
+            min_remaining_fraction=self.fraction,
+            max_trials=self.max_trials,
+            seed=self.seed,
+        )
         seconds = time.perf_counter() - start
-        return Segmentation(labels=result.labels.astype(np.int64), seconds=seconds,
-                            info={'planes': result.num_planes})
+        return Segmentation(labels=result.labels.astype(np.int64), seconds=seconds, info={'planes': result.num_planes})
 
 
 def method_names() -> tuple[str, ...]:
@@ -265,8 +292,7 @@ def make_method(name: str, **params) -> PlaneMethod:
     """
     from ppe_ros.benchmark.peers import PEERS
 
-    classes: dict[str, type[PlaneMethod]] = {'ppe': PpeMethod, 'ppe-paper': PpePaperMethod, 'msac': MsacMethod,
-                                             **PEERS}
+    classes: dict[str, type[PlaneMethod]] = {'ppe': PpeMethod, 'ppe-paper': PpePaperMethod, 'msac': MsacMethod, **PEERS}
     if name not in classes:
         raise ValueError(f'unknown method {name!r}; known: {", ".join(classes)}')
     return classes[name](**params)

@@ -33,8 +33,10 @@ def _import(module: str, install: str):
 
 def _polylidar_hint() -> str:
     version = f'{sys.version_info.major}.{sys.version_info.minor}'
-    return (f'no wheel for this Python {version} (PyPI has polylidar wheels for CPython <= 3.10 only; this project '
-            f'needs >= 3.11); where it is installed the adapter runs it')
+    return (
+        f'no wheel for this Python {version} (PyPI has polylidar wheels for CPython <= 3.10 only; this project '
+        f'needs >= 3.11); where it is installed the adapter runs it'
+    )
 
 
 class _Open3dMethod(PlaneMethod):
@@ -65,8 +67,15 @@ class Open3dSegmentPlane(_Open3dMethod):
     name = 'open3d'
     description = 'Open3D segment_plane applied iteratively (RANSAC)'
 
-    def __init__(self, distance: float = 0.034, fraction: float = 0.03, *, iterations: int = 1000, seed: int = 0,
-                 max_planes: int | None = None) -> None:
+    def __init__(
+        self,
+        distance: float = 0.034,
+        fraction: float = 0.03,
+        *,
+        iterations: int = 1000,
+        seed: int = 0,
+        max_planes: int | None = None,
+    ) -> None:
         self.distance = _check_positive(distance, 'distance (m)')
         self.fraction = float(fraction)
         if not 0.0 <= self.fraction < 1.0:
@@ -76,8 +85,7 @@ class Open3dSegmentPlane(_Open3dMethod):
         self.max_planes = max_planes
 
     def parameters(self) -> dict[str, Any]:
-        return {'distance': self.distance, 'fraction': self.fraction, 'iterations': self.iterations,
-                'seed': self.seed}
+        return {'distance': self.distance, 'fraction': self.fraction, 'iterations': self.iterations, 'seed': self.seed}
 
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
         o3d, height, width, flat, remaining = self._open3d_and_points(points)
@@ -90,8 +98,7 @@ class Open3dSegmentPlane(_Open3dMethod):
         while len(remaining) > stop and len(remaining) >= 3:
             if self.max_planes is not None and label >= self.max_planes:
                 break
-            _, inliers = pcd.segment_plane(distance_threshold=self.distance, ransac_n=3,
-                                           num_iterations=self.iterations)
+            _, inliers = pcd.segment_plane(distance_threshold=self.distance, ransac_n=3, num_iterations=self.iterations)
             inliers = np.asarray(inliers, dtype=np.int64)
             if len(inliers) == 0:
                 break
@@ -121,16 +128,20 @@ class Open3dPlanarPatches(_Open3dMethod):
         self.normal_neighbors = int(normal_neighbors)
 
     def parameters(self) -> dict[str, Any]:
-        return {'distance': self.distance, 'normal_radius': self.normal_radius,
-                'normal_neighbors': self.normal_neighbors}
+        return {
+            'distance': self.distance,
+            'normal_radius': self.normal_radius,
+            'normal_neighbors': self.normal_neighbors,
+        }
 
     def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
         o3d, height, width, flat, valid = self._open3d_and_points(points)
         xyz = flat[valid]
         start = time.perf_counter()
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=self.normal_radius,
-                                                                  max_nn=self.normal_neighbors))
+        pcd.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=self.normal_radius, max_nn=self.normal_neighbors)
+        )
         patches = pcd.detect_planar_patches()
         best = np.full(len(xyz), np.inf)
         owner = np.zeros(len(xyz), np.int64)
@@ -161,8 +172,16 @@ class Polylidar3dOrganized(PlaneMethod):
     name = 'polylidar'
     description = 'Polylidar3D, organized point cloud path'
 
-    def __init__(self, lmax: float = 0.1, *, min_triangles: int = 200, z_thresh: float = 0.05,
-                 norm_thresh: float = 0.96, max_normals: int = 8, normal_cluster_deg: float = 10.0) -> None:
+    def __init__(
+        self,
+        lmax: float = 0.1,
+        *,
+        min_triangles: int = 200,
+        z_thresh: float = 0.05,
+        norm_thresh: float = 0.96,
+        max_normals: int = 8,
+        normal_cluster_deg: float = 10.0,
+    ) -> None:
         self.lmax = _check_positive(lmax, 'lmax (m)')
         self.min_triangles = int(min_triangles)
         self.z_thresh = float(z_thresh)
@@ -171,8 +190,12 @@ class Polylidar3dOrganized(PlaneMethod):
         self.normal_cluster_deg = float(normal_cluster_deg)
 
     def parameters(self) -> dict[str, Any]:
-        return {'lmax': self.lmax, 'min_triangles': self.min_triangles, 'z_thresh': self.z_thresh,
-                'norm_thresh': self.norm_thresh}
+        return {
+            'lmax': self.lmax,
+            'min_triangles': self.min_triangles,
+            'z_thresh': self.z_thresh,
+            'norm_thresh': self.norm_thresh,
+        }
 
     def check_available(self) -> None:
         _import('polylidar', _polylidar_hint())
@@ -202,15 +225,21 @@ class Polylidar3dOrganized(PlaneMethod):
         start = time.perf_counter()
         flat = cloud.reshape(-1, 3)
         mesh, _ = polylidar.extract_tri_mesh_from_organized_point_cloud(
-            polylidar.MatrixDouble(np.where(np.isfinite(flat), flat, np.nan)), height, width, 1, calc_normals=True)
+            polylidar.MatrixDouble(np.where(np.isfinite(flat), flat, np.nan)), height, width, 1, calc_normals=True
+        )
         triangles = np.asarray(mesh.triangles)
         normals = self._dominant_normals(np.asarray(mesh.triangle_normals))
         labels = np.zeros(height * width, np.int64)
         planes = 0
         if len(normals):
-            extractor = polylidar.Polylidar3D(alpha=0.0, lmax=self.lmax, min_triangles=self.min_triangles,
-                                              z_thresh=self.z_thresh, norm_thresh=self.norm_thresh,
-                                              norm_thresh_min=self.norm_thresh)
+            extractor = polylidar.Polylidar3D(
+                alpha=0.0,
+                lmax=self.lmax,
+                min_triangles=self.min_triangles,
+                z_thresh=self.z_thresh,
+                norm_thresh=self.norm_thresh,
+                norm_thresh_min=self.norm_thresh,
+            )
             all_planes, _ = extractor.extract_planes_and_polygons_optimized(mesh, polylidar.MatrixDouble(normals))
             for planes_of_normal in all_planes:
                 for triangle_ids in planes_of_normal:

@@ -155,9 +155,16 @@ def _plane_through(points: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, float(normal @ centroid)
 
 
-def fit_ground_plane(points: np.ndarray, *, max_horizontal_distance: float = 25.0, inlier_distance: float = 0.10,
-                     max_tilt_deg: float = 20.0, iterations: int = 500, sample_size: int = 20000,
-                     seed: int = 0) -> GroundPlane:
+def fit_ground_plane(
+    points: np.ndarray,
+    *,
+    max_horizontal_distance: float = 25.0,
+    inlier_distance: float = 0.10,
+    max_tilt_deg: float = 20.0,
+    iterations: int = 500,
+    sample_size: int = 20000,
+    seed: int = 0,
+) -> GroundPlane:
     """RANSAC ground plane of a lidar sweep whose frame has z up.
 
     Candidates are the valid points within ``max_horizontal_distance`` (m) of the z axis. RANSAC draws
@@ -191,8 +198,9 @@ def fit_ground_plane(points: np.ndarray, *, max_horizontal_distance: float = 25.
     if not np.any(ok):
         raise ValueError(f'no plane within {max_tilt_deg} deg of horizontal among {iterations} RANSAC samples')
     normals, offsets = normals[ok], np.einsum('ij,ij->i', normals[ok], p0[ok])
-    scores = np.array([np.count_nonzero(np.abs(sample @ n - d) <= inlier_distance)
-                       for n, d in zip(normals, offsets, strict=True)])
+    scores = np.array(
+        [np.count_nonzero(np.abs(sample @ n - d) <= inlier_distance) for n, d in zip(normals, offsets, strict=True)]
+    )
     best = int(np.argmax(scores))
     normal, offset = normals[best], float(offsets[best])
     candidates = flat[index]
@@ -304,8 +312,9 @@ def connected_parts(labels: np.ndarray, min_points: int = 20) -> np.ndarray:
     _connected_parts_kernel(np.ascontiguousarray(lab, dtype=np.int64).ravel(), height, width, roots)
     out = np.zeros(height * width, np.int64)
     inside = roots >= 0
-    values, first, inverse, counts = np.unique(roots[inside], return_index=True, return_inverse=True,
-                                               return_counts=True)
+    values, first, inverse, counts = np.unique(
+        roots[inside], return_index=True, return_inverse=True, return_counts=True
+    )
     order = np.lexsort((first, -counts))  # by size, then by first pixel (roots are the smallest pixel id)
     rank = np.empty(len(values), np.int64)
     rank[order] = np.arange(1, len(values) + 1)
@@ -320,8 +329,13 @@ def connected_parts(labels: np.ndarray, min_points: int = 20) -> np.ndarray:
 # --------------------------------------------------------------------------------------------- motion
 
 
-def rigid_fit_from_planes(normals_a: np.ndarray, offsets_a: np.ndarray, normals_b: np.ndarray,
-                          offsets_b: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rigid_fit_from_planes(
+    normals_a: np.ndarray,
+    offsets_a: np.ndarray,
+    normals_b: np.ndarray,
+    offsets_b: np.ndarray,
+    weights: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Rigid motion ``p_B = R p_A + t`` that maps matched planes of A onto those of B.
 
     Plane j is ``n . x = d`` in each frame; a motion maps it to ``n' = R n_A``, ``d' = d_A + n' . t``. R
@@ -345,13 +359,14 @@ def rigid_fit_from_planes(normals_a: np.ndarray, offsets_a: np.ndarray, normals_
     moved = na @ rotation.T
     a = (w[:, None] * moved).T @ moved
     if np.linalg.cond(a) > 1e8:
-        raise ValueError('the matched planes\' normals do not span 3-D space; translation undetermined')
+        raise ValueError("the matched planes' normals do not span 3-D space; translation undetermined")
     translation = np.linalg.solve(a, (w[:, None] * moved).T @ (db - da))
     return rotation, translation
 
 
-def transform_planes(normals: np.ndarray, offsets: np.ndarray, rotation: np.ndarray,
-                     translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def transform_planes(
+    normals: np.ndarray, offsets: np.ndarray, rotation: np.ndarray, translation: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Planes ``n . x = d`` of frame A in frame B (``p_B = R p_A + t``): ``(R n, d + (R n) . t)``."""
     moved = np.asarray(normals, float) @ np.asarray(rotation, float).T
     return moved, np.asarray(offsets, float) + moved @ np.asarray(translation, float)
@@ -372,8 +387,9 @@ def closest_point_jacobian(closest_point: np.ndarray, rotation: np.ndarray, tran
     return du @ rotation
 
 
-def registration_covariance(normal: np.ndarray, offset: float, sigma_translation: float,
-                            sigma_rotation: float) -> np.ndarray:
+def registration_covariance(
+    normal: np.ndarray, offset: float, sigma_translation: float, sigma_rotation: float
+) -> np.ndarray:
     """``(3, 3)`` covariance that a registration error adds to a plane's closest point ``c = d n`` in B's frame.
 
     A small extra motion (rotation vector ``w`` about B's origin, translation ``u``) moves the plane to
@@ -383,7 +399,7 @@ def registration_covariance(normal: np.ndarray, offset: float, sigma_translation
     """
     n = np.asarray(normal, float)
     cross = np.array([[0.0, -n[2], n[1]], [n[2], 0.0, -n[0]], [-n[1], n[0], 0.0]])
-    return sigma_translation ** 2 * np.outer(n, n) + (offset * sigma_rotation) ** 2 * cross @ cross.T
+    return sigma_translation**2 * np.outer(n, n) + (offset * sigma_rotation) ** 2 * cross @ cross.T
 
 
 def mahalanobis_squared(delta: np.ndarray, covariance: np.ndarray) -> float:
@@ -427,10 +443,12 @@ class RangeImageProjector:
         self.start_height = float(np.mean(starts[..., 2][self.valid])) if self.valid.any() else 0.0
         start_xy = starts[..., :2][self.valid]
         self.start_center = start_xy.mean(axis=0) if len(start_xy) else np.zeros(2)
-        self.start_radius = float(np.median(np.linalg.norm(start_xy - self.start_center, axis=1))) if len(start_xy) \
-            else 0.0
-        rows = np.array([np.median(elevation[r][self.valid[r]]) if self.valid[r].any() else np.nan
-                         for r in range(self.height)])
+        self.start_radius = (
+            float(np.median(np.linalg.norm(start_xy - self.start_center, axis=1))) if len(start_xy) else 0.0
+        )
+        rows = np.array(
+            [np.median(elevation[r][self.valid[r]]) if self.valid[r].any() else np.nan for r in range(self.height)]
+        )
         known = np.isfinite(rows)
         if np.count_nonzero(known) < 1:
             raise ValueError('the sweep has no valid point')
@@ -448,8 +466,9 @@ class RangeImageProjector:
             if best is None or abs(mean) > best[0]:
                 best = (abs(mean), sign, float(np.angle(mean)))
         self.column_sign, self.azimuth0 = best[1], best[2]
-        self.pixel_angle = max(2 * np.pi / self.width,
-                               float(np.median(np.abs(np.diff(np.sort(rows))))) if self.height > 1 else 0.0)
+        self.pixel_angle = max(
+            2 * np.pi / self.width, float(np.median(np.abs(np.diff(np.sort(rows))))) if self.height > 1 else 0.0
+        )
 
     def project(self, query: np.ndarray) -> np.ndarray:
         """Flat pixel index (row * W + column) of each ``(n, 3)`` point, -1 where the pixel holds no point."""
@@ -459,11 +478,15 @@ class RangeImageProjector:
         elevation = np.arctan2(q[:, 2] - self.start_height, rho)
         azimuth = np.arctan2(xy[:, 1], xy[:, 0])
         sorted_rows = self.row_elevation[self.row_order]
-        pos = np.clip(np.searchsorted(sorted_rows, elevation), 1, len(sorted_rows) - 1) if len(sorted_rows) > 1 \
+        pos = (
+            np.clip(np.searchsorted(sorted_rows, elevation), 1, len(sorted_rows) - 1)
+            if len(sorted_rows) > 1
             else np.zeros(len(q), np.int64)
+        )
         if len(sorted_rows) > 1:
-            pos = np.where(np.abs(elevation - sorted_rows[pos - 1]) <= np.abs(elevation - sorted_rows[pos]), pos - 1,
-                           pos)
+            pos = np.where(
+                np.abs(elevation - sorted_rows[pos - 1]) <= np.abs(elevation - sorted_rows[pos]), pos - 1, pos
+            )
         row = self.row_order[pos]
         column = np.round(self.column_sign * (azimuth - self.azimuth0) * self.width / (2 * np.pi)).astype(np.int64)
         column %= self.width
@@ -510,11 +533,23 @@ MAX_MATCH_OFFSET = 0.05
 MIN_MATCH_IOU = 0.7
 
 
-def match_planes(labels_a: np.ndarray, points_a: np.ndarray, normals_a: np.ndarray, offsets_a: np.ndarray,
-                 covariances_a: np.ndarray | None, labels_b: np.ndarray, projector_b: RangeImageProjector,
-                 normals_b: np.ndarray, offsets_b: np.ndarray, covariances_b: np.ndarray | None,
-                 rotation: np.ndarray, translation: np.ndarray, *, min_points: int = 1000,
-                 registration_sigma: tuple[float, float] | None = None) -> list[PlaneMatch]:
+def match_planes(
+    labels_a: np.ndarray,
+    points_a: np.ndarray,
+    normals_a: np.ndarray,
+    offsets_a: np.ndarray,
+    covariances_a: np.ndarray | None,
+    labels_b: np.ndarray,
+    projector_b: RangeImageProjector,
+    normals_b: np.ndarray,
+    offsets_b: np.ndarray,
+    covariances_b: np.ndarray | None,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    min_points: int = 1000,
+    registration_sigma: tuple[float, float] | None = None,
+) -> list[PlaneMatch]:
     """Match every plane of A with at least ``min_points`` pixels to a plane of B after the motion ``(R, t)``.
 
     Plane arrays are indexed by label - 1 (PlaneSet layout: label j is row j - 1). A's plane points are moved
@@ -541,8 +576,9 @@ def match_planes(labels_a: np.ndarray, points_a: np.ndarray, normals_a: np.ndarr
         pixels = pixels[pixels >= 0]
         hit = lab_b[pixels]
         if not np.any(hit > 0):
-            matches.append(PlaneMatch(int(label), 0, int(count), len(pixels), 0.0, math.nan, math.nan, math.nan,
-                                      math.nan, False))
+            matches.append(
+                PlaneMatch(int(label), 0, int(count), len(pixels), 0.0, math.nan, math.nan, math.nan, math.nan, False)
+            )
             continue
         hit_values, hit_counts = np.unique(hit[hit > 0], return_counts=True)
         best = int(hit_values[np.argmax(hit_counts)])
@@ -556,18 +592,33 @@ def match_planes(labels_a: np.ndarray, points_a: np.ndarray, normals_a: np.ndarr
         offset_diff = abs(d_a - d_b)
         md2 = sigma_d = md2_registered = math.nan
         if covariances_a is not None and covariances_b is not None:
-            jac = closest_point_jacobian(offsets_a[label - 1] * np.asarray(normals_a[label - 1], float), rotation,
-                                         translation)
+            jac = closest_point_jacobian(
+                offsets_a[label - 1] * np.asarray(normals_a[label - 1], float), rotation, translation
+            )
             cov = jac @ covariances_a[label - 1] @ jac.T + covariances_b[best - 1]
             delta = d_a * n_a - d_b * n_b
             md2 = mahalanobis_squared(delta, cov)
             sigma_d = math.sqrt(max(float(n_b @ cov @ n_b), 0.0)) if np.all(np.isfinite(cov)) else math.nan
             if registration_sigma is not None:
-                md2_registered = mahalanobis_squared(delta, cov + registration_covariance(n_b, d_b,
-                                                                                          *registration_sigma))
+                md2_registered = mahalanobis_squared(
+                    delta, cov + registration_covariance(n_b, d_b, *registration_sigma)
+                )
         found = angle < MAX_MATCH_ANGLE_DEG and offset_diff < MAX_MATCH_OFFSET and iou >= MIN_MATCH_IOU
-        matches.append(PlaneMatch(int(label), best, int(count), len(pixels), float(iou), angle, offset_diff, md2,
-                                  sigma_d, bool(found), md2_registered))
+        matches.append(
+            PlaneMatch(
+                int(label),
+                best,
+                int(count),
+                len(pixels),
+                float(iou),
+                angle,
+                offset_diff,
+                md2,
+                sigma_d,
+                bool(found),
+                md2_registered,
+            )
+        )
     return matches
 
 
@@ -621,8 +672,9 @@ def summarize_matches(matches: list[PlaneMatch]) -> RepeatabilitySummary:
     )
 
 
-def motion_difference(rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,
-                      translation_b: np.ndarray) -> tuple[float, float]:
+def motion_difference(
+    rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray, translation_b: np.ndarray
+) -> tuple[float, float]:
     """(angle in degrees, translation distance in m) between two rigid motions."""
     relative = np.asarray(rotation_a, float).T @ np.asarray(rotation_b, float)
     cos_angle = np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)

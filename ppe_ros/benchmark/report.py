@@ -82,21 +82,32 @@ def check_targets(evaluation: Evaluation, *, method: str = 'ppe') -> list[tuple[
         ppe = rows[method]
         sigma = ppe['radial_sigma']
         name = f'σ = {sigma * 1000:.1f} mm'
-        numbers = f"f {ppe['f'] * 100:.1f} %, k {ppe['k'] * 100:.1f} %, RMSE {ppe['rmse'] * 1000:.1f} mm"
+        numbers = f'f {ppe["f"] * 100:.1f} %, k {ppe["k"] * 100:.1f} %, RMSE {ppe["rmse"] * 1000:.1f} mm'
         if abs(sigma - 0.01414) < 5e-4:
-            met = (ppe['f'] >= PAPER_PPE_ROW['f'] and ppe['k'] >= PAPER_PPE_ROW['k']
-                   and ppe['rmse'] <= PAPER_PPE_ROW['rmse'])
-            checks.append((f'{name}: at least the paper\'s row (f 73.6 %, k 77.9 %, RMSE ≤ 14.5 mm)', met, numbers))
+            met = (
+                ppe['f'] >= PAPER_PPE_ROW['f']
+                and ppe['k'] >= PAPER_PPE_ROW['k']
+                and ppe['rmse'] <= PAPER_PPE_ROW['rmse']
+            )
+            checks.append((f"{name}: at least the paper's row (f 73.6 %, k 77.9 %, RMSE ≤ 14.5 mm)", met, numbers))
         if abs(sigma - 0.02) < 5e-4:
-            met = (ppe['f'] >= PAPER_PPE_ROW['f'] and ppe['k'] >= PAPER_PPE_ROW['k']
-                   and abs(ppe['rmse'] - sigma) <= RMSE_NOISE_TOLERANCE * sigma)
+            met = (
+                ppe['f'] >= PAPER_PPE_ROW['f']
+                and ppe['k'] >= PAPER_PPE_ROW['k']
+                and abs(ppe['rmse'] - sigma) <= RMSE_NOISE_TOLERANCE * sigma
+            )
             checks.append((f'{name}: f ≥ 73.6 %, k ≥ 77.9 %, RMSE within 5 % of 20 mm (19.0–21.0 mm)', met, numbers))
         others = [row for name_, row in rows.items() if name_ not in PPE_VARIANTS]
         if others:
             behind = [row['method'] for row in others if not (ppe['f'] > row['f'] and ppe['k'] > row['k'])]
-            versus = '; '.join(f"{row['method']} f {row['f'] * 100:.1f} % k {row['k'] * 100:.1f} %" for row in others)
-            checks.append((f'{name}: ahead of {", ".join(r["method"] for r in others)} on f and k', not behind,
-                           f"{method} f {ppe['f'] * 100:.1f} % k {ppe['k'] * 100:.1f} % vs {versus}"))
+            versus = '; '.join(f'{row["method"]} f {row["f"] * 100:.1f} % k {row["k"] * 100:.1f} %' for row in others)
+            checks.append(
+                (
+                    f'{name}: ahead of {", ".join(r["method"] for r in others)} on f and k',
+                    not behind,
+                    f'{method} f {ppe["f"] * 100:.1f} % k {ppe["k"] * 100:.1f} % vs {versus}',
+                )
+            )
     return checks
 
 
@@ -113,12 +124,19 @@ def machine_description() -> str:
                 break
     except OSError:
         pass
-    return (f'{cpu}, {os.cpu_count()} cores visible, {platform.system()} {platform.release()}, '
-            f'Python {platform.python_version()}, numpy {numpy.__version__}, numba {numba.__version__}')
+    return (
+        f'{cpu}, {os.cpu_count()} cores visible, {platform.system()} {platform.release()}, '
+        f'Python {platform.python_version()}, numpy {numpy.__version__}, numba {numba.__version__}'
+    )
 
 
-def plot_sweeps(path: str | os.PathLike[str], curves: dict[str, dict[float, float]], *,
-                marks: dict[str, float] | None = None, title: str = 'PPE: f over sqrt(e)') -> Path:
+def plot_sweeps(
+    path: str | os.PathLike[str],
+    curves: dict[str, dict[float, float]],
+    *,
+    marks: dict[str, float] | None = None,
+    title: str = 'PPE: f over sqrt(e)',
+) -> Path:
     """PNG plot of f (%) over sqrt(e) (m), one line per noise level; ``marks`` = vertical lines (label -> e)."""
     import matplotlib
 
@@ -146,8 +164,16 @@ def plot_sweeps(path: str | os.PathLike[str], curves: dict[str, dict[float, floa
     return out
 
 
-def markdown_report(evaluation: Evaluation, *, command: str, dataset_note: str, extra_groups: Sequence[str] = (),
-                    plot_name: str | None = None, notes: Sequence[str] = (), date: str | None = None) -> str:
+def markdown_report(
+    evaluation: Evaluation,
+    *,
+    command: str,
+    dataset_note: str,
+    extra_groups: Sequence[str] = (),
+    plot_name: str | None = None,
+    notes: Sequence[str] = (),
+    date: str | None = None,
+) -> str:
     """The benchmark report as markdown (tables per group, targets, parameters, machine, date, command)."""
     when = date or _dt.datetime.now(_dt.UTC).strftime('%Y-%m-%d %H:%M UTC')
     lines = [
@@ -168,7 +194,7 @@ def markdown_report(evaluation: Evaluation, *, command: str, dataset_note: str, 
         'Metrics exactly as in the reference evaluation (Hoover et al., T = 0.8, strict `>`; ground-truth planes are '
         'the labels ≥ 10, or ≥ 1 for label files with 0 = unlabelled): **f** = correctly segmented GT planes / GT '
         'planes (summed over scans), **k** = fraction of labelled points in correctly segmented planes (mean over '
-        'scans; the reference\'s denominator), **k all** = the same over all valid rays (the paper\'s formula), '
+        "scans; the reference's denominator), **k all** = the same over all valid rays (the paper's formula), "
         '**RMSE** = radial residuals of the exact ray-length plane fit of every predicted segment, pooled '
         'over the points of planes with RMSE < 10 m, mean over scans; **n_o, n_u, n_m, n_s** = over-segmented, '
         'under-segmented, missed and spurious (noise) regions per scan; **s/scan** = wall time of the method per '
@@ -176,12 +202,16 @@ def markdown_report(evaluation: Evaluation, *, command: str, dataset_note: str, 
         '',
     ]
     methods = ', '.join(f'`{m.describe()}`' for m in evaluation.methods)
-    lines += [f'Methods: {methods}.', '',
-              'Peers are optional extras, imported only when asked for: Open3D (`open3d`, `open3d-patches`) needs '
-              '`make peers` (pip installs the pinned open3d, about 400 MB; on Debian/Ubuntu also '
-              '`apt-get install libusb-1.0-0`); Polylidar3D '
-              '(`polylidar`) has PyPI wheels for CPython ≤ 3.10 only. A peer that is not installed is skipped with '
-              'the reason below.', '']
+    lines += [
+        f'Methods: {methods}.',
+        '',
+        'Peers are optional extras, imported only when asked for: Open3D (`open3d`, `open3d-patches`) needs '
+        '`make peers` (pip installs the pinned open3d, about 400 MB; on Debian/Ubuntu also '
+        '`apt-get install libusb-1.0-0`); Polylidar3D '
+        '(`polylidar`) has PyPI wheels for CPython ≤ 3.10 only. A peer that is not installed is skipped with '
+        'the reason below.',
+        '',
+    ]
     for name, reason in evaluation.skipped.items():
         lines += [f'- **{name} skipped**: {reason}']
     if evaluation.skipped:
@@ -207,13 +237,21 @@ def markdown_report(evaluation: Evaluation, *, command: str, dataset_note: str, 
             n_scans = rows[0]['n_scans'] if rows else 0
             lines += [f'### {group_title(group, rows, n_scans)}', '', format_table(rows, markdown=True), '']
         if plot_name:
-            lines += [f'![f over sqrt(e) per noise level]({plot_name})', '',
-                      f'PPE\'s f over sqrt(e) per noise level (one run per scan gives every e; lmax fixed), '
-                      f'[{plot_name}]({plot_name}).', '']
+            lines += [
+                f'![f over sqrt(e) per noise level]({plot_name})',
+                '',
+                f"PPE's f over sqrt(e) per noise level (one run per scan gives every e; lmax fixed), "
+                f'[{plot_name}]({plot_name}).',
+                '',
+            ]
     extra = [g for g in evaluation.groups() if g in extra_groups]
     if extra:
-        lines += ['## Shared real-format scans', '',
-                  'Each scan scored on its own with the same parameters (not tuned on them).', '']
+        lines += [
+            '## Shared real-format scans',
+            '',
+            'Each scan scored on its own with the same parameters (not tuned on them).',
+            '',
+        ]
         for group in extra:
             rows = evaluation.rows(group)
             lines += [f'### {group}', '', format_table(rows, markdown=True), '']

@@ -45,8 +45,14 @@ class LabelledScan:
     radial_sigma: float | None = None
 
 
-def load_labelled_scan(path: str | os.PathLike[str], *, group: str | None = None, radial_sigma: float | None = None,
-                       name: str | None = None, gt: str | os.PathLike[str] | None = None) -> LabelledScan:
+def load_labelled_scan(
+    path: str | os.PathLike[str],
+    *,
+    group: str | None = None,
+    radial_sigma: float | None = None,
+    name: str | None = None,
+    gt: str | os.PathLike[str] | None = None,
+) -> LabelledScan:
     """Read a scan file that carries ground truth (SynPEB PCD, depth PNG with ``*_labels.npy``, ...).
 
     Raises:
@@ -56,19 +62,33 @@ def load_labelled_scan(path: str | os.PathLike[str], *, group: str | None = None
 
     scan = load_scan(path, gt=gt)
     if scan.labels is None:
-        raise ValueError(f'{path}: the scan carries no ground-truth labels (SynPEB PCD intensity, a label field, '
-                         f'a <name>_labels.npy next to it, or --gt)')
+        raise ValueError(
+            f'{path}: the scan carries no ground-truth labels (SynPEB PCD intensity, a label field, '
+            f'a <name>_labels.npy next to it, or --gt)'
+        )
     label = name or Path(path).name
-    return LabelledScan(name=label, points=scan.points, origins=scan.origins, labels=scan.labels,
-                        gt_min_label=int(scan.meta.get('min_plane_label', 10)), group=group or label,
-                        radial_sigma=radial_sigma)
+    return LabelledScan(
+        name=label,
+        points=scan.points,
+        origins=scan.origins,
+        labels=scan.labels,
+        gt_min_label=int(scan.meta.get('min_plane_label', 10)),
+        group=group or label,
+        radial_sigma=radial_sigma,
+    )
 
 
-def dataset_scans(directory: str | os.PathLike[str], *, split: str = 'test', noise_mm: Sequence[float] | None = None,
-                  max_scans: int | None = None) -> list[tuple[str, Callable[[], LabelledScan]]]:
+def dataset_scans(
+    directory: str | os.PathLike[str],
+    *,
+    split: str = 'test',
+    noise_mm: Sequence[float] | None = None,
+    max_scans: int | None = None,
+) -> list[tuple[str, Callable[[], LabelledScan]]]:
     """Lazy loaders ``(name, load)`` of a data set's scans (one level after the other)."""
     loaders = []
     for entry in iter_scans(directory, split=split, noise_mm=noise_mm, max_scans=max_scans):
+
         def load(entry=entry) -> LabelledScan:
             return load_labelled_scan(entry.path, group=entry.level, radial_sigma=entry.radial_sigma, name=entry.name)
 
@@ -92,16 +112,30 @@ class ScanResult:
     def to_dict(self) -> dict:
         """JSON-ready summary (scalars of the score, no per-region arrays)."""
         score = {k: v for k, v in self.score.to_dict().items() if not isinstance(v, list)}
-        out = {'scan': self.scan, 'group': self.group, 'method': self.method, 'seconds': self.seconds,
-               'radial_sigma': self.radial_sigma, 'score': score, 'info': self.info}
+        out = {
+            'scan': self.scan,
+            'group': self.group,
+            'method': self.method,
+            'seconds': self.seconds,
+            'radial_sigma': self.radial_sigma,
+            'score': score,
+            'info': self.info,
+        }
         if self.sweep_correct is not None:
             out['sweep_correct'] = {f'{e:.6g}': c for e, c in self.sweep_correct.items()}
         return out
 
 
-def score_prediction(points: np.ndarray, origins: np.ndarray | None, gt_labels: np.ndarray, pred_labels: np.ndarray,
-                     *, gt_min_label: int = 10, residuals: np.ndarray | None = None,
-                     threshold: float = DEFAULT_THRESHOLD) -> SegmentationScore:
+def score_prediction(
+    points: np.ndarray,
+    origins: np.ndarray | None,
+    gt_labels: np.ndarray,
+    pred_labels: np.ndarray,
+    *,
+    gt_min_label: int = 10,
+    residuals: np.ndarray | None = None,
+    threshold: float = DEFAULT_THRESHOLD,
+) -> SegmentationScore:
     """Score predicted labels against ground truth, with the RMSE of the exact radial fit of each segment.
 
     ``residuals`` (the radial residual image of the predicted planes) is computed with
@@ -114,15 +148,22 @@ def score_prediction(points: np.ndarray, origins: np.ndarray | None, gt_labels: 
     if residuals is None:
         residuals = fit_labeled_planes(points, pred, origins=origins, min_plane_points=3).residuals
     valid = np.isfinite(np.asarray(points, dtype=np.float64)).all(axis=2)
-    return score_segmentation(pred, gt_labels, gt_min_label=gt_min_label, residuals=residuals, valid=valid,
-                              threshold=threshold)
+    return score_segmentation(
+        pred, gt_labels, gt_min_label=gt_min_label, residuals=residuals, valid=valid, threshold=threshold
+    )
 
 
 def run_method_on_scan(method: PlaneMethod, scan: LabelledScan) -> ScanResult:
     """Segment one scan with one method (its parameters for the scan's noise level) and score it (and its sweep)."""
     segmentation: Segmentation = method.for_noise(scan.radial_sigma).segment(scan.points, scan.origins)
-    score = score_prediction(scan.points, scan.origins, scan.labels, segmentation.labels,
-                             gt_min_label=scan.gt_min_label, residuals=segmentation.residuals)
+    score = score_prediction(
+        scan.points,
+        scan.origins,
+        scan.labels,
+        segmentation.labels,
+        gt_min_label=scan.gt_min_label,
+        residuals=segmentation.residuals,
+    )
     sweep_correct = None
     if segmentation.sweep is not None:
         cache: dict[int, int] = {}
@@ -132,8 +173,16 @@ def run_method_on_scan(method: PlaneMethod, scan: LabelledScan) -> ScanResult:
             if key not in cache:
                 cache[key] = score_segmentation(labels, scan.labels, gt_min_label=scan.gt_min_label).n_correct
             sweep_correct[e] = cache[key]
-    return ScanResult(scan=scan.name, group=scan.group, method=method.name, score=score, seconds=segmentation.seconds,
-                      radial_sigma=scan.radial_sigma, sweep_correct=sweep_correct, info=dict(segmentation.info))
+    return ScanResult(
+        scan=scan.name,
+        group=scan.group,
+        method=method.name,
+        score=score,
+        seconds=segmentation.seconds,
+        radial_sigma=scan.radial_sigma,
+        sweep_correct=sweep_correct,
+        info=dict(segmentation.info),
+    )
 
 
 @dataclass
@@ -181,9 +230,10 @@ class Evaluation:
         return {
             'methods': {m.name: m.parameters() for m in self.methods},
             'skipped': self.skipped,
-            'groups': {g: {'rows': self.rows(g),
-                           'sweep': {f'{e:.6g}': f for e, f in (self.sweep_curve(g) or {}).items()}}
-                       for g in self.groups()},
+            'groups': {
+                g: {'rows': self.rows(g), 'sweep': {f'{e:.6g}': f for e, f in (self.sweep_curve(g) or {}).items()}}
+                for g in self.groups()
+            },
             'scans': [r.to_dict() for r in self.results],
         }
 
@@ -223,11 +273,16 @@ def load_previous_results(path: str | os.PathLike[str]) -> dict[tuple[str, str, 
         if method not in params:
             continue
         sweep = entry.get('sweep_correct')
-        result = ScanResult(scan=entry['scan'], group=entry['group'], method=method,
-                            score=_score_from_dict(entry['score']), seconds=float(entry['seconds']),
-                            radial_sigma=entry.get('radial_sigma'),
-                            sweep_correct=None if sweep is None else {float(e): int(c) for e, c in sweep.items()},
-                            info=entry.get('info', {}))
+        result = ScanResult(
+            scan=entry['scan'],
+            group=entry['group'],
+            method=method,
+            score=_score_from_dict(entry['score']),
+            seconds=float(entry['seconds']),
+            radial_sigma=entry.get('radial_sigma'),
+            sweep_correct=None if sweep is None else {float(e): int(c) for e, c in sweep.items()},
+            info=entry.get('info', {}),
+        )
         out[(method, _params_key(params[method]), entry['scan'])] = result
     return out
 
@@ -249,10 +304,15 @@ def available_methods(methods: Iterable[PlaneMethod]) -> tuple[list[PlaneMethod]
     return usable, skipped
 
 
-def evaluate(scans: Sequence[tuple[str, Callable[[], LabelledScan]]], methods: Sequence[PlaneMethod], *,
-             progress: Callable[[str], None] | None = None, warm_up: bool = True,
-             previous: dict[tuple[str, str, str], ScanResult] | None = None,
-             checkpoint: Callable[[Evaluation], None] | None = None) -> Evaluation:
+def evaluate(
+    scans: Sequence[tuple[str, Callable[[], LabelledScan]]],
+    methods: Sequence[PlaneMethod],
+    *,
+    progress: Callable[[str], None] | None = None,
+    warm_up: bool = True,
+    previous: dict[tuple[str, str, str], ScanResult] | None = None,
+    checkpoint: Callable[[Evaluation], None] | None = None,
+) -> Evaluation:
     """Run every available method on every scan and score it.
 
     Args:

@@ -61,8 +61,13 @@ class TuningResult:
         return float(self.scores[i, j])
 
 
-def tune_ppe(scans: Sequence[Callable[[], LabelledScan]], *, lmax_grid: Sequence[float] = COARSE_LMAX_GRID,
-             error_grid: Sequence[float] = ERROR_GRID, progress: Callable[[str], None] | None = None) -> TuningResult:
+def tune_ppe(
+    scans: Sequence[Callable[[], LabelledScan]],
+    *,
+    lmax_grid: Sequence[float] = COARSE_LMAX_GRID,
+    error_grid: Sequence[float] = ERROR_GRID,
+    progress: Callable[[str], None] | None = None,
+) -> TuningResult:
     """Grid search of (lmax, e) maximising the mean f over ``scans`` (loaders of labelled scans).
 
     Raises:
@@ -85,32 +90,47 @@ def tune_ppe(scans: Sequence[Callable[[], LabelledScan]], *, lmax_grid: Sequence
     for load in scans:
         scan = load()
         for i, lmax in enumerate(lmaxes):
-            hierarchy = extract_plane_hierarchy(scan.points, origins=scan.origins, max_neighbor_distance=lmax,
-                                                max_error_increment=errors[-1])
+            hierarchy = extract_plane_hierarchy(
+                scan.points, origins=scan.origins, max_neighbor_distance=lmax, max_error_increment=errors[-1]
+            )
             cache: dict[int, float] = {}
             for j, e in enumerate(errors):
                 steps = hierarchy.steps_for_error(e)
                 if steps not in cache:
-                    score = score_segmentation(hierarchy_labels(hierarchy, e), scan.labels,
-                                               gt_min_label=scan.gt_min_label)
+                    score = score_segmentation(
+                        hierarchy_labels(hierarchy, e), scan.labels, gt_min_label=scan.gt_min_label
+                    )
                     cache[steps] = score.n_correct / score.n_gt if score.n_gt else math.nan
                 totals[i, j] += cache[steps]
             if progress is not None:
                 progress(f'{scan.name} lmax {lmax:g}')
-    return TuningResult(lmax_grid=lmaxes, error_grid=errors, scores=totals / len(scans), n_scans=len(scans),
-                        seconds=time.perf_counter() - start)
+    return TuningResult(
+        lmax_grid=lmaxes,
+        error_grid=errors,
+        scores=totals / len(scans),
+        n_scans=len(scans),
+        seconds=time.perf_counter() - start,
+    )
 
 
 def params_yaml(max_neighbor_distance: float, max_error_increment: float, *, comments: Sequence[str] = ()) -> str:
     """A ROS 2 parameters file of the extractor node with the two PPE parameters."""
     head = ''.join(f'# {line}\n' for line in comments)
-    return (f'{head}{NODE_NAME}:\n  ros__parameters:\n'
-            f'    max_error_increment: {float(max_error_increment)!r}\n'
-            f'    max_neighbor_distance: {float(max_neighbor_distance)!r}\n')
+    return (
+        f'{head}{NODE_NAME}:\n  ros__parameters:\n'
+        f'    max_error_increment: {float(max_error_increment)!r}\n'
+        f'    max_neighbor_distance: {float(max_neighbor_distance)!r}\n'
+    )
 
 
-def write_params_yaml(path: str | os.PathLike[str], max_neighbor_distance: float, max_error_increment: float, *,
-                      comments: Sequence[str] = (), overwrite: bool = False) -> Path:
+def write_params_yaml(
+    path: str | os.PathLike[str],
+    max_neighbor_distance: float,
+    max_error_increment: float,
+    *,
+    comments: Sequence[str] = (),
+    overwrite: bool = False,
+) -> Path:
     """Write :func:`params_yaml`; an existing file is refused unless ``overwrite``."""
     out = Path(path)
     text = params_yaml(max_neighbor_distance, max_error_increment, comments=comments)

@@ -13,13 +13,19 @@ from ppe_ros.io.loading import Scan
 def add_scan_options(parser: argparse.ArgumentParser) -> None:
     """``--units``, ``--gt``, ``--intrinsics``, ``--depth-scale`` for reading a scan file."""
     parser.add_argument(
-        '--units', choices=sorted(UNIT_SCALES), default=None,
+        '--units',
+        choices=sorted(UNIT_SCALES),
+        default=None,
         help='unit of the coordinates in the file (default: metres; the TLS scan andreashaus_scan000.pcd is cm); '
         'for a depth PNG the unit of one depth count',
     )
     parser.add_argument('--gt', default=None, help='ground-truth labels .npy (H x W integers) to attach')
     parser.add_argument(
-        '--intrinsics', nargs=4, type=float, metavar=('FX', 'FY', 'CX', 'CY'), default=None,
+        '--intrinsics',
+        nargs=4,
+        type=float,
+        metavar=('FX', 'FY', 'CX', 'CY'),
+        default=None,
         help='pinhole intrinsics of a depth PNG in pixels (default: a known calibration file next to it)',
     )
     parser.add_argument('--depth-scale', type=float, default=None, help='metres per depth count of a depth PNG')
@@ -66,23 +72,50 @@ def non_negative_float(text: str) -> float:
 def add_ppe_options(parser: argparse.ArgumentParser) -> None:
     """``-e``, ``--lmax``, ``-n``, ``--min-plane-points`` (PPE parameters)."""
     parser.add_argument(
-        '-e', '--max-error-increment', type=non_negative_float, nargs='+', default=None, metavar='E',
-        help='maximum error increment e in m^2 (the paper\'s stopping rule); several values give one '
+        '-e',
+        '--max-error-increment',
+        type=non_negative_float,
+        nargs='+',
+        default=None,
+        metavar='E',
+        help="maximum error increment e in m^2 (the paper's stopping rule); several values give one "
         'snapshot each (default 0.0484 = 0.22^2, tuned on SynPEB)',
     )
     parser.add_argument(
-        '--lmax', '--max-neighbor-distance', dest='max_neighbor_distance', type=positive_float, default=None,
+        '--lmax',
+        '--max-neighbor-distance',
+        dest='max_neighbor_distance',
+        type=positive_float,
+        default=None,
         help='largest distance in m between neighbouring endpoints that may be joined (default 0.18; inf = none)',
     )
-    parser.add_argument('-n', '--max-planes', type=plane_count, nargs='+', default=None, metavar='N',
-                        help='plane-count snapshots J <= N (atomic rays count as planes)')
-    parser.add_argument('--min-plane-points', type=int, default=None,
-                        help='planes with fewer rays are reported as no plane (default 4; with --sensor the '
-                        'profile\'s)')
-    parser.add_argument('--sensor', choices=('lidar', 'depth_camera', 'paper'), default=None,
-                        help='sensor profile: a range noise model and whole surfaces (e is then dimensionless, in '
-                        'units of the noise variance; e, lmax and --min-plane-points default to the profile\'s; '
-                        'see docs/algorithm.md); default: the paper\'s model')
-    parser.add_argument('--surface-tolerance', type=positive_float, default=None, metavar='M',
-                        help='with --sensor: RMS deviation (m) one physical surface may show from its plane '
-                        '(default: the profile\'s)')
+    parser.add_argument(
+        '-n',
+        '--max-planes',
+        type=plane_count,
+        nargs='+',
+        default=None,
+        metavar='N',
+        help='plane-count snapshots J <= N (atomic rays count as planes)',
+    )
+    parser.add_argument(
+        '--min-plane-points',
+        type=int,
+        default=None,
+        help="planes with fewer rays are reported as no plane (default 4; with --sensor the profile's)",
+    )
+    parser.add_argument(
+        '--sensor',
+        choices=('lidar', 'depth_camera', 'paper'),
+        default=None,
+        help='sensor profile: a range noise model and whole surfaces (e is then dimensionless, in '
+        "units of the noise variance; e, lmax and --min-plane-points default to the profile's; "
+        "see docs/algorithm.md); default: the paper's model",
+    )
+    parser.add_argument(
+        '--surface-tolerance',
+        type=positive_float,
+        default=None,
+        metavar='M',
+        help="with --sensor: RMS deviation (m) one physical surface may show from its plane (default: the profile's)",
+    )

@@ -13,7 +13,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help='extract planes from every PointCloud2 of a bag into a new rosbag2 (= process_bag)',
         description='Extract planes from every organized PointCloud2 of a bag (rosbag2 mcap/sqlite3 or ROS 1), '
         'as the extractor node would with the same parameter file, and write its outputs (labelled cloud, '
-        'markers, plane table) under each input topic\'s namespace to a new rosbag2. Several inputs (or a '
+        "markers, plane table) under each input topic's namespace to a new rosbag2. Several inputs (or a "
         'directory of bags) write one output bag each into the directory OUT; --executor ray spreads the frames '
         'over a Ray cluster with byte-identical outputs. Exit codes: 0 done, '
         '1 damaged input or stopped on an error (OUT holds the frames before it), 2 bad arguments or unusable '

@@ -42,19 +42,24 @@ def run(args: argparse.Namespace) -> int:
     scan = generate_scan(seed=args.seed, radial_sigma=args.noise)
     print('extracting planes (the first run compiles the numba kernels; later runs use the cache) ...')
     start = time.perf_counter()
-    hierarchy = extract_plane_hierarchy(scan.points, origins=scan.origins,
-                                        max_neighbor_distance=lmax,
-                                        max_error_increment=e)
+    hierarchy = extract_plane_hierarchy(
+        scan.points, origins=scan.origins, max_neighbor_distance=lmax, max_error_increment=e
+    )
     steps = hierarchy.steps_for_error(e)
-    planes, residuals = fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), min_plane_points=4,
-                                          max_error_increment=e, actions=steps)
+    planes, residuals = fit_pixel_groups(
+        hierarchy.scan, hierarchy.plane_ids(steps), min_plane_points=4, max_error_increment=e, actions=steps
+    )
     wall = time.perf_counter() - start
     score = score_segmentation(planes.labels, scan.labels, gt_min_label=10, residuals=residuals)
-    meta = {'input': 'generated', 'seed': args.seed, 'radial_sigma': args.noise,
-            'max_error_increment': e, 'max_neighbor_distance': lmax}
+    meta = {
+        'input': 'generated',
+        'seed': args.seed,
+        'radial_sigma': args.noise,
+        'max_error_increment': e,
+        'max_neighbor_distance': lmax,
+    }
     write_planes(out / 'planes.npz', planes, scan.points, meta=meta, force=True)
-    save_pcd(out / 'scan.pcd', scan.points, extra_fields={'intensity': scan.labels.astype(np.float32)},
-             overwrite=True)
+    save_pcd(out / 'scan.pcd', scan.points, extra_fields={'intensity': scan.labels.astype(np.float32)}, overwrite=True)
     save_segmentation_png(out / 'segmentation.png', planes.labels, ground_truth=scan.labels, gt_min_label=10)
     lines = [
         'ppe_ros demo: PPE on a generated SynPEB-style scan',
@@ -67,10 +72,16 @@ def run(args: argparse.Namespace) -> int:
         f'missed {score.n_missed}, spurious {score.n_noise}',
     ]
     summary_text = ('\n'.join(lines) + '\n').encode()
-    summary_json = (json.dumps({'planes': planes.num_planes, 'seconds': wall, **score.to_dict()}, indent=2,
-                               default=str) + '\n').encode()
-    write_files_atomically([(out / 'summary.txt', lambda stream: stream.write(summary_text)),
-                            (out / 'summary.json', lambda stream: stream.write(summary_json))], overwrite=True)
+    summary_json = (
+        json.dumps({'planes': planes.num_planes, 'seconds': wall, **score.to_dict()}, indent=2, default=str) + '\n'
+    ).encode()
+    write_files_atomically(
+        [
+            (out / 'summary.txt', lambda stream: stream.write(summary_text)),
+            (out / 'summary.json', lambda stream: stream.write(summary_json)),
+        ],
+        overwrite=True,
+    )
     print('\n'.join(lines))
     print(f'\nresults in {out}/: segmentation.png (ground truth left, PPE right), planes.npz, scan.pcd, summary.txt')
     return 0

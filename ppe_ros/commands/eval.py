@@ -29,44 +29,86 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         'eval',
         help='benchmark PPE against MSAC and peers on a data set',
         description='Run the methods on a data set made by `ppe dataset make` (and on extra labelled scans), score '
-        'them with the paper\'s metrics and print the paper\'s table per noise level (f %, k %, k over all rays '
+        "them with the paper's metrics and print the paper's table per noise level (f %, k %, k over all rays "
         '%, RMSE mm, n_o, n_u, n_m, n_s, seconds per scan). Writes the tables as markdown (with the command, the '
-        'machine and the date) and a PNG of PPE\'s f over sqrt(e) per noise level. Methods whose optional package '
+        "machine and the date) and a PNG of PPE's f over sqrt(e) per noise level. Methods whose optional package "
         'is missing are skipped with the reason.',
     )
     parser.add_argument('dataset', help='data set directory (with dataset.json)')
-    parser.add_argument('--methods', nargs='+', default=list(DEFAULT_METHODS), metavar='NAME',
-                        help=f'methods to run (default: {" ".join(DEFAULT_METHODS)}; '
-                        f'known: {" ".join(method_names())})')
+    parser.add_argument(
+        '--methods',
+        nargs='+',
+        default=list(DEFAULT_METHODS),
+        metavar='NAME',
+        help=f'methods to run (default: {" ".join(DEFAULT_METHODS)}; known: {" ".join(method_names())})',
+    )
     parser.add_argument('--split', choices=('train', 'test'), default='test', help='split to evaluate (default test)')
-    parser.add_argument('--noise', type=float, nargs='+', default=None, metavar='MM',
-                        help='radial noise levels in mm to evaluate, e.g. 14.1 20 (default: all levels)')
+    parser.add_argument(
+        '--noise',
+        type=float,
+        nargs='+',
+        default=None,
+        metavar='MM',
+        help='radial noise levels in mm to evaluate, e.g. 14.1 20 (default: all levels)',
+    )
     parser.add_argument('--max-scans', type=int, default=None, metavar='N', help='at most N scans per level')
-    parser.add_argument('--params', nargs='+', default=[], metavar='[MM=]YAML',
-                        help='PPE parameters from params files (as written by `ppe tune`): a plain YAML applies to '
-                        'every scan, MM=YAML only to the noise level of radial sigma MM mm (e.g. --params '
-                        'tuned_14.1mm.yaml 20=tuned_20mm.yaml)')
-    parser.add_argument('--lmax', type=positive_float, default=None,
-                        help=f'PPE lmax in m (default {PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE}, or from a plain --params; '
-                        'MM=YAML levels keep theirs)')
-    parser.add_argument('-e', '--max-error-increment', type=non_negative_float, default=None, metavar='E',
-                        help=f'PPE e in m^2 (default {PPE_DEFAULT_MAX_ERROR_INCREMENT}, or from a plain --params; '
-                        'MM=YAML levels keep theirs)')
+    parser.add_argument(
+        '--params',
+        nargs='+',
+        default=[],
+        metavar='[MM=]YAML',
+        help='PPE parameters from params files (as written by `ppe tune`): a plain YAML applies to '
+        'every scan, MM=YAML only to the noise level of radial sigma MM mm (e.g. --params '
+        'tuned_14.1mm.yaml 20=tuned_20mm.yaml)',
+    )
+    parser.add_argument(
+        '--lmax',
+        type=positive_float,
+        default=None,
+        help=f'PPE lmax in m (default {PPE_DEFAULT_MAX_NEIGHBOR_DISTANCE}, or from a plain --params; '
+        'MM=YAML levels keep theirs)',
+    )
+    parser.add_argument(
+        '-e',
+        '--max-error-increment',
+        type=non_negative_float,
+        default=None,
+        metavar='E',
+        help=f'PPE e in m^2 (default {PPE_DEFAULT_MAX_ERROR_INCREMENT}, or from a plain --params; '
+        'MM=YAML levels keep theirs)',
+    )
     parser.add_argument('--msac-distance', type=positive_float, default=0.034, help='MSAC/Open3D inlier distance (m)')
-    parser.add_argument('--msac-fraction', type=float, default=0.03,
-                        help='MSAC/Open3D: stop when this fraction of the points is left (default 0.03)')
+    parser.add_argument(
+        '--msac-fraction',
+        type=float,
+        default=0.03,
+        help='MSAC/Open3D: stop when this fraction of the points is left (default 0.03)',
+    )
     parser.add_argument('--seed', type=int, default=0, help='seed of the random methods (default 0)')
-    parser.add_argument('--extra', nargs='+', default=[], metavar='SCAN',
-                        help='also score these labelled scan files, each on its own '
-                        '(e.g. ../shared/data/synpeb/pc_01.pcd ../shared/data/icl_nuim/icl_nuim_0.png)')
+    parser.add_argument(
+        '--extra',
+        nargs='+',
+        default=[],
+        metavar='SCAN',
+        help='also score these labelled scan files, each on its own '
+        '(e.g. ../shared/data/synpeb/pc_01.pcd ../shared/data/icl_nuim/icl_nuim_0.png)',
+    )
     parser.add_argument('--out', default=str(DEFAULT_OUT), help=f'markdown output (default {DEFAULT_OUT})')
     parser.add_argument('--plot', default=None, help='PNG of f over sqrt(e) (default: OUT with .png suffix)')
-    parser.add_argument('--raw', default=None, metavar='JSON',
-                        help='also write every per-scan result as JSON (updated after each scan: an interrupted run '
-                        'resumes with --reuse JSON)')
-    parser.add_argument('--reuse', default=None, metavar='JSON',
-                        help='take the results of methods with unchanged parameters from an earlier --raw file '
-                        'instead of running them again (e.g. after tuning PPE only)')
+    parser.add_argument(
+        '--raw',
+        default=None,
+        metavar='JSON',
+        help='also write every per-scan result as JSON (updated after each scan: an interrupted run '
+        'resumes with --reuse JSON)',
+    )
+    parser.add_argument(
+        '--reuse',
+        default=None,
+        metavar='JSON',
+        help='take the results of methods with unchanged parameters from an earlier --raw file '
+        'instead of running them again (e.g. after tuning PPE only)',
+    )
     parser.add_argument('--no-sweep', action='store_true', help='skip the f-over-sqrt(e) sweep and plot')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
     parser.set_defaults(func=run)
@@ -150,13 +192,21 @@ def canonical_command(args: argparse.Namespace) -> str:
     return shlex.join(parts)
 
 
-def build_methods(args: argparse.Namespace, lmax: float, error: float,
-                  levels: dict[float, tuple[float, float]] | None = None) -> list:
+def build_methods(
+    args: argparse.Namespace, lmax: float, error: float, levels: dict[float, tuple[float, float]] | None = None
+) -> list:
     methods = []
     for name in dict.fromkeys(args.methods):
         if name == 'ppe':
-            methods.append(make_method('ppe', max_neighbor_distance=lmax, max_error_increment=error,
-                                       sweep_errors=None if args.no_sweep else ERROR_GRID, level_params=levels))
+            methods.append(
+                make_method(
+                    'ppe',
+                    max_neighbor_distance=lmax,
+                    max_error_increment=error,
+                    sweep_errors=None if args.no_sweep else ERROR_GRID,
+                    level_params=levels,
+                )
+            )
         elif name in ('msac', 'open3d'):
             methods.append(make_method(name, distance=args.msac_distance, fraction=args.msac_fraction, seed=args.seed))
         else:
@@ -167,24 +217,32 @@ def build_methods(args: argparse.Namespace, lmax: float, error: float,
 def dataset_note(directory: str, manifest: dict, split: str) -> str:
     scans = [s for s in manifest['scans'] if s['split'] == split]
     planes = [s['n_planes'] for s in scans]
-    levels = ', '.join(f"{lv['radial_sigma'] * 1000:.1f}" for lv in manifest['levels'])
+    levels = ', '.join(f'{lv["radial_sigma"] * 1000:.1f}' for lv in manifest['levels'])
     mean_planes = sum(planes) / len(planes) if planes else float('nan')
     kind = manifest.get('kind', 'synpeb')
     if kind != 'synpeb':
-        grid = f"{manifest['rows']} x {manifest['cols']}" if manifest.get('rows') else f"{manifest['cols']}-column"
-        make = (f"ppe dataset make {directory} --kind {kind} --seed {manifest['seed']} --train {manifest['n_train']} "
-                f"--test {manifest['n_test']}")
+        grid = f'{manifest["rows"]} x {manifest["cols"]}' if manifest.get('rows') else f'{manifest["cols"]}-column'
+        make = (
+            f'ppe dataset make {directory} --kind {kind} --seed {manifest["seed"]} --train {manifest["n_train"]} '
+            f'--test {manifest["n_test"]}'
+        )
         what = 'lidar sweeps of streets' if kind == 'lidar' else 'depth-camera frames of rooms'
-        return (f"Data set: `{make}` (generated {what} with realistic sensor errors, {grid} grid, levels "
-                f"{', '.join(lv['name'] for lv in manifest['levels'])}, {manifest['n_train']} train + "
-                f"{manifest['n_test']} test scans per level, {mean_planes:.1f} GT surfaces per {split} scan on "
-                f"average; GT = one label per planar surface, clutter unlabelled). Split evaluated: **{split}**.")
-    make = (f"ppe dataset make {directory} --seed {manifest['seed']} --train {manifest['n_train']} "
-            f"--test {manifest['n_test']} --rows {manifest['rows']} --cols {manifest['cols']}")
-    return (f"Data set: `{make}` (generated SynPEB-style rooms, {manifest['rows']} x {manifest['cols']} grid, "
-            f"radial σ = {levels} mm, angular σ = {manifest['angular_sigma_deg'] * 1000:g} mdeg, "
-            f"{manifest['n_train']} train + {manifest['n_test']} test scans per level, {mean_planes:.1f} GT planes per "
-            f"{split} scan on average). Split evaluated: **{split}**.")
+        return (
+            f'Data set: `{make}` (generated {what} with realistic sensor errors, {grid} grid, levels '
+            f'{", ".join(lv["name"] for lv in manifest["levels"])}, {manifest["n_train"]} train + '
+            f'{manifest["n_test"]} test scans per level, {mean_planes:.1f} GT surfaces per {split} scan on '
+            f'average; GT = one label per planar surface, clutter unlabelled). Split evaluated: **{split}**.'
+        )
+    make = (
+        f'ppe dataset make {directory} --seed {manifest["seed"]} --train {manifest["n_train"]} '
+        f'--test {manifest["n_test"]} --rows {manifest["rows"]} --cols {manifest["cols"]}'
+    )
+    return (
+        f'Data set: `{make}` (generated SynPEB-style rooms, {manifest["rows"]} x {manifest["cols"]} grid, '
+        f'radial σ = {levels} mm, angular σ = {manifest["angular_sigma_deg"] * 1000:g} mdeg, '
+        f'{manifest["n_train"]} train + {manifest["n_test"]} test scans per level, {mean_planes:.1f} GT planes per '
+        f'{split} scan on average). Split evaluated: **{split}**.'
+    )
 
 
 def kept_after_report(path: Path) -> str:
@@ -223,8 +281,10 @@ def run(args: argparse.Namespace) -> int:
     inputs = [path for scan in args.extra for path in scan_input_files(scan)]
     inputs += [Path(path) for _, path in map(split_params_argument, args.params)]
     inputs += [Path(args.dataset) / MANIFEST_NAME]
-    inputs += [entry.path for entry in iter_scans(args.dataset, split=args.split, noise_mm=args.noise,
-                                                  max_scans=args.max_scans)]
+    inputs += [
+        entry.path
+        for entry in iter_scans(args.dataset, split=args.split, noise_mm=args.noise, max_scans=args.max_scans)
+    ]
     raw = [Path(args.raw)] if args.raw else []
     refuse_overwriting_inputs([out, plot, *raw], inputs)
     if args.reuse:  # --raw may be the --reuse file (an interrupted run resumes), the report may not
@@ -255,8 +315,13 @@ def run(args: argparse.Namespace) -> int:
         usable, _ = available_methods(methods)  # skipped methods do not run: not in the bar's total
         bar = tqdm(total=len(scans) * len(usable), unit='run', file=sys.stderr, desc='ppe eval')
     try:
-        evaluation = evaluate(scans, methods, previous=previous, checkpoint=save_raw if args.raw else None,
-                              progress=(lambda text: (bar.set_postfix_str(text), bar.update(1))) if bar else None)
+        evaluation = evaluate(
+            scans,
+            methods,
+            previous=previous,
+            checkpoint=save_raw if args.raw else None,
+            progress=(lambda text: (bar.set_postfix_str(text), bar.update(1))) if bar else None,
+        )
     finally:
         if bar is not None:
             bar.close()
@@ -290,23 +355,36 @@ def run(args: argparse.Namespace) -> int:
     if previous:
         reused = sorted({r.method for r in evaluation.results if any(r is p for p in previous.values())})
         if reused:
-            notes.append(f'Results of {", ".join(reused)} were taken from the earlier run {args.reuse} (same data, '
-                         f'same parameters; their s/scan were measured in that run).')
+            notes.append(
+                f'Results of {", ".join(reused)} were taken from the earlier run {args.reuse} (same data, '
+                f'same parameters; their s/scan were measured in that run).'
+            )
     if curves:
         best = []
         for group, curve in curves.items():
             e_best = max(curve, key=lambda e: (curve[e], -e))
-            best.append(f'{group}: best f {curve[e_best] * 100:.1f} % at sqrt(e) = {e_best ** 0.5:.2f} m')
-        single = (' `ppe-paper` runs a single extraction at its e without a sweep: its s/scan is the time of one '
-                  'extraction.' if any(m.name == 'ppe-paper' for m in evaluation.methods) else '')
-        notes.append('`ppe`\'s s/scan include running its hierarchy on to the largest e of the sweep (1 m²) and '
-                     'cutting it at every e.' + single)
-        notes.append('`ppe` sweep over the e grid (lmax as in the table; best e chosen on the evaluated split, for '
-                     'information only — parameters are tuned on the train split with `ppe tune`): '
-                     + '; '.join(best) + '.')
-    text = markdown_report(evaluation, command=canonical_command(args),
-                           dataset_note=dataset_note(args.dataset, manifest, args.split), extra_groups=extra_groups,
-                           plot_name=plot_name, notes=notes)
+            best.append(f'{group}: best f {curve[e_best] * 100:.1f} % at sqrt(e) = {e_best**0.5:.2f} m')
+        single = (
+            ' `ppe-paper` runs a single extraction at its e without a sweep: its s/scan is the time of one extraction.'
+            if any(m.name == 'ppe-paper' for m in evaluation.methods)
+            else ''
+        )
+        notes.append(
+            "`ppe`'s s/scan include running its hierarchy on to the largest e of the sweep (1 m²) and "
+            'cutting it at every e.' + single
+        )
+        notes.append(
+            '`ppe` sweep over the e grid (lmax as in the table; best e chosen on the evaluated split, for '
+            'information only — parameters are tuned on the train split with `ppe tune`): ' + '; '.join(best) + '.'
+        )
+    text = markdown_report(
+        evaluation,
+        command=canonical_command(args),
+        dataset_note=dataset_note(args.dataset, manifest, args.split),
+        extra_groups=extra_groups,
+        plot_name=plot_name,
+        notes=notes,
+    )
     report = (text + kept_after_report(out)).encode('utf-8')
     write_file_atomically(out, lambda stream: stream.write(report), overwrite=True)
     print(f'\nwrote {out}' + (f' and {plot}' if plot_name else ''))

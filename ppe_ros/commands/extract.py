@@ -38,15 +38,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         'write the planes: OUT.npz (labels and per-plane arrays, as PlaneSet.to_npz_dict) or OUT.pcd '
         '(the cloud with a label field). An unorganized cloud (a PCD of HEIGHT 1, a KITTI .bin) is put on a '
         'range image first (rows from its ring field or from the beams found in its elevation angles, columns '
-        'by azimuth) and gets one label per point, in the file\'s order. '
+        "by azimuth) and gets one label per point, in the file's order. "
         'With several -e/-n values one file is written per snapshot (each value '
         'once). Every output is written to a temporary file and renamed into place when all are complete; an '
         'output that is an input (also through a hard or symbolic link) is refused.',
     )
     parser.add_argument('scan', help='scan file: .pcd, .npy (H x W x 3, metres), .png (16-bit depth) or .bin (KITTI)')
     parser.add_argument('-o', '--output', required=True, help='output file: .npz or .pcd')
-    parser.add_argument('--png', default=None, help='also write a picture of the segmentation (ground truth beside '
-                        'it when the scan carries labels)')
+    parser.add_argument(
+        '--png',
+        default=None,
+        help='also write a picture of the segmentation (ground truth beside it when the scan carries labels)',
+    )
     add_ppe_options(parser)
     add_scan_options(parser)
     add_projection_options(parser)
@@ -60,23 +63,51 @@ def add_projection_options(parser: argparse.ArgumentParser) -> None:
     from ppe_ros.core.projection import DEFAULT_ANGULAR_RESOLUTION_DEG, DEFAULT_AZIMUTH_START_DEG, ROW_METHODS
 
     group = parser.add_argument_group('unorganized clouds and layouts')
-    group.add_argument('--rows', choices=ROW_METHODS, default='auto',
-                       help='rows of the range image of an unorganized cloud: rings (the ring field), elevation '
-                       '(beams found in the elevation angles), angular_grid (a fixed grid, for Livox); auto: rings '
-                       'if the file has a ring field, else elevation')
-    group.add_argument('--azimuth-bins', type=int, default=None, metavar='N',
-                       help='columns per revolution (default: estimated from the points)')
-    group.add_argument('--azimuth-start', type=float, default=DEFAULT_AZIMUTH_START_DEG, metavar='DEG',
-                       help='azimuth (deg, counter-clockwise from x) where the range image of a full circle starts '
-                       '(default: %(default)s, behind the sensor)')
-    group.add_argument('--angular-resolution', type=positive_float, default=DEFAULT_ANGULAR_RESOLUTION_DEG,
-                       metavar='DEG', help='cell size of --rows angular_grid (default: %(default)s deg)')
-    group.add_argument('--lost-point-tolerance', type=positive_float, default=None, metavar='M',
-                       help='a point that lost its range-image cell to a nearer return gets the cell\'s plane within '
-                       'this distance (default: the sensor profile\'s surface tolerance, else 0.05 m)')
-    group.add_argument('--layout', choices=('rows_are_beams', 'columns_are_beams'), default='rows_are_beams',
-                       help='an organized scan with one beam per column (Velodyne\'s organized clouds) is '
-                       'transposed for the extraction and its labels back')
+    group.add_argument(
+        '--rows',
+        choices=ROW_METHODS,
+        default='auto',
+        help='rows of the range image of an unorganized cloud: rings (the ring field), elevation '
+        '(beams found in the elevation angles), angular_grid (a fixed grid, for Livox); auto: rings '
+        'if the file has a ring field, else elevation',
+    )
+    group.add_argument(
+        '--azimuth-bins',
+        type=int,
+        default=None,
+        metavar='N',
+        help='columns per revolution (default: estimated from the points)',
+    )
+    group.add_argument(
+        '--azimuth-start',
+        type=float,
+        default=DEFAULT_AZIMUTH_START_DEG,
+        metavar='DEG',
+        help='azimuth (deg, counter-clockwise from x) where the range image of a full circle starts '
+        '(default: %(default)s, behind the sensor)',
+    )
+    group.add_argument(
+        '--angular-resolution',
+        type=positive_float,
+        default=DEFAULT_ANGULAR_RESOLUTION_DEG,
+        metavar='DEG',
+        help='cell size of --rows angular_grid (default: %(default)s deg)',
+    )
+    group.add_argument(
+        '--lost-point-tolerance',
+        type=positive_float,
+        default=None,
+        metavar='M',
+        help="a point that lost its range-image cell to a nearer return gets the cell's plane within "
+        "this distance (default: the sensor profile's surface tolerance, else 0.05 m)",
+    )
+    group.add_argument(
+        '--layout',
+        choices=('rows_are_beams', 'columns_are_beams'),
+        default='rows_are_beams',
+        help="an organized scan with one beam per column (Velodyne's organized clouds) is "
+        'transposed for the extraction and its labels back',
+    )
 
 
 def snapshot_path(output: Path, tag: str | None) -> Path:
@@ -118,15 +149,29 @@ def planned_outputs(output: Path, png: Path | None, requests: list[tuple[str, st
     seen: dict[str, str] = {}
     for flag, tag in requests:
         if tag in seen:
-            raise ValueError(f'{seen[tag]} and {flag} both give the snapshot {snapshot_path(output, tag).name}; '
-                             f'give each threshold once')
+            raise ValueError(
+                f'{seen[tag]} and {flag} both give the snapshot {snapshot_path(output, tag).name}; '
+                f'give each threshold once'
+            )
         seen[tag] = flag
-    return [(snapshot_path(output, tag if several else None),
-             snapshot_path(png, tag if several else None) if png is not None else None) for _, tag in requests]
+    return [
+        (
+            snapshot_path(output, tag if several else None),
+            snapshot_path(png, tag if several else None) if png is not None else None,
+        )
+        for _, tag in requests
+    ]
 
 
-def extract_snapshots(scan: Scan, args: argparse.Namespace, profile: SensorProfile | None, e_list: list[float] | None,
-                      n_list: list[int] | None, lmax: float, min_points: int) -> list[PlaneSet]:
+def extract_snapshots(
+    scan: Scan,
+    args: argparse.Namespace,
+    profile: SensorProfile | None,
+    e_list: list[float] | None,
+    n_list: list[int] | None,
+    lmax: float,
+    min_points: int,
+) -> list[PlaneSet]:
     """One PlaneSet per requested snapshot (e values, then n values) of ``scan``.
 
     An unorganized scan goes through :func:`ppe_ros.core.projection.extract_planes_unorganized`
@@ -136,12 +181,23 @@ def extract_snapshots(scan: Scan, args: argparse.Namespace, profile: SensorProfi
         rings = None if scan.rings is None else scan.rings.reshape(-1)
         tolerance = PROFILE_DEFAULT if args.surface_tolerance is None else args.surface_tolerance
         profile_options = {} if profile is None else {'sensor': profile, 'surface_tolerance': tolerance}
-        return list(extract_planes_unorganized(
-            scan.points.reshape(-1, 3), rings, origins=scan.origins, rows=args.rows, azimuth_bins=args.azimuth_bins,
-            azimuth_start=args.azimuth_start, angular_resolution=args.angular_resolution,
-            lost_point_tolerance=args.lost_point_tolerance, max_error_increment=list(e_list or []) or None,
-            max_planes=list(n_list) if n_list else None, max_neighbor_distance=lmax, min_plane_points=min_points,
-            **profile_options))
+        return list(
+            extract_planes_unorganized(
+                scan.points.reshape(-1, 3),
+                rings,
+                origins=scan.origins,
+                rows=args.rows,
+                azimuth_bins=args.azimuth_bins,
+                azimuth_start=args.azimuth_start,
+                angular_resolution=args.angular_resolution,
+                lost_point_tolerance=args.lost_point_tolerance,
+                max_error_increment=list(e_list or []) or None,
+                max_planes=list(n_list) if n_list else None,
+                max_neighbor_distance=lmax,
+                min_plane_points=min_points,
+                **profile_options,
+            )
+        )
     transposed = args.layout == 'columns_are_beams'
     points = np.ascontiguousarray(scan.points.transpose(1, 0, 2)) if transposed else scan.points
     origins = scan.origins
@@ -150,8 +206,11 @@ def extract_snapshots(scan: Scan, args: argparse.Namespace, profile: SensorProfi
     snapshots: list[PlaneSet] = []
     if profile is None:
         hierarchy = extract_plane_hierarchy(
-            points, origins=origins, max_neighbor_distance=lmax,
-            max_error_increment=max(e_list) if e_list else None, max_planes=min(n_list) if n_list else None,
+            points,
+            origins=origins,
+            max_neighbor_distance=lmax,
+            max_error_increment=max(e_list) if e_list else None,
+            max_planes=min(n_list) if n_list else None,
         )
         for e in e_list or []:
             snapshots.append(hierarchy.cut(max_error_increment=e, min_plane_points=min_points))
@@ -159,10 +218,18 @@ def extract_snapshots(scan: Scan, args: argparse.Namespace, profile: SensorProfi
             snapshots.append(hierarchy.cut(max_planes=n, min_plane_points=min_points))
     else:
         tolerance = PROFILE_DEFAULT if args.surface_tolerance is None else args.surface_tolerance
-        snapshots = list(extract_planes(
-            points, origins=origins, sensor=profile, max_error_increment=list(e_list or []) or None,
-            max_planes=list(n_list) if n_list else None, max_neighbor_distance=lmax, min_plane_points=min_points,
-            surface_tolerance=tolerance))
+        snapshots = list(
+            extract_planes(
+                points,
+                origins=origins,
+                sensor=profile,
+                max_error_increment=list(e_list or []) or None,
+                max_planes=list(n_list) if n_list else None,
+                max_neighbor_distance=lmax,
+                min_plane_points=min_points,
+                surface_tolerance=tolerance,
+            )
+        )
     if transposed:
         snapshots = [dataclasses.replace(planes, labels=np.ascontiguousarray(planes.labels.T)) for planes in snapshots]
     return snapshots
@@ -212,43 +279,81 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     snapshots = extract_snapshots(scan, args, profile, e_list, n_list, lmax, min_points)
     seconds = time.perf_counter() - start
-    summary = {'scan': str(args.scan), 'grid': list(scan.shape), 'valid_fraction': scan.valid_fraction,
-               'max_neighbor_distance': lmax, 'sensor': args.sensor, 'seconds': seconds, 'snapshots': []}
+    summary = {
+        'scan': str(args.scan),
+        'grid': list(scan.shape),
+        'valid_fraction': scan.valid_fraction,
+        'max_neighbor_distance': lmax,
+        'sensor': args.sensor,
+        'seconds': seconds,
+        'snapshots': [],
+    }
     if not scan.organized and snapshots:
         projection = snapshots[0].meta['projection']
-        summary['range_image'] = {'shape': list(projection.shape), 'rows_from': projection.method,
-                                  'azimuth_bins': projection.azimuth_bins, 'lost_points': projection.lost_points}
+        summary['range_image'] = {
+            'shape': list(projection.shape),
+            'rows_from': projection.method,
+            'azimuth_bins': projection.azimuth_bins,
+            'lost_points': projection.lost_points,
+        }
     files = []
     for planes, (path, png_path) in zip(snapshots, plan, strict=True):
-        meta = {'scan': str(args.scan), 'max_neighbor_distance': lmax, 'sensor': args.sensor,
-                'max_error_increment': planes.max_error_increment, 'max_planes': planes.max_planes,
-                'seconds': seconds}
+        meta = {
+            'scan': str(args.scan),
+            'max_neighbor_distance': lmax,
+            'sensor': args.sensor,
+            'max_error_increment': planes.max_error_increment,
+            'max_planes': planes.max_planes,
+            'seconds': seconds,
+        }
         files.append((path, planes_writer(path, planes, scan.points, meta=meta)))
-        entry = {'file': str(path), 'planes': planes.num_planes, 'actions': planes.actions,
-                 'max_error_increment': planes.max_error_increment, 'max_planes': planes.max_planes,
-                 'labelled_fraction': float((planes.labels > 0).mean())}
+        entry = {
+            'file': str(path),
+            'planes': planes.num_planes,
+            'actions': planes.actions,
+            'max_error_increment': planes.max_error_increment,
+            'max_planes': planes.max_planes,
+            'labelled_fraction': float((planes.labels > 0).mean()),
+        }
         if png_path is not None:
             from ppe_ros.render import segmentation_png_writer
 
             picture, truth = _picture_labels(scan, planes)
-            files.append((png_path, segmentation_png_writer(
-                picture, ground_truth=truth, gt_min_label=scan.meta.get('min_plane_label', 1))))
+            files.append(
+                (
+                    png_path,
+                    segmentation_png_writer(
+                        picture, ground_truth=truth, gt_min_label=scan.meta.get('min_plane_label', 1)
+                    ),
+                )
+            )
             entry['png'] = str(png_path)
         summary['snapshots'].append(entry)
     write_files_atomically(files, overwrite=args.force)  # all complete, or none changed
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        grid = (f'{scan.shape[0]}x{scan.shape[1]} grid' if 'range_image' not in summary else
-                '{} points on a {}x{} range image (rows from {})'.format(
-                    scan.shape[1], *summary['range_image']['shape'], summary['range_image']['rows_from']))
-        print(f'{args.scan}: {grid}, {scan.valid_fraction:.1%} valid, '
-              f'extraction {seconds:.2f} s (lmax {lmax:g} m' + (f', sensor {args.sensor})' if args.sensor else ')'))
+        grid = (
+            f'{scan.shape[0]}x{scan.shape[1]} grid'
+            if 'range_image' not in summary
+            else '{} points on a {}x{} range image (rows from {})'.format(
+                scan.shape[1], *summary['range_image']['shape'], summary['range_image']['rows_from']
+            )
+        )
+        print(
+            f'{args.scan}: {grid}, {scan.valid_fraction:.1%} valid, '
+            f'extraction {seconds:.2f} s (lmax {lmax:g} m' + (f', sensor {args.sensor})' if args.sensor else ')')
+        )
         unit = ' m^2' if profile is None or profile.noise is None else ''
         for entry in summary['snapshots']:
-            which = (f"e = {entry['max_error_increment']:g}{unit}" if entry['max_error_increment'] is not None
-                     else f"n = {entry['max_planes']}")
-            extra = f", picture {entry['png']}" if 'png' in entry else ''
-            print(f"  {which}: {entry['planes']} planes covering {entry['labelled_fraction']:.1%} of the points "
-                  f"-> {entry['file']}{extra}")
+            which = (
+                f'e = {entry["max_error_increment"]:g}{unit}'
+                if entry['max_error_increment'] is not None
+                else f'n = {entry["max_planes"]}'
+            )
+            extra = f', picture {entry["png"]}' if 'png' in entry else ''
+            print(
+                f'  {which}: {entry["planes"]} planes covering {entry["labelled_fraction"]:.1%} of the points '
+                f'-> {entry["file"]}{extra}'
+            )
     return 0

@@ -23,22 +23,39 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         'tune',
         help='tune PPE (lmax x e) on the train split of a data set',
-        description='Grid search of PPE\'s lmax (m) x e (m^2) on the train split of a data set made by `ppe dataset '
-        'make`, maximising the mean f over the scans (as the reference\'s trainppe.m). One PPE run per (scan, lmax) '
+        description="Grid search of PPE's lmax (m) x e (m^2) on the train split of a data set made by `ppe dataset "
+        "make`, maximising the mean f over the scans (as the reference's trainppe.m). One PPE run per (scan, lmax) "
         'gives every e. The default grid is coarse (lmax = 0.06, 0.12, 0.18 m x the 50 e = (0.02:0.02:1)^2, '
-        '3 runs per scan); --grid full is the reference\'s (lmax = 0.02:0.02:0.2 m, 10 runs per scan, about 10 '
+        "3 runs per scan); --grid full is the reference's (lmax = 0.02:0.02:0.2 m, 10 runs per scan, about 10 "
         'minutes for 10 scans of 500 x 500). Writes the best parameters as a ROS 2 params file of the extractor node '
         '(also read by `ppe eval --params`).',
     )
     parser.add_argument('dataset', help='data set directory (with dataset.json)')
-    parser.add_argument('--noise', type=float, default=DEFAULT_NOISE_MM, metavar='MM',
-                        help=f'radial noise level in mm to tune on (default {DEFAULT_NOISE_MM}, the paper\'s level)')
+    parser.add_argument(
+        '--noise',
+        type=float,
+        default=DEFAULT_NOISE_MM,
+        metavar='MM',
+        help=f"radial noise level in mm to tune on (default {DEFAULT_NOISE_MM}, the paper's level)",
+    )
     parser.add_argument('--split', choices=('train', 'test'), default='train', help='split to tune on (default train)')
     parser.add_argument('--grid', choices=('coarse', 'full'), default='coarse', help='lmax grid (default coarse)')
-    parser.add_argument('--lmax', type=positive_float, nargs='+', default=None, metavar='M',
-                        help='explicit lmax values in m (overrides --grid)')
-    parser.add_argument('--sqrt-e', type=positive_float, nargs='+', default=None, metavar='M',
-                        help='explicit sqrt(e) values in m (default 0.02:0.02:1)')
+    parser.add_argument(
+        '--lmax',
+        type=positive_float,
+        nargs='+',
+        default=None,
+        metavar='M',
+        help='explicit lmax values in m (overrides --grid)',
+    )
+    parser.add_argument(
+        '--sqrt-e',
+        type=positive_float,
+        nargs='+',
+        default=None,
+        metavar='M',
+        help='explicit sqrt(e) values in m (default 0.02:0.02:1)',
+    )
     parser.add_argument('--max-scans', type=int, default=None, metavar='N', help='use at most N scans')
     parser.add_argument('-o', '--out', default=DEFAULT_OUT, help=f'params YAML to write (default {DEFAULT_OUT})')
     parser.add_argument('--force', action='store_true', help='replace an existing output file')
@@ -53,8 +70,10 @@ def run(args: argparse.Namespace) -> int:
     if args.max_scans is not None and args.max_scans < 1:
         raise ValueError(f'--max-scans must be >= 1; got {args.max_scans}')
     dataset_files = [Path(args.dataset) / MANIFEST_NAME]
-    dataset_files += [entry.path for entry in iter_scans(args.dataset, split=args.split, noise_mm=[args.noise],
-                                                         max_scans=args.max_scans)]
+    dataset_files += [
+        entry.path
+        for entry in iter_scans(args.dataset, split=args.split, noise_mm=[args.noise], max_scans=args.max_scans)
+    ]
     refuse_overwriting_inputs([out], dataset_files)
     if (out.exists() or out.is_symlink()) and not args.force:
         raise FileExistsError(f'{out} exists (use --force to replace it)')
@@ -69,8 +88,12 @@ def run(args: argparse.Namespace) -> int:
 
         bar = tqdm(total=len(scans) * len(lmax_grid), unit='run', file=sys.stderr, desc='ppe tune')
     try:
-        result = tune_ppe([load for _, load in scans], lmax_grid=lmax_grid, error_grid=error_grid,
-                          progress=(lambda text: (bar.set_postfix_str(text), bar.update(1))) if bar else None)
+        result = tune_ppe(
+            [load for _, load in scans],
+            lmax_grid=lmax_grid,
+            error_grid=error_grid,
+            progress=(lambda text: (bar.set_postfix_str(text), bar.update(1))) if bar else None,
+        )
     finally:
         if bar is not None:
             bar.close()
@@ -85,9 +108,11 @@ def run(args: argparse.Namespace) -> int:
     best_lmax, best_e = result.best_lmax, result.best_error
     row = result.scores[result.best_index[0]]
     flat = [math.sqrt(result.error_grid[j]) for j in np.flatnonzero(row >= result.best_score - 0.01)]
-    print(f'best: lmax = {best_lmax:g} m, e = {best_e:.6g} m^2 (sqrt(e) = {math.sqrt(best_e):.2f} m), mean f = '
-          f'{result.best_score * 100:.1f} %; within 1 point of it at this lmax: sqrt(e) = {min(flat):.2f}..'
-          f'{max(flat):.2f} m ({result.seconds:.0f} s)')
+    print(
+        f'best: lmax = {best_lmax:g} m, e = {best_e:.6g} m^2 (sqrt(e) = {math.sqrt(best_e):.2f} m), mean f = '
+        f'{result.best_score * 100:.1f} %; within 1 point of it at this lmax: sqrt(e) = {min(flat):.2f}..'
+        f'{max(flat):.2f} m ({result.seconds:.0f} s)'
+    )
     comments = [
         f'PPE parameters tuned by `ppe tune` on {result.n_scans} {args.split} scans of {args.dataset} at radial sigma '
         f'{args.noise:g} mm:',

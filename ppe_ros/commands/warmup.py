@@ -23,8 +23,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         'small generated cloud once per sensor profile, so that the numba kernels are compiled and cached. '
         'Progress lines go to stderr while it compiles; the table of steps goes to stdout.',
     )
-    parser.add_argument('--sensor', action='append', choices=WARM_UP_SENSORS, default=None,
-                        help=f'profile to warm up (repeatable; default all: {", ".join(WARM_UP_SENSORS)})')
+    parser.add_argument(
+        '--sensor',
+        action='append',
+        choices=WARM_UP_SENSORS,
+        default=None,
+        help=f'profile to warm up (repeatable; default all: {", ".join(WARM_UP_SENSORS)})',
+    )
     parser.add_argument('--quiet', action='store_true', help='no progress lines, only the table')
     parser.set_defaults(func=run)
 
@@ -55,8 +60,10 @@ def run(args: argparse.Namespace) -> int:
     if log:
         log('importing numba and the kernels ...')
     types = rosbags_message_types()
-    steps = [(f'sensor {step.sensor}', step.seconds)
-             for step in warm_up(types, sensors=args.sensor or WARM_UP_SENSORS, log=log)]
+    steps = [
+        (f'sensor {step.sensor}', step.seconds)
+        for step in warm_up(types, sensors=args.sensor or WARM_UP_SENSORS, log=log)
+    ]
     steps.append(('PCD files (LZF)', _warm_up_lzf(log)))
     total = time.perf_counter() - start
     print('| step | seconds |')

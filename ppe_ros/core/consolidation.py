@@ -122,8 +122,14 @@ def _scatter(m):
     """Mean (3) and per-point scatter (6: xx xy xz yy yz zz) of moments m (count, sums, sums of products)."""
     inv = 1.0 / m[0]
     m0, m1, m2 = m[1] * inv, m[2] * inv, m[3] * inv
-    return (m0, m1, m2), (m[4] * inv - m0 * m0, m[5] * inv - m0 * m1, m[6] * inv - m0 * m2,
-                          m[7] * inv - m1 * m1, m[8] * inv - m1 * m2, m[9] * inv - m2 * m2)
+    return (m0, m1, m2), (
+        m[4] * inv - m0 * m0,
+        m[5] * inv - m0 * m1,
+        m[6] * inv - m0 * m2,
+        m[7] * inv - m1 * m1,
+        m[8] * inv - m1 * m2,
+        m[9] * inv - m2 * m2,
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -143,8 +149,12 @@ def _plane_of(m, out):
 def _deviation(piece, n0, n1, n2, c0, c1, c2):
     """dev^2 (m^2) of a piece (its _plane_of row) from the plane with unit normal n through c: the mean
     squared distance of its points from that plane less that from its own plane."""
-    q = (n0 * n0 * piece[3] + n1 * n1 * piece[6] + n2 * n2 * piece[8]
-         + 2.0 * (n0 * n1 * piece[4] + n0 * n2 * piece[5] + n1 * n2 * piece[7]))
+    q = (
+        n0 * n0 * piece[3]
+        + n1 * n1 * piece[6]
+        + n2 * n2 * piece[8]
+        + 2.0 * (n0 * n1 * piece[4] + n0 * n2 * piece[5] + n1 * n2 * piece[7])
+    )
     offset = n0 * (piece[0] - c0) + n1 * (piece[1] - c1) + n2 * (piece[2] - c2)
     return max(q + offset * offset - piece[9], 0.0)
 
@@ -162,8 +172,10 @@ def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
     scatter = min(max(plane_a[9], plane_b[9]), max(m_a[10] / m_a[0], m_b[10] / m_b[0]))
     allowed_a = allowed_b = tau2 + noise_factor2 * scatter
-    cost = max(_deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
-               _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b)
+    cost = max(
+        _deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
+        _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b,
+    )
     # at each piece's mean its own plane is at 0: the step there is the other plane's distance
     step_at_a = _along_normal(plane_b, plane_a[0], plane_a[1], plane_a[2], u0, u1, u2)
     step_at_b = _along_normal(plane_a, plane_b[0], plane_b[1], plane_b[2], u0, u1, u2)
@@ -201,8 +213,11 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, c
     r = ranges[k]
     along = normal[0] * directions[k, 0] + normal[1] * directions[k, 1] + normal[2] * directions[k, 2]
     margin = 2.0 * tau + 2.0 * sigmas[k] * abs(along)
-    height = (normal[0] * (endpoints[k, 0] - mean[0]) + normal[1] * (endpoints[k, 1] - mean[1])
-              + normal[2] * (endpoints[k, 2] - mean[2]))
+    height = (
+        normal[0] * (endpoints[k, 0] - mean[0])
+        + normal[1] * (endpoints[k, 1] - mean[1])
+        + normal[2] * (endpoints[k, 2] - mean[2])
+    )
     if abs(height) <= margin:
         return ids[k] < 0
     if connected_only:
@@ -213,8 +228,9 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, c
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _candidate_pairs(ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap,
-                     connected_only):
+def _candidate_pairs(
+    ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap, connected_only
+):
     """Candidate pairs (a < b) as an (m, 2) array, possibly with repeats (see the module docstring)."""
     out = np.empty((2 * len(ids) + 16, 2), np.int64)
     n_out = 0
@@ -234,8 +250,9 @@ def _candidate_pairs(ids, endpoints, directions, ranges, sigmas, height, width, 
                 continue
             if back >= 0:  # pieces that touch are candidates
                 out, n_out = _add_pair(out, n_out, back, b)
-            if back < 0 or _bridges(ids, endpoints, directions, ranges, sigmas, k - step, normals[b], means[b], tau,
-                                    connected_only):
+            if back < 0 or _bridges(
+                ids, endpoints, directions, ranges, sigmas, k - step, normals[b], means[b], tau, connected_only
+            ):
                 # walk back over rays that bridge to b's plane, to the first ray that does not: a
                 # candidate if it is on a plane and every ray between bridges to that plane too
                 a = -1
@@ -243,11 +260,24 @@ def _candidate_pairs(ids, endpoints, directions, ranges, sigmas, height, width, 
                     q = k - g * step
                     if ids[q] == b:
                         break
-                    if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals[b], means[b], tau,
-                                connected_only):
+                    if _bridges(
+                        ids, endpoints, directions, ranges, sigmas, q, normals[b], means[b], tau, connected_only
+                    ):
                         continue
-                    if ids[q] >= 0 and _gap_bridges(ids, endpoints, directions, ranges, sigmas, q, k, step,
-                                                    normals[ids[q]], means[ids[q]], tau, connected_only):
+                    if ids[q] >= 0 and _gap_bridges(
+                        ids,
+                        endpoints,
+                        directions,
+                        ranges,
+                        sigmas,
+                        q,
+                        k,
+                        step,
+                        normals[ids[q]],
+                        means[ids[q]],
+                        tau,
+                        connected_only,
+                    ):
                         a = ids[q]
                     break
                 if a >= 0:
@@ -433,9 +463,17 @@ def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.stack([np.minimum(a[both], b[both]), np.maximum(a[both], b[both])], axis=1).astype(np.int64)
 
 
-def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
-                       noise_factor: float = 0.0, connected_only: bool = False,
-                       max_gap: int = DEFAULT_MAX_GAP, wrap_columns: bool = False) -> np.ndarray:
+def consolidate_pieces(
+    scan: RayScan,
+    piece_ids: np.ndarray,
+    sigmas: np.ndarray,
+    surface_tolerance: float,
+    *,
+    noise_factor: float = 0.0,
+    connected_only: bool = False,
+    max_gap: int = DEFAULT_MAX_GAP,
+    wrap_columns: bool = False,
+) -> np.ndarray:
     """Merge the pieces of one physical surface (see the module docstring).
 
     Args:
@@ -466,9 +504,20 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
         return ids.copy()
     labels, dense, moments, small, (normals, means, _) = _dense_pieces(scan, ids, sigmas, 3)
     dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
-    pairs = _candidate_pairs(dense_for_pairs, scan.endpoints, scan.directions, scan.ranges,
-                             np.ascontiguousarray(sigmas, dtype=np.float64), scan.height, scan.width, normals, means,
-                             tau, int(max_gap), bool(connected_only))
+    pairs = _candidate_pairs(
+        dense_for_pairs,
+        scan.endpoints,
+        scan.directions,
+        scan.ranges,
+        np.ascontiguousarray(sigmas, dtype=np.float64),
+        scan.height,
+        scan.width,
+        normals,
+        means,
+        tau,
+        int(max_gap),
+        bool(connected_only),
+    )
     if wrap_columns:
         pairs = np.concatenate([pairs, _seam_pairs(dense_for_pairs, scan.height, scan.width)])
     n = np.int64(len(labels))
@@ -482,8 +531,7 @@ def consolidate_pieces(scan: RayScan, piece_ids: np.ndarray, sigmas: np.ndarray,
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances,
-                   wrap_columns):
+def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances, wrap_columns):
     """Grow every surface into 4-neighbouring rays without one that lie on its plane (breadth first,
     in pixel order); ids is updated in place. A ray k lies on surface P when its distance from P's
     plane is at most tolerances[P] + 2 sigma_k |n . v_k|. wrap_columns: the first and the last column
@@ -521,19 +569,30 @@ def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, nor
                 q = k + width
             if ids[q] >= 0 or not valid[q]:
                 continue
-            along = (normals[p, 0] * directions[q, 0] + normals[p, 1] * directions[q, 1]
-                     + normals[p, 2] * directions[q, 2])
-            distance = (normals[p, 0] * (endpoints[q, 0] - means[p, 0])
-                        + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
-                        + normals[p, 2] * (endpoints[q, 2] - means[p, 2]))
+            along = (
+                normals[p, 0] * directions[q, 0] + normals[p, 1] * directions[q, 1] + normals[p, 2] * directions[q, 2]
+            )
+            distance = (
+                normals[p, 0] * (endpoints[q, 0] - means[p, 0])
+                + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
+                + normals[p, 2] * (endpoints[q, 2] - means[p, 2])
+            )
             if abs(distance) <= tolerances[p] + 2.0 * sigmas[q] * abs(along):
                 ids[q] = p
                 queue[tail] = q
                 tail += 1
 
 
-def absorb_rays(scan: RayScan, surface_ids: np.ndarray, sigmas: np.ndarray, surface_tolerance: float, *,
-                noise_factor: float = 0.0, min_points: int = 1, wrap_columns: bool = False) -> np.ndarray:
+def absorb_rays(
+    scan: RayScan,
+    surface_ids: np.ndarray,
+    sigmas: np.ndarray,
+    surface_tolerance: float,
+    *,
+    noise_factor: float = 0.0,
+    min_points: int = 1,
+    wrap_columns: bool = False,
+) -> np.ndarray:
     """Give rays without a surface (and surfaces of fewer than ``min_points`` rays) to a neighbouring
     surface whose plane they lie on (see :func:`_absorb_kernel`; tolerance sqrt(tau^2 + lambda^2 s_P^2)).
     wrap_columns: the first and the last column are neighbours (:func:`columns_wrap`).
@@ -547,6 +606,17 @@ def absorb_rays(scan: RayScan, surface_ids: np.ndarray, sigmas: np.ndarray, surf
     dense = np.where((dense >= 0) & ~small[np.maximum(dense, 0)], dense, -1)
     ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     tolerances = np.sqrt(float(surface_tolerance) ** 2 + float(noise_factor) ** 2 * own)
-    _absorb_kernel(dense, scan.endpoints, scan.directions, ray_sigmas, scan.valid, scan.height, scan.width, normals,
-                   means, tolerances, bool(wrap_columns))
+    _absorb_kernel(
+        dense,
+        scan.endpoints,
+        scan.directions,
+        ray_sigmas,
+        scan.valid,
+        scan.height,
+        scan.width,
+        normals,
+        means,
+        tolerances,
+        bool(wrap_columns),
+    )
     return np.where(dense >= 0, labels[np.maximum(dense, 0)], -1)

@@ -294,9 +294,9 @@ def _score_result(
     correct = classes.correct
 
     n_correct = int(np.count_nonzero(correct))
-    correct_pairs = np.stack(
-        [gt_values[table.pair_m[correct]], pred_values[table.pair_n[correct]]], axis=1
-    ).astype(np.int64)
+    correct_pairs = np.stack([gt_values[table.pair_m[correct]], pred_values[table.pair_n[correct]]], axis=1).astype(
+        np.int64
+    )
     correct_points = float(np.sum(gt_counts * (classes.correct_per_m > 0)))
     labelled_points = float(np.sum(gt_counts))
     n_valid = gt.size if valid is None else int(np.count_nonzero(valid))

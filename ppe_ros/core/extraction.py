@@ -136,6 +136,7 @@ def _q_chunks(capacity):
     """Far-bucket chunks that hold capacity entries: full chunks plus one partly filled per bucket."""
     return (capacity + _Q_CHUNK - 1) // _Q_CHUNK + _Q_BUCKETS
 
+
 # adjacency node fields
 _AN_PLANE = 0  # the neighbouring plane (an id that may have been merged since: resolve with _find)
 _AN_KIND = 1  # kind of the deferred merge
@@ -184,9 +185,18 @@ _ST_RELIN_RAYS = 7
 _ST_HEAP_PEAK = 8
 _ST_REFINED_REUSES = 9
 _N_STATS = 10
-STAT_NAMES = ('heap_pops', 'candidate_reevaluations', 'new_candidates', 'merge_evaluations', 'merge_refinements',
-              'merge_refinement_rays', 'relinearisations', 'relinearisation_rays', 'heap_capacity',
-              'refined_merge_reuses')
+STAT_NAMES = (
+    'heap_pops',
+    'candidate_reevaluations',
+    'new_candidates',
+    'merge_evaluations',
+    'merge_refinements',
+    'merge_refinement_rays',
+    'relinearisations',
+    'relinearisation_rays',
+    'heap_capacity',
+    'refined_merge_reuses',
+)
 
 
 @intrinsic
@@ -200,14 +210,22 @@ def _prefetch(typingctx, arr, row, col):
         aryty, rowty, colty = signature.args
         ary = context.make_array(aryty)(context, builder, args[0])
         inds = [context.cast(builder, args[1], rowty, types.intp), context.cast(builder, args[2], colty, types.intp)]
-        inds = inds[:aryty.ndim]
-        ptr = cgutils.get_item_pointer2(context, builder, data=ary.data, shape=cgutils.unpack_tuple(builder, ary.shape),
-                                        strides=cgutils.unpack_tuple(builder, ary.strides), layout=aryty.layout,
-                                        inds=inds, wraparound=False)
+        inds = inds[: aryty.ndim]
+        ptr = cgutils.get_item_pointer2(
+            context,
+            builder,
+            data=ary.data,
+            shape=cgutils.unpack_tuple(builder, ary.shape),
+            strides=cgutils.unpack_tuple(builder, ary.strides),
+            layout=aryty.layout,
+            inds=inds,
+            wraparound=False,
+        )
         i32 = ir.IntType(32)
         i8p = ir.IntType(8).as_pointer()
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-                                            'llvm.prefetch.p0')
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]), 'llvm.prefetch.p0'
+        )
         # read access, high temporal locality, data cache
         builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
         return context.get_dummy_value()
@@ -338,15 +356,22 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
         eps = delta / t
         cu = c * (1.0 + eps)
         ci = c * (1.0 + 1.0 / eps) * delta * delta
-        if _positive_definite(s00 - cu * u0 * u0 - ci, s01 - cu * u0 * u1, s02 - cu * u0 * u2,
-                              s11 - cu * u1 * u1 - ci, s12 - cu * u1 * u2, s22 - cu * u2 * u2 - ci):
+        if _positive_definite(
+            s00 - cu * u0 * u0 - ci,
+            s01 - cu * u0 * u1,
+            s02 - cu * u0 * u2,
+            s11 - cu * u1 * u1 - ci,
+            s12 - cu * u1 * u2,
+            s22 - cu * u2 * u2 - ci,
+        ):
             return True
     return False
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key,
-                 cutoff=np.inf):
+def _seed_errors(
+    endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key, cutoff=np.inf
+):
     """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
 
     P, V: the endpoints and directions as (3, n) arrays (_ray_columns), which the vectorised
@@ -411,8 +436,9 @@ def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, 
                     for j in range(block, block_end):
                         # unsigned ids: no negative-index wraparound test, which would stop vectorisation
                         a = base + j
-                        sse, done = _fit4(P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2),
-                                          np.uint64(a + o3))
+                        sse, done = _fit4(
+                            P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2), np.uint64(a + o3)
+                        )
                         row[j] = sse if done else np.nan
             for j in range(j_lo, j_hi):
                 if not ok[j]:
@@ -422,8 +448,9 @@ def _seed_errors(endpoints, directions, P, V, ok_right, ok_down, height, width, 
                     _seed_rays(idx, base + j, o0, o1, o2, o3)
                     if cutoff < np.inf and _seed_exceeds(endpoints, directions, idx, cutoff):
                         continue  # errors[c, j] stays inf: never a create in this run
-                    sse, _, _, _ = _fit_rays(endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
-                                             _FIT_TOLERANCE)
+                    sse, _, _, _ = _fit_rays(
+                        endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS, _FIT_TOLERANCE
+                    )
                 errors[c, j] = sse if np.isfinite(sse) else np.inf
         for j in range(width):
             best = -1
@@ -626,8 +653,7 @@ def _q_bucket(key):
     # 1022, and (mantissa - 0.5) * 2 * _Q_PER_OCTAVE = _Q_PER_OCTAVE * fraction, whose integer part
     # is the fraction's top _Q_FRACTION_BITS bits
     bits = _float_bits(key)
-    return (((bits >> 52) - 1022 + 1100) * _Q_PER_OCTAVE
-            + ((bits >> (52 - _Q_FRACTION_BITS)) & (_Q_PER_OCTAVE - 1)))
+    return ((bits >> 52) - 1022 + 1100) * _Q_PER_OCTAVE + ((bits >> (52 - _Q_FRACTION_BITS)) & (_Q_PER_OCTAVE - 1))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -640,9 +666,15 @@ def _q_new(capacity):
     qstate = np.zeros(_NQS, np.int64)
     qstate[_QCUR] = -1
     chunks = _q_chunks(capacity)
-    return (np.empty(capacity), np.empty((capacity, 5), np.int32), np.empty(chunks * _Q_CHUNK),
-            np.empty((chunks * _Q_CHUNK, 5), np.int32), np.empty((chunks, 3), np.int32),
-            np.full(_Q_BUCKETS, -1, np.int64), qstate)
+    return (
+        np.empty(capacity),
+        np.empty((capacity, 5), np.int32),
+        np.empty(chunks * _Q_CHUNK),
+        np.empty((chunks * _Q_CHUNK, 5), np.int32),
+        np.empty((chunks, 3), np.int32),
+        np.full(_Q_BUCKETS, -1, np.int64),
+        qstate,
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -696,8 +728,12 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
                 if kind == _G_EXTEND:
                     keep = pi[a, _PALIVE] != 0 and fint[node, 3] == pi[a, _PSTAMP]
                 elif kind != _G_SEED:
-                    keep = (pi[a, _PALIVE] != 0 and pi[b, _PALIVE] != 0 and fint[node, 3] == pi[a, _PMVER]
-                            and fint[node, 4] == pi[b, _PMVER])
+                    keep = (
+                        pi[a, _PALIVE] != 0
+                        and pi[b, _PALIVE] != 0
+                        and fint[node, 3] == pi[a, _PMVER]
+                        and fint[node, 4] == pi[b, _PMVER]
+                    )
                 if keep:
                     gkey[size] = fkey[node]
                     for c in range(5):
@@ -814,8 +850,7 @@ def _store_state(pf, p, sse, w0, w1, w2, information):
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
     """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
-    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS,
-                                        _FIT_TOLERANCE)
+    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS, _FIT_TOLERANCE)
     _store_state(pf, p, sse, w0, w1, w2, information)
 
 
@@ -833,8 +868,13 @@ def _put_fit(fits, r, value, w0, w1, w2, information):
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _get_fit(fits, r):
     """Row r of an (n, 10) fit table: (value, w0, w1, w2, information)."""
-    return fits[r, 0], fits[r, 1], fits[r, 2], fits[r, 3], (fits[r, 4], fits[r, 5], fits[r, 6], fits[r, 7],
-                                                            fits[r, 8], fits[r, 9])
+    return (
+        fits[r, 0],
+        fits[r, 1],
+        fits[r, 2],
+        fits[r, 3],
+        (fits[r, 4], fits[r, 5], fits[r, 6], fits[r, 7], fits[r, 8], fits[r, 9]),
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -850,8 +890,9 @@ def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version
     if not small:
         return _model_extension(endpoints, directions, pf, p, k)[0]
     idx[n] = k
-    sse, w0, w1, w2, information = _fit(endpoints, directions, idx, n + 1, pf[p, _PW], pf[p, _PW + 1],
-                                        pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+    sse, w0, w1, w2, information = _fit(
+        endpoints, directions, idx, n + 1, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
+    )
     if ecache_i[p, 1] != version or sse < ecache_f[p, 0]:
         ecache_i[p, 0] = k
         ecache_i[p, 1] = version
@@ -875,8 +916,9 @@ def _relinearise(endpoints, directions, pf, idx, count, p):
     if not (ok and np.isfinite(sse)):
         _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2)
         return
-    _store_state(pf, p, max(sse - (d0 * b0 + d1 * b1 + d2 * b2), 0.0), w0 - d0, w1 - d1, w2 - d2,
-                 (a00, a01, a02, a11, a12, a22))
+    _store_state(
+        pf, p, max(sse - (d0 * b0 + d1 * b1 + d2 * b2), 0.0), w0 - d0, w1 - d1, w2 - d2, (a00, a01, a02, a11, a12, a22)
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -889,8 +931,9 @@ def _model_extension(endpoints, directions, pf, p, k):
     w1 = pf[p, _PW + 1]
     w2 = pf[p, _PW + 2]
     f, g0, g1, g2 = _ray_terms(endpoints, directions, k, w0, w1, w2)
-    x0, x1, x2, ok = _solve_sym3(pf[p, _PH], pf[p, _PH + 1], pf[p, _PH + 2], pf[p, _PH + 3], pf[p, _PH + 4],
-                                 pf[p, _PH + 5], g0, g1, g2)
+    x0, x1, x2, ok = _solve_sym3(
+        pf[p, _PH], pf[p, _PH + 1], pf[p, _PH + 2], pf[p, _PH + 3], pf[p, _PH + 4], pf[p, _PH + 5], g0, g1, g2
+    )
     if not ok or not np.isfinite(f):
         return np.inf, 0.0, 0.0, 0.0, f, g0, g1, g2
     denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
@@ -901,10 +944,22 @@ def _model_extension(endpoints, directions, pf, p, k):
 def _model_merge_terms(pf, a, b):
     """Ha (w_a - w_b), Hb (w_a - w_b) and S = Ha + Hb (6) of planes a, b: the merge model's system."""
     # scalar reads (no array views: a view costs reference counting in the hot loop)
-    ha0, ha1, ha2, ha3, ha4, ha5 = pf[a, _PH], pf[a, _PH + 1], pf[a, _PH + 2], pf[a, _PH + 3], pf[a, _PH + 4], \
-        pf[a, _PH + 5]
-    hb0, hb1, hb2, hb3, hb4, hb5 = pf[b, _PH], pf[b, _PH + 1], pf[b, _PH + 2], pf[b, _PH + 3], pf[b, _PH + 4], \
-        pf[b, _PH + 5]
+    ha0, ha1, ha2, ha3, ha4, ha5 = (
+        pf[a, _PH],
+        pf[a, _PH + 1],
+        pf[a, _PH + 2],
+        pf[a, _PH + 3],
+        pf[a, _PH + 4],
+        pf[a, _PH + 5],
+    )
+    hb0, hb1, hb2, hb3, hb4, hb5 = (
+        pf[b, _PH],
+        pf[b, _PH + 1],
+        pf[b, _PH + 2],
+        pf[b, _PH + 3],
+        pf[b, _PH + 4],
+        pf[b, _PH + 5],
+    )
     d0 = pf[a, _PW] - pf[b, _PW]
     d1 = pf[a, _PW + 1] - pf[b, _PW + 1]
     d2 = pf[a, _PW + 2] - pf[b, _PW + 2]
@@ -953,8 +1008,14 @@ def _model_merge(pf, a, b):
 def _model_offset(pf, big, w0, w1, w2):
     """Plane big's information H (6), e = w - w_big (3) and H e (3): its quadratic model at w is
     E_big + e^T H e, with half gradient H e."""
-    h0, h1, h2, h3, h4, h5 = pf[big, _PH], pf[big, _PH + 1], pf[big, _PH + 2], pf[big, _PH + 3], pf[big, _PH + 4], \
-        pf[big, _PH + 5]
+    h0, h1, h2, h3, h4, h5 = (
+        pf[big, _PH],
+        pf[big, _PH + 1],
+        pf[big, _PH + 2],
+        pf[big, _PH + 3],
+        pf[big, _PH + 4],
+        pf[big, _PH + 5],
+    )
     e0 = w0 - pf[big, _PW]
     e1 = w1 - pf[big, _PW + 1]
     e2 = w2 - pf[big, _PW + 2]
@@ -1060,12 +1121,22 @@ def _refined_merge_increment(pf, big, rcache_f, small):
     while big is unchanged.
     """
     (h0, h1, h2, h3, h4, h5), (e0, e1, e2), (he0, he1, he2) = _model_offset(
-        pf, big, rcache_f[small, 10], rcache_f[small, 11], rcache_f[small, 12])
+        pf, big, rcache_f[small, 10], rcache_f[small, 11], rcache_f[small, 12]
+    )
     c0 = he0 + rcache_f[small, 1]
     c1 = he1 + rcache_f[small, 2]
     c2 = he2 + rcache_f[small, 3]
-    y0, y1, y2, ok = _solve_sym3(h0 + rcache_f[small, 4], h1 + rcache_f[small, 5], h2 + rcache_f[small, 6],
-                                 h3 + rcache_f[small, 7], h4 + rcache_f[small, 8], h5 + rcache_f[small, 9], c0, c1, c2)
+    y0, y1, y2, ok = _solve_sym3(
+        h0 + rcache_f[small, 4],
+        h1 + rcache_f[small, 5],
+        h2 + rcache_f[small, 6],
+        h3 + rcache_f[small, 7],
+        h4 + rcache_f[small, 8],
+        h5 + rcache_f[small, 9],
+        c0,
+        c1,
+        c2,
+    )
     if not ok:
         return np.inf
     inc = rcache_f[small, 0] + e0 * he0 + e1 * he1 + e2 * he2 - (c0 * y0 + c1 * y1 + c2 * y2)
@@ -1095,16 +1166,19 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
         inc = best - pf[a, _PE] - pf[b, _PE]
         if best < np.inf and abs(inc - model_inc) <= UNION_MODEL_AGREEMENT * max(inc, model_inc):
             return best, b0, b1, b2
-    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, pf[a, _PW], pf[a, _PW + 1], pf[a, _PW + 2],
-                                _FIT_ITERATIONS, _FIT_TOLERANCE)
+    sse, w0, w1, w2 = _fit_rays(
+        endpoints, directions, idx, count, pf[a, _PW], pf[a, _PW + 1], pf[a, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
+    )
     if sse < best:
         best, b0, b1, b2 = sse, w0, w1, w2
-    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1], pf[b, _PW + 2],
-                                _FIT_ITERATIONS, _FIT_TOLERANCE)
+    sse, w0, w1, w2 = _fit_rays(
+        endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1], pf[b, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
+    )
     if sse < best:
         best, b0, b1, b2 = sse, w0, w1, w2
-    sse, w0, w1, w2 = _fit_rays(endpoints, directions, idx, count, np.nan, np.nan, np.nan, _FIT_ITERATIONS,
-                                _FIT_TOLERANCE)
+    sse, w0, w1, w2 = _fit_rays(
+        endpoints, directions, idx, count, np.nan, np.nan, np.nan, _FIT_ITERATIONS, _FIT_TOLERANCE
+    )
     if sse < best:
         best, b0, b1, b2 = sse, w0, w1, w2
     return best, b0, b1, b2
@@ -1127,8 +1201,22 @@ def _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode
     for x in range(first, first + n):
         if akey[x, _AN_KEY] <= proxy_key and akey[x, _AN_KEY] < np.inf:
             q = anode[x, _AN_PLANE]
-            gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, akey[x, _AN_KEY], anode[x, _AN_KIND],
-                            min(p, q), max(p, q), anode[x, _AN_VA], anode[x, _AN_VB])
+            gsize = _q_push(
+                gkey,
+                gint,
+                gsize,
+                fkey,
+                fint,
+                fnext,
+                bhead,
+                qstate,
+                akey[x, _AN_KEY],
+                anode[x, _AN_KIND],
+                min(p, q),
+                max(p, q),
+                anode[x, _AN_VA],
+                anode[x, _AN_VB],
+            )
             akey[x, _AN_KEY] = np.inf
         elif akey[x, _AN_KEY] < least:
             least = akey[x, _AN_KEY]
@@ -1155,8 +1243,9 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
     pi[p, _PSTAMP] += 1
     if pkey > cutoff:
         return gsize, np.inf
-    return _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, pkey, _G_EXTEND, p, hi[root, 0],
-                   pi[p, _PSTAMP], root), pkey
+    return _q_push(
+        gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], root
+    ), pkey
 
 
 # --------------------------------------------------------------------------------------------
@@ -1274,11 +1363,27 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     """Elements of the kernel's float64, int64 and int32 work buffers (the kernel's views, in its order)."""
     a = _aligned
     far = _q_chunks(gcap) * _Q_CHUNK
-    n_f = (a(n_pixels * (_NPF + 10)) + a(gcap) + a(far) + a(hcap * 2) + a(n_pixels * 10) + a(n_pixels * 13)
-           + a(n_pixels + 1))
+    n_f = (
+        a(n_pixels * (_NPF + 10))
+        + a(gcap)
+        + a(far)
+        + a(hcap * 2)
+        + a(n_pixels * 10)
+        + a(n_pixels * 13)
+        + a(n_pixels + 1)
+    )
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
-    n_i32 = (5 * a(n_pixels) + a(hcap * 4) + a(n_pixels * _NPI) + a(gcap * 5) + a(far * 5) + a(far // _Q_CHUNK * 3)
-             + a(n_pixels * 3) + 2 * a(n_pixels * 2) + a(n_pixels + 1))
+    n_i32 = (
+        5 * a(n_pixels)
+        + a(hcap * 4)
+        + a(n_pixels * _NPI)
+        + a(gcap * 5)
+        + a(far * 5)
+        + a(far // _Q_CHUNK * 3)
+        + a(n_pixels * 3)
+        + 2 * a(n_pixels * 2)
+        + a(n_pixels + 1)
+    )
     return n_f, n_i, n_i32
 
 
@@ -1297,9 +1402,35 @@ def _empty_log(stats, overflow):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, offsets, seed_sse, seed_best, seed_key,
-                exact_plane_size, exact_merge_size, drift_limit, max_increment, min_count, slack, model_key_factor,
-                refined_growth, merge_loop_growth, defer_merges, gcap, hcap, acap, work_f, work_i, work_i32):
+def _ppe_kernel(
+    endpoints,
+    directions,
+    valid,
+    ok_right,
+    ok_down,
+    height,
+    width,
+    offsets,
+    seed_sse,
+    seed_best,
+    seed_key,
+    exact_plane_size,
+    exact_merge_size,
+    drift_limit,
+    max_increment,
+    min_count,
+    slack,
+    model_key_factor,
+    refined_growth,
+    merge_loop_growth,
+    defer_merges,
+    gcap,
+    hcap,
+    acap,
+    work_f,
+    work_i,
+    work_i32,
+):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
@@ -1333,21 +1464,21 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # pixel state. Pixel, plane and node ids, versions and stamps are 32-bit wherever they are
     # stored (each is below 2^31 for the scans extract_plane_hierarchy accepts, < MAX_RAYS): the
     # greedy waits on memory, and narrower arrays mean fewer cache misses
-    owner = work_i32[o32:o32 + n_pixels]
+    owner = work_i32[o32 : o32 + n_pixels]
     o32 = _aligned(o32 + n_pixels)
-    nextpix = work_i32[o32:o32 + n_pixels]
+    nextpix = work_i32[o32 : o32 + n_pixels]
     o32 = _aligned(o32 + n_pixels)
-    parent = work_i32[o32:o32 + n_pixels]
+    parent = work_i32[o32 : o32 + n_pixels]
     o32 = _aligned(o32 + n_pixels)
-    buf = work_i[oi:oi + n_pixels]
+    buf = work_i[oi : oi + n_pixels]
     oi = _aligned(oi + n_pixels)
-    buf2 = work_i[oi:oi + n_pixels]
+    buf2 = work_i[oi : oi + n_pixels]
     oi = _aligned(oi + n_pixels)
-    seen = work_i32[o32:o32 + n_pixels]
+    seen = work_i32[o32 : o32 + n_pixels]
     o32 = _aligned(o32 + n_pixels)
     # the plane (an id that may have been merged since) that last queued an extension candidate
     # for each ray: while it resolves to a live plane p, p's candidate heap holds a node for the ray
-    candidate_of = work_i32[o32:o32 + n_pixels]
+    candidate_of = work_i32[o32 : o32 + n_pixels]
     o32 = _aligned(o32 + n_pixels)
     candidate_of[:] = -1
     owner[:] = -1
@@ -1356,7 +1487,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     seen_stamp = 0
 
     # plane state
-    prow = work_f[of:of + n_pixels * (_NPF + 10)].reshape((n_pixels, _NPF + 10))
+    prow = work_f[of : of + n_pixels * (_NPF + 10)].reshape((n_pixels, _NPF + 10))
     of = _aligned(of + n_pixels * (_NPF + 10))
     # a plane's float state and its candidate-fit slot (ecache_f below) share a row: a plane's
     # action reads and writes both; a plane's row is written when it is created
@@ -1365,7 +1496,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # 32-bit fields (half the memory traffic of a plane's row): counts, versions and pixel ids are
     # below H*W, stamps below the number of pops, node indices below the pools' sizes (a few times
     # H*W), all below 2^31 for the scans extract_plane_hierarchy accepts (< MAX_RAYS)
-    pi = work_i32[o32:o32 + n_pixels * _NPI].reshape((n_pixels, _NPI))
+    pi = work_i32[o32 : o32 + n_pixels * _NPI].reshape((n_pixels, _NPI))
     o32 = _aligned(o32 + n_pixels * _NPI)
 
     # global heap
@@ -1373,17 +1504,17 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # kind, ids and versions all < 2^31 (ids < H*W); the far-bucket pool holds the heap's
     # capacity (heap entries + far entries <= gcap) in chunks
     n_chunks = _q_chunks(gcap)
-    gkey = work_f[of:of + gcap]
+    gkey = work_f[of : of + gcap]
     of = _aligned(of + gcap)
-    fkey = work_f[of:of + n_chunks * _Q_CHUNK]
+    fkey = work_f[of : of + n_chunks * _Q_CHUNK]
     of = _aligned(of + n_chunks * _Q_CHUNK)
-    gint = work_i32[o32:o32 + gcap * 5].reshape((gcap, 5))
+    gint = work_i32[o32 : o32 + gcap * 5].reshape((gcap, 5))
     o32 = _aligned(o32 + gcap * 5)
-    fint = work_i32[o32:o32 + n_chunks * _Q_CHUNK * 5].reshape((n_chunks * _Q_CHUNK, 5))
+    fint = work_i32[o32 : o32 + n_chunks * _Q_CHUNK * 5].reshape((n_chunks * _Q_CHUNK, 5))
     o32 = _aligned(o32 + n_chunks * _Q_CHUNK * 5)
-    fnext = work_i32[o32:o32 + n_chunks * 3].reshape((n_chunks, 3))
+    fnext = work_i32[o32 : o32 + n_chunks * 3].reshape((n_chunks, 3))
     o32 = _aligned(o32 + n_chunks * 3)
-    bhead = work_i[oi:oi + _Q_BUCKETS]
+    bhead = work_i[oi : oi + _Q_BUCKETS]
     oi = _aligned(oi + _Q_BUCKETS)
     bhead[:] = -1
     qstate = np.zeros(_NQS, np.int64)
@@ -1391,9 +1522,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     gsize = 0
 
     # skew heap node pool
-    hf = work_f[of:of + hcap * 2].reshape((hcap, 2))
+    hf = work_f[of : of + hcap * 2].reshape((hcap, 2))
     of = _aligned(of + hcap * 2)
-    hi = work_i32[o32:o32 + hcap * 4].reshape((hcap, 4))
+    hi = work_i32[o32 : o32 + hcap * 4].reshape((hcap, 4))
     o32 = _aligned(o32 + hcap * 4)
     hused = 0
     hfree = -1
@@ -1401,37 +1532,37 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
     # adjacency pool (a segment of neighbouring plane ids per plane), one row per node so that a
     # node is one memory access: neighbour and a merge deferred on the owner's node (its kind, the
     # two versions it was valued at, and its key (inf: none) in the float view akey)
-    anode = work_i[oi:oi + acap * _AN_FIELDS].reshape((acap, _AN_FIELDS))
+    anode = work_i[oi : oi + acap * _AN_FIELDS].reshape((acap, _AN_FIELDS))
     oi = _aligned(oi + acap * _AN_FIELDS)
     akey = anode.view(np.float64)
     aused = 0
     afree = np.full(_ADJ_CLASSES, -1, np.int64)
 
     # the last merge refined per plane (keyed by its smaller id): partner, both versions; value, w, information
-    mcache_i = work_i32[o32:o32 + n_pixels * 3].reshape((n_pixels, 3))
+    mcache_i = work_i32[o32 : o32 + n_pixels * 3].reshape((n_pixels, 3))
     o32 = _aligned(o32 + n_pixels * 3)
-    mcache_f = work_f[of:of + n_pixels * 10].reshape((n_pixels, 10))
+    mcache_f = work_f[of : of + n_pixels * 10].reshape((n_pixels, 10))
     of = _aligned(of + n_pixels * 10)
     # the last hybrid merge refined per plane, on its smaller plane (_keep_refined_merge; the
     # partner is in the plane's float row): own version, partner's count; the plane's residual
     # model at the union's w
-    rcache_i = work_i32[o32:o32 + n_pixels * 2].reshape((n_pixels, 2))
+    rcache_i = work_i32[o32 : o32 + n_pixels * 2].reshape((n_pixels, 2))
     o32 = _aligned(o32 + n_pixels * 2)
-    rcache_f = work_f[of:of + n_pixels * 13].reshape((n_pixels, 13))
+    rcache_f = work_f[of : of + n_pixels * 13].reshape((n_pixels, 13))
     of = _aligned(of + n_pixels * 13)
     # the least candidate fit of each small plane's current version: ray, version (here); SSE, w,
     # information (ecache_f, in the plane's float row)
-    ecache_i = work_i32[o32:o32 + n_pixels * 2].reshape((n_pixels, 2))
+    ecache_i = work_i32[o32 : o32 + n_pixels * 2].reshape((n_pixels, 2))
     o32 = _aligned(o32 + n_pixels * 2)
 
     # action log
-    log_kind = work_i32[o32:o32 + n_pixels + 1]
+    log_kind = work_i32[o32 : o32 + n_pixels + 1]
     o32 = _aligned(o32 + n_pixels + 1)
-    log_a = work_i[oi:oi + n_pixels + 1]
+    log_a = work_i[oi : oi + n_pixels + 1]
     oi = _aligned(oi + n_pixels + 1)
-    log_b = work_i[oi:oi + n_pixels + 1]
+    log_b = work_i[oi : oi + n_pixels + 1]
     oi = _aligned(oi + n_pixels + 1)
-    log_inc = work_f[of:of + n_pixels + 1]
+    log_inc = work_f[of : of + n_pixels + 1]
     of = _aligned(of + n_pixels + 1)
     n_actions = 0
 
@@ -1482,9 +1613,16 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     take_sorted = True
                 else:
                     sk = seed_sorted_key[seed_ptr]
-                    if sk < gkey[0] or (sk == gkey[0] and (gint[0, 0] > _G_SEED or (
-                            gint[0, 0] == _G_SEED and (gint[0, 1] > sa or (
-                                gint[0, 1] == sa and gint[0, 2] > seed_sorted_best[seed_ptr]))))):
+                    if sk < gkey[0] or (
+                        sk == gkey[0]
+                        and (
+                            gint[0, 0] > _G_SEED
+                            or (
+                                gint[0, 0] == _G_SEED
+                                and (gint[0, 1] > sa or (gint[0, 1] == sa and gint[0, 2] > seed_sorted_best[seed_ptr]))
+                            )
+                        )
+                    ):
                         take_sorted = True
             if take_sorted:
                 key = seed_sorted_key[seed_ptr]
@@ -1543,8 +1681,22 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     if best < 0 or e2 < seed_sse[anchor, best]:
                         best = c2
                 if best >= 0 and seed_sse[anchor, best] <= cutoff:
-                    gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, seed_sse[anchor, best],
-                                    _G_SEED, anchor, best, 0, 0)
+                    gsize = _q_push(
+                        gkey,
+                        gint,
+                        gsize,
+                        fkey,
+                        fint,
+                        fnext,
+                        bhead,
+                        qstate,
+                        seed_sse[anchor, best],
+                        _G_SEED,
+                        anchor,
+                        best,
+                        0,
+                        0,
+                    )
             elif kind == _G_EXTEND:
                 p = ea
                 if pi[p, _PALIVE] == 0 or eva != pi[p, _PSTAMP]:
@@ -1570,8 +1722,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
                     small = pi[p, _PCOUNT] + 1 <= exact_plane_size
                     n = _gather(pi, nextpix, p, buf, endpoints, directions) if small else 0
-                    inc = _candidate_increment(endpoints, directions, pf, p, small, buf, n, k, pi[p, _PVER], ecache_i,
-                                               ecache_f)
+                    inc = _candidate_increment(
+                        endpoints, directions, pf, p, small, buf, n, k, pi[p, _PVER], ecache_i, ecache_f
+                    )
                     if inc < 0.0:
                         inc = 0.0
                     value = pf[p, _PE] + inc
@@ -1590,14 +1743,30 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                         pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
                 # push the plane's proxy with its current top, then release the merges deferred
                 # behind the old proxy that the new one does not precede
-                gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf,
-                                                pi, p, cutoff)
+                gsize, proxy_key = _queue_proxy(
+                    gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff
+                )
                 if gsize + qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= gcap:
                     overflow[0] = 2 * (gcap + pi[p, _PADJN])
                     return _empty_log(stats, overflow)
                 if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
-                    gsize = _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf,
-                                              p, pi[p, _PADJ], pi[p, _PADJN], proxy_key)
+                    gsize = _release_deferred(
+                        gkey,
+                        gint,
+                        gsize,
+                        fkey,
+                        fint,
+                        fnext,
+                        bhead,
+                        qstate,
+                        anode,
+                        akey,
+                        pf,
+                        p,
+                        pi[p, _PADJ],
+                        pi[p, _PADJN],
+                        proxy_key,
+                    )
             else:
                 a = ea
                 b = eb
@@ -1610,8 +1779,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 # is the last kept one; else a large plane grew since (no full merge loop) and the
                 # merge is refined again at the planes' current state
                 if kind == _G_MERGE_EXACT and (
-                        (pi[a, _PVER] == pi[a, _PMVER] and pi[b, _PVER] == pi[b, _PMVER])
-                        or (mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER])):
+                    (pi[a, _PVER] == pi[a, _PMVER] and pi[b, _PVER] == pi[b, _PMVER])
+                    or (mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER])
+                ):
                     found = True
                     act_a = a
                     act_b = b
@@ -1623,14 +1793,26 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
                     n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
                     sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
-                    _cache_merge(mcache_i, mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], sse, u0, u1, u2,
-                                 (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+                    _cache_merge(
+                        mcache_i,
+                        mcache_f,
+                        a,
+                        b,
+                        pi[a, _PVER],
+                        pi[b, _PVER],
+                        sse,
+                        u0,
+                        u1,
+                        u2,
+                        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+                    )
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     if inc < 0.0:
                         inc = 0.0
                     if inc <= cutoff:
-                        gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b,
-                                        eva, evb)
+                        gsize = _q_push(
+                            gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b, eva, evb
+                        )
                     continue
                 big = a
                 small = b
@@ -1642,8 +1824,17 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if n <= exact_plane_size:
                     e_small = pf[small, _PE]  # a small plane's E is its exact fit's
                 else:
-                    e_small, _, _, _ = _fit_rays(endpoints, directions, buf, n, pf[small, _PW], pf[small, _PW + 1],
-                                                 pf[small, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE)
+                    e_small, _, _, _ = _fit_rays(
+                        endpoints,
+                        directions,
+                        buf,
+                        n,
+                        pf[small, _PW],
+                        pf[small, _PW + 1],
+                        pf[small, _PW + 2],
+                        _FIT_ITERATIONS,
+                        _FIT_TOLERANCE,
+                    )
                 _, m0, m1, m2 = _model_merge(pf, a, b)
                 value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
                 _cache_merge(mcache_i, mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], value, m0, m1, m2, info)
@@ -1653,8 +1844,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 if inc < 0.0:
                     inc = 0.0
                 if inc <= cutoff:
-                    gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b,
-                                    eva, evb)
+                    gsize = _q_push(
+                        gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b, eva, evb
+                    )
         if not found:
             break
         if not (key <= max_increment or plane_count > min_count):
@@ -1730,8 +1922,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 pf[p, _PCOUNTLIN] = count + 1
             elif count + 1 <= exact_plane_size:
                 n = _gather(pi, nextpix, p, buf, endpoints, directions)
-                _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1],
-                                 pf[p, _PW + 2])
+                _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2])
                 in_buf = n
                 pf[p, _PCOUNTLIN] = n
             else:
@@ -1814,11 +2005,15 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         count = pi[p, _PCOUNT]
         # a large plane grown a little since its last full merge loop values only its new
         # neighbours' merges; its queued and deferred merges stay (they carry its merge version)
-        partial = (kind != _G_SEED and count > exact_plane_size
-                   and count <= pf[p, _PCOUNTLOOP] * (1.0 + merge_loop_growth))
+        partial = (
+            kind != _G_SEED and count > exact_plane_size and count <= pf[p, _PCOUNTLOOP] * (1.0 + merge_loop_growth)
+        )
         if count > exact_plane_size:
-            dw = np.sqrt((pf[p, _PW] - pf[p, _PWL]) ** 2 + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
-                         + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2)
+            dw = np.sqrt(
+                (pf[p, _PW] - pf[p, _PWL]) ** 2
+                + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
+                + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2
+            )
             if count >= 2 * pf[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > drift_limit:
                 n = _gather(pi, nextpix, p, buf, endpoints, directions)
                 stats[_ST_RELINS] += 1
@@ -1873,8 +2068,9 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     small = count + 1 <= exact_plane_size
                     if small and n_gathered < 0:
                         n_gathered = _gather(pi, nextpix, p, buf, endpoints, directions)
-                    inc = _candidate_increment(endpoints, directions, pf, p, small, buf, n_gathered, q, pi[p, _PVER],
-                                               ecache_i, ecache_f)
+                    inc = _candidate_increment(
+                        endpoints, directions, pf, p, small, buf, n_gathered, q, pi[p, _PVER], ecache_i, ecache_f
+                    )
                     if not np.isfinite(inc):
                         continue
                     if inc < 0.0:
@@ -1911,8 +2107,7 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
             overflow[0] = 2 * (gcap + pi[p, _PADJN])
         if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
             return _empty_log(stats, overflow)
-        gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p,
-                                        cutoff)
+        gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff)
 
         # merges with every neighbouring plane (compacting p's adjacency list). A merge whose key
         # exceeds p's proxy key is deferred on p's node instead of queued: p's proxy comes first,
@@ -1956,8 +2151,11 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                     sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
                     inc = sse - pf[a, _PE] - pf[b, _PE]
                     gkind = _G_MERGE_EXACT
-                elif pf[q, _PRPARTNER] == p and rcache_i[q, 0] == pi[q, _PVER] and \
-                        pi[p, _PCOUNT] <= rcache_i[q, 1] * (1.0 + refined_growth):
+                elif (
+                    pf[q, _PRPARTNER] == p
+                    and rcache_i[q, 0] == pi[q, _PVER]
+                    and pi[p, _PCOUNT] <= rcache_i[q, 1] * (1.0 + refined_growth)
+                ):
                     # refined before, q unchanged since and p grown a little: q's residual model
                     # at the refined union's w stands for its exact residuals
                     inc = _refined_merge_increment(pf, p, rcache_f, q)
@@ -1973,8 +2171,22 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
                 akey[x, _AN_KEY] = np.inf
                 if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
                     if inc <= proxy_key or not defer_merges:
-                        gsize = _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, gkind, a, b,
-                                        pi[a, _PMVER], pi[b, _PMVER])
+                        gsize = _q_push(
+                            gkey,
+                            gint,
+                            gsize,
+                            fkey,
+                            fint,
+                            fnext,
+                            bhead,
+                            qstate,
+                            inc,
+                            gkind,
+                            a,
+                            b,
+                            pi[a, _PMVER],
+                            pi[b, _PMVER],
+                        )
                     else:
                         akey[x, _AN_KEY] = inc
                         least = min(least, inc)
@@ -1984,12 +2196,19 @@ def _ppe_kernel(endpoints, directions, valid, ok_right, ok_down, height, width, 
         pi[p, _PADJN] = n_adj
         pf[p, _PDEFER] = least
         if release:  # the kept deferred merges that p's new proxy key no longer precedes
-            gsize = _release_deferred(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first,
-                                      n_adj, proxy_key)
+            gsize = _release_deferred(
+                gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first, n_adj, proxy_key
+            )
 
     stats[_ST_HEAP_PEAK] = gcap
-    return (log_kind[:n_actions].astype(np.int8), log_a[:n_actions].copy(), log_b[:n_actions].copy(),
-            log_inc[:n_actions].copy(), stats, overflow)
+    return (
+        log_kind[:n_actions].astype(np.int8),
+        log_a[:n_actions].copy(),
+        log_b[:n_actions].copy(),
+        log_inc[:n_actions].copy(),
+        stats,
+        overflow,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -2032,8 +2251,9 @@ def _edge_masks(scan: RayScan, max_neighbor_distance: float) -> tuple[np.ndarray
     """Admissible grid edges: right (k, k+1) and down (k, k+W) with both rays valid and close enough."""
     ok_right = np.empty(scan.size, np.bool_)
     ok_down = np.empty(scan.size, np.bool_)
-    _edge_mask_kernel(scan.endpoints, scan.valid, scan.height, scan.width, float(max_neighbor_distance),
-                      ok_right, ok_down)
+    _edge_mask_kernel(
+        scan.endpoints, scan.valid, scan.height, scan.width, float(max_neighbor_distance), ok_right, ok_down
+    )
     return ok_right, ok_down
 
 
@@ -2044,8 +2264,9 @@ def _edge_mask_kernel(endpoints, valid, height, width, max_distance, ok_right, o
         for j in range(width):
             k = i * width + j
             ok_right[k] = j + 1 < width and valid[k] and valid[k + 1] and _distance(endpoints, k, k + 1) <= max_distance
-            ok_down[k] = i + 1 < height and valid[k] and valid[k + width] and _distance(
-                endpoints, k, k + width) <= max_distance
+            ok_down[k] = (
+                i + 1 < height and valid[k] and valid[k + width] and _distance(endpoints, k, k + width) <= max_distance
+            )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -2118,11 +2339,19 @@ class PlaneHierarchy:
     def plane_ids(self, steps: int) -> np.ndarray:
         """``(H*W,)`` plane id of each pixel after ``steps`` actions (-1: atomic/no return)."""
         a = self.actions
-        return _replay(np.ascontiguousarray(a['kind']), np.ascontiguousarray(a['a']), np.ascontiguousarray(a['b']),
-                       int(steps), self.scan.height, self.scan.width, TETROMINO_OFFSETS)
+        return _replay(
+            np.ascontiguousarray(a['kind']),
+            np.ascontiguousarray(a['a']),
+            np.ascontiguousarray(a['b']),
+            int(steps),
+            self.scan.height,
+            self.scan.width,
+            TETROMINO_OFFSETS,
+        )
 
-    def cut(self, *, max_error_increment: float | None = None, max_planes: int | None = None,
-            min_plane_points: int = 4) -> PlaneSet:
+    def cut(
+        self, *, max_error_increment: float | None = None, max_planes: int | None = None, min_plane_points: int = 4
+    ) -> PlaneSet:
         """The planes of the snapshot for one threshold (exactly one of e or n)."""
         if (max_error_increment is None) == (max_planes is None):
             raise ValueError('cut needs exactly one of max_error_increment or max_planes')
@@ -2131,8 +2360,14 @@ class PlaneHierarchy:
         else:
             steps = self.steps_for_count(max_planes)
         planes, _ = fit_pixel_groups(
-            self.scan, self.plane_ids(steps), min_plane_points=min_plane_points, residuals=False,
-            sigmas=self.sigmas, max_error_increment=max_error_increment, max_planes=max_planes, actions=steps,
+            self.scan,
+            self.plane_ids(steps),
+            min_plane_points=min_plane_points,
+            residuals=False,
+            sigmas=self.sigmas,
+            max_error_increment=max_error_increment,
+            max_planes=max_planes,
+            actions=steps,
         )
         return planes
 
@@ -2167,12 +2402,16 @@ def release_work_memory() -> None:
 
 
 def _work_buffers(n_f: int, n_i: int, n_i32: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return (_reusable('float64', n_f, np.float64), _reusable('int64', n_i, np.int64),
-            _reusable('int32', n_i32, np.int32))
+    return (
+        _reusable('float64', n_f, np.float64),
+        _reusable('int64', n_i, np.int64),
+        _reusable('int32', n_i32, np.int32),
+    )
 
 
-def _check_hierarchy_options(scan: RayScan, lmax: float, pool_capacity, exact_plane_size, refined_merge_growth,
-                             merge_loop_growth) -> None:
+def _check_hierarchy_options(
+    scan: RayScan, lmax: float, pool_capacity, exact_plane_size, refined_merge_growth, merge_loop_growth
+) -> None:
     """extract_plane_hierarchy's checks of its scan size and tuning options (ValueError naming the option)."""
     if not (lmax > 0):
         raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {lmax!r}')
@@ -2256,8 +2495,11 @@ def extract_plane_hierarchy(
         scan, sigmas = _noise_scaled(scan, noise)
     lmax = float(max_neighbor_distance)
     _check_hierarchy_options(scan, lmax, pool_capacity, exact_plane_size, refined_merge_growth, merge_loop_growth)
-    stop_increment = np.inf if (max_error_increment is None and max_planes is None) else (
-        -np.inf if max_error_increment is None else float(max_error_increment))
+    stop_increment = (
+        np.inf
+        if (max_error_increment is None and max_planes is None)
+        else (-np.inf if max_error_increment is None else float(max_error_increment))
+    )
     stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
     if max_planes is None and max_error_increment is None:
         stop_count = -1
@@ -2266,29 +2508,48 @@ def extract_plane_hierarchy(
         raise ValueError(f"threads must be a count >= 1 or None (numba's thread count); got {threads!r}")
     if tiles != 1 and max_planes is not None:
         raise ValueError('tiles > 1 needs a max_error_increment stop without max_planes (a plane count is global)')
-    knobs = (int(exact_plane_size), int(exact_merge_size), float(relinearisation_drift), float(refined_merge_growth),
-             float(merge_loop_growth), bool(defer_merges), pool_capacity)
+    knobs = (
+        int(exact_plane_size),
+        int(exact_merge_size),
+        float(relinearisation_drift),
+        float(refined_merge_growth),
+        float(merge_loop_growth),
+        bool(defer_merges),
+        pool_capacity,
+    )
     start = time.perf_counter()
     ok_right, ok_down = _edge_masks(scan, lmax)
     tile_columns = _placed_borders(tile_columns, ok_right, scan.height, scan.width)
     for column in tile_columns[1:-1]:  # no seed or join crosses a tile border
-        ok_right[column - 1::scan.width] = False
+        ok_right[column - 1 :: scan.width] = False
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
     seed_best = _reusable('seed_best', scan.size, np.int32)
     seed_key = _reusable('seed_key', scan.size, np.float64)
     columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
     _ray_columns(scan.endpoints, scan.directions, columns[:3], columns[3:])
     # seeds above the greedy's cutoff are never created
-    _seed_errors(scan.endpoints, scan.directions, columns[:3], columns[3:], ok_right, ok_down, scan.height,
-                 scan.width, TETROMINO_OFFSETS, seed_sse, seed_best, seed_key,
-                 _run_cutoff(stop_increment, stop_count, scan.size))
+    _seed_errors(
+        scan.endpoints,
+        scan.directions,
+        columns[:3],
+        columns[3:],
+        ok_right,
+        ok_down,
+        scan.height,
+        scan.width,
+        TETROMINO_OFFSETS,
+        seed_sse,
+        seed_best,
+        seed_key,
+        _run_cutoff(stop_increment, stop_count, scan.size),
+    )
     inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, seed_sse, seed_best, seed_key)
     if len(tile_columns) == 2:
-        kinds, a_ids, b_ids, incs, stats = _greedy(inputs, scan.height, scan.width, knobs, stop_increment,
-                                                   stop_count)
+        kinds, a_ids, b_ids, incs, stats = _greedy(inputs, scan.height, scan.width, knobs, stop_increment, stop_count)
     else:
-        kinds, a_ids, b_ids, incs, stats = _tiled_greedy(inputs, scan.height, scan.width, tile_columns, knobs,
-                                                         stop_increment, stop_count, threads)
+        kinds, a_ids, b_ids, incs, stats = _tiled_greedy(
+            inputs, scan.height, scan.width, tile_columns, knobs, stop_increment, stop_count, threads
+        )
     seconds = time.perf_counter() - start
     actions = np.empty(len(kinds), ACTION_DTYPE)
     actions['kind'] = kinds
@@ -2299,9 +2560,16 @@ def extract_plane_hierarchy(
     n_valid = int(scan.valid.sum())
     plane_counts = n_valid - np.cumsum(reduction)
     complete = stop_increment == np.inf and stop_count < 0
-    return PlaneHierarchy(scan=scan, actions=actions, plane_counts=plane_counts, initial_plane_count=n_valid,
-                          complete=complete, seconds=seconds,
-                          stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)), sigmas=sigmas)
+    return PlaneHierarchy(
+        scan=scan,
+        actions=actions,
+        plane_counts=plane_counts,
+        initial_plane_count=n_valid,
+        complete=complete,
+        seconds=seconds,
+        stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)),
+        sigmas=sigmas,
+    )
 
 
 def _greedy(inputs: tuple, height: int, width: int, knobs: tuple, stop_increment: float, stop_count: int) -> tuple:
@@ -2319,10 +2587,31 @@ def _greedy(inputs: tuple, height: int, width: int, knobs: tuple, stop_increment
     while True:
         work = _work_buffers(*_work_sizes(n_pixels, int(capacity[0]), int(capacity[1]), int(capacity[2])))
         kinds, a_ids, b_ids, incs, stats, overflow = _ppe_kernel(
-            endpoints, directions, valid, ok_right, ok_down, height, width,
-            TETROMINO_OFFSETS, seed_sse, seed_best, seed_key, exact_plane_size, exact_merge_size, drift,
-            stop_increment, stop_count, BOUND_SLACK, 1.0 - MODEL_MERGE_KEY_MARGIN, refined_growth,
-            loop_growth, defer, int(capacity[0]), int(capacity[1]), int(capacity[2]), *work,
+            endpoints,
+            directions,
+            valid,
+            ok_right,
+            ok_down,
+            height,
+            width,
+            TETROMINO_OFFSETS,
+            seed_sse,
+            seed_best,
+            seed_key,
+            exact_plane_size,
+            exact_merge_size,
+            drift,
+            stop_increment,
+            stop_count,
+            BOUND_SLACK,
+            1.0 - MODEL_MERGE_KEY_MARGIN,
+            refined_growth,
+            loop_growth,
+            defer,
+            int(capacity[0]),
+            int(capacity[1]),
+            int(capacity[2]),
+            *work,
         )
         if not overflow.any():
             return kinds, a_ids, b_ids, incs, stats
@@ -2409,8 +2698,16 @@ def _tile_inputs(inputs: tuple, height: int, width: int, c0: int, c1: int) -> tu
     return tuple(out)
 
 
-def _tiled_greedy(inputs: tuple, height: int, width: int, bounds: list[int], knobs: tuple, stop_increment: float,
-                  stop_count: int, threads: int | None) -> tuple:
+def _tiled_greedy(
+    inputs: tuple,
+    height: int,
+    width: int,
+    bounds: list[int],
+    knobs: tuple,
+    stop_increment: float,
+    stop_count: int,
+    threads: int | None,
+) -> tuple:
     """The greedy on each column strip separately (up to ``threads`` at once), as one action log.
 
     The strips' grid edges across a border were cut before the seeds, so each strip is an independent
@@ -2458,8 +2755,13 @@ def _tiled_greedy(inputs: tuple, height: int, width: int, bounds: list[int], kno
     order = np.argsort(running_max, kind='stable')
     stats = np.sum([r[4] for r in results], axis=0)
     stats[_ST_HEAP_PEAK] = max(int(r[4][_ST_HEAP_PEAK]) for r in results)
-    return (kinds[order], np.concatenate([r[1] for r in results])[order],
-            np.concatenate([r[2] for r in results])[order], np.concatenate([r[3] for r in results])[order], stats)
+    return (
+        kinds[order],
+        np.concatenate([r[1] for r in results])[order],
+        np.concatenate([r[2] for r in results])[order],
+        np.concatenate([r[3] for r in results])[order],
+        stats,
+    )
 
 
 def _noise_scaled(scan: RayScan, noise: NoiseModel) -> tuple[RayScan, np.ndarray]:
@@ -2536,11 +2838,19 @@ def extract_planes(
     """
     if rings is not None or (np.ndim(points) == 2 and np.shape(points)[1] == 3):  # unorganized: project first
         from ppe_ros.core.projection import extract_planes_unorganized
-        return extract_planes_unorganized(points, rings, origins=origins, sensor=sensor,
-                                          max_error_increment=max_error_increment, max_planes=max_planes,
-                                          max_neighbor_distance=max_neighbor_distance,
-                                          min_plane_points=min_plane_points, surface_tolerance=surface_tolerance,
-                                          connected_only=connected_only)
+
+        return extract_planes_unorganized(
+            points,
+            rings,
+            origins=origins,
+            sensor=sensor,
+            max_error_increment=max_error_increment,
+            max_planes=max_planes,
+            max_neighbor_distance=max_neighbor_distance,
+            min_plane_points=min_plane_points,
+            surface_tolerance=surface_tolerance,
+            connected_only=connected_only,
+        )
     profile = None if sensor is None else sensor_profile(sensor)
     if profile == _NO_PROFILE_DEFAULTS:  # 'none': the paper's model, as sensor=None
         profile = None
@@ -2580,13 +2890,22 @@ def extract_planes(
     if surface_tolerance is None and profile is None:
         cuts = [hierarchy.cut(**kw, min_plane_points=min_plane_points) for kw in cut_kwargs]
     else:
-        cuts = [whole_surfaces(hierarchy, kw, profile, min_plane_points, surface_tolerance, connected_only)
-                for kw in cut_kwargs]
+        cuts = [
+            whole_surfaces(hierarchy, kw, profile, min_plane_points, surface_tolerance, connected_only)
+            for kw in cut_kwargs
+        ]
     if not cuts:
         steps = len(hierarchy.actions)
-        planes, _ = fit_pixel_groups(hierarchy.scan, hierarchy.plane_ids(steps), sigmas=hierarchy.sigmas,
-                                      min_plane_points=min_plane_points, residuals=False, actions=steps)
+        planes, _ = fit_pixel_groups(
+            hierarchy.scan,
+            hierarchy.plane_ids(steps),
+            sigmas=hierarchy.sigmas,
+            min_plane_points=min_plane_points,
+            residuals=False,
+            actions=steps,
+        )
         cuts = [planes]
     scalar = not isinstance(max_error_increment, Sequence | np.ndarray) and not isinstance(
-        max_planes, Sequence | np.ndarray)
+        max_planes, Sequence | np.ndarray
+    )
     return cuts[0] if scalar and len(cuts) == 1 else cuts

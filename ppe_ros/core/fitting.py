@@ -51,8 +51,12 @@ def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     # scaled minor c22 / (a00 a11) > 1e-15 and scaled det / scaled minor = det / (a22 c22) > 1e-15
     ok = (a00 > 0.0) & (a11 > 0.0) & (a22 > 0.0) & (c22 > 1e-15 * a00 * a11) & (det > 1e-15 * a22 * c22)
     inv = 1.0 / det if ok else 0.0
-    return ((c00 * b0 + c01 * b1 + c02 * b2) * inv, (c01 * b0 + c11 * b1 + c12 * b2) * inv,
-            (c02 * b0 + c12 * b1 + c22 * b2) * inv, ok)
+    return (
+        (c00 * b0 + c01 * b1 + c02 * b2) * inv,
+        (c01 * b0 + c11 * b1 + c12 * b2) * inv,
+        (c02 * b0 + c12 * b1 + c22 * b2) * inv,
+        ok,
+    )
 
 
 _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -64,8 +68,17 @@ def _init_add(acc, x, y, z):
     """Add the point (x, y, z) to the normal equations (a00 a01 a02 a11 a12 a22 b0 b1 b2) of _linear_init."""
     a00, a01, a02, a11, a12, a22, b0, b1, b2 = acc
     wt = x * x + y * y + z * z
-    return (a00 + wt * x * x, a01 + wt * x * y, a02 + wt * x * z, a11 + wt * y * y, a12 + wt * y * z,
-            a22 + wt * z * z, b0 + wt * x, b1 + wt * y, b2 + wt * z)
+    return (
+        a00 + wt * x * x,
+        a01 + wt * x * y,
+        a02 + wt * x * z,
+        a11 + wt * y * y,
+        a12 + wt * y * z,
+        a22 + wt * z * z,
+        b0 + wt * x,
+        b1 + wt * y,
+        b2 + wt * z,
+    )
 
 
 # Fits called in the greedy's loops allocate nothing and are compiled with _nrt=False (no atomic
@@ -93,16 +106,35 @@ def _ray_terms_at(px, py, pz, vx, vy, vz, w0, w1, w2):
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _ray_terms(endpoints, directions, k, w0, w1, w2):
     """:func:`_ray_terms_at` of ray k."""
-    return _ray_terms_at(endpoints[k, 0], endpoints[k, 1], endpoints[k, 2], directions[k, 0], directions[k, 1],
-                         directions[k, 2], w0, w1, w2)
+    return _ray_terms_at(
+        endpoints[k, 0],
+        endpoints[k, 1],
+        endpoints[k, 2],
+        directions[k, 0],
+        directions[k, 1],
+        directions[k, 2],
+        w0,
+        w1,
+        w2,
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _gn_add(acc, res, g0, g1, g2):
     """Add a ray's residual and gradient to (SSE, J^T J (6), J^T r (3))."""
     sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = acc
-    return (sse + res * res, a00 + g0 * g0, a01 + g0 * g1, a02 + g0 * g2, a11 + g1 * g1, a12 + g1 * g2,
-            a22 + g2 * g2, b0 + g0 * res, b1 + g1 * res, b2 + g2 * res)
+    return (
+        sse + res * res,
+        a00 + g0 * g0,
+        a01 + g0 * g1,
+        a02 + g0 * g2,
+        a11 + g1 * g1,
+        a12 + g1 * g2,
+        a22 + g2 * g2,
+        b0 + g0 * res,
+        b1 + g1 * res,
+        b2 + g2 * res,
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -251,12 +283,11 @@ def _fit4(P, V, k0, k1, k2, k3):
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _fit_groups(endpoints, directions, members, starts, max_iterations, relative_tolerance, out_w, out_sse,
-                out_info):
+def _fit_groups(endpoints, directions, members, starts, max_iterations, relative_tolerance, out_w, out_sse, out_info):
     """Fit every group g = members[starts[g]:starts[g+1]] exactly (parallel over groups)."""
     n_groups = len(starts) - 1
     for g in nb.prange(n_groups):
-        idx = members[starts[g]:starts[g + 1]]
+        idx = members[starts[g] : starts[g + 1]]
         sse, w0, w1, w2, information = _fit(
             endpoints, directions, idx, len(idx), np.nan, np.nan, np.nan, max_iterations, relative_tolerance
         )
@@ -300,8 +331,9 @@ def _planes_from_w(w: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, np.nd
     return normals, normals @ center - 1.0 / norm
 
 
-def _closest_point_covariances(w: np.ndarray, center: np.ndarray, info6: np.ndarray, sse: np.ndarray,
-                               counts: np.ndarray) -> np.ndarray:
+def _closest_point_covariances(
+    w: np.ndarray, center: np.ndarray, info6: np.ndarray, sse: np.ndarray, counts: np.ndarray
+) -> np.ndarray:
     """Covariances ``(J, 3, 3)`` of d*n (input frame) from Cov(w) = sigma^2 (sum g g^T)^-1, sigma^2 = sse/(count-3).
 
     NaN for a plane whose information matrix is singular.
@@ -357,8 +389,10 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
         org = None
     scan = make_ray_scan(pts[:, None, :], org)
     if not scan.valid.all():
-        raise ValueError(f'{int((~scan.valid).sum())} of {len(pts)} rays are not finite or have a length outside '
-                         f'{MIN_RANGE:g}..{MAX_RANGE:g} m')
+        raise ValueError(
+            f'{int((~scan.valid).sum())} of {len(pts)} rays are not finite or have a length outside '
+            f'{MIN_RANGE:g}..{MAX_RANGE:g} m'
+        )
     planes, residuals = fit_pixel_groups(scan, np.zeros(len(pts), np.int64), min_plane_points=3)
     if planes.num_planes != 1 or not np.isfinite(planes.sse[0]):
         raise ValueError('degenerate ray set: the rays do not determine a plane (collinear endpoints?)')
@@ -373,8 +407,15 @@ def fit_plane(points: np.ndarray, origins: np.ndarray | None = None) -> PlaneFit
     )
 
 
-def fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, residuals: bool = True,
-                      sigmas: np.ndarray | None = None, **meta) -> tuple[PlaneSet, np.ndarray | None]:
+def fit_pixel_groups(
+    scan: RayScan,
+    plane_ids: np.ndarray,
+    *,
+    min_plane_points: int,
+    residuals: bool = True,
+    sigmas: np.ndarray | None = None,
+    **meta,
+) -> tuple[PlaneSet, np.ndarray | None]:
     """Fit every group of pixels sharing a plane id >= 0 (ids < 0: no plane).
 
     Groups smaller than ``min_plane_points`` become no plane. Planes are numbered 1..J by
@@ -409,8 +450,17 @@ def fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: 
     out_w = np.empty((n_planes, 3))
     out_sse = np.empty(n_planes)
     out_info = np.empty((n_planes, 6))
-    _fit_groups(scan.endpoints, scan.directions, members, starts, FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE,
-                out_w, out_sse, out_info)
+    _fit_groups(
+        scan.endpoints,
+        scan.directions,
+        members,
+        starts,
+        FIT_MAX_ITERATIONS,
+        FIT_RELATIVE_TOLERANCE,
+        out_w,
+        out_sse,
+        out_info,
+    )
     centroids = sums / point_counts[:, None] + scan.center
     normals = np.full((n_planes, 3), np.nan)
     offsets = np.full(n_planes, np.nan)
@@ -421,15 +471,17 @@ def fit_pixel_groups(scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: 
     if len(fitted):
         w = out_w[fitted]
         normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
-        covariances[fitted] = _closest_point_covariances(w, scan.center, out_info[fitted], out_sse[fitted],
-                                                         point_counts[fitted])
+        covariances[fitted] = _closest_point_covariances(
+            w, scan.center, out_info[fitted], out_sse[fitted], point_counts[fitted]
+        )
         if residual_image is not None:
             member_plane = np.repeat(np.arange(n_planes), point_counts)
             on_fitted = plane_fitted[member_plane]
             idx = members[on_fitted]
             w_of_pixel = out_w[member_plane[on_fitted]]
             residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
-                'ij,ij->i', scan.directions[idx], w_of_pixel)
+                'ij,ij->i', scan.directions[idx], w_of_pixel
+            )
     sse = out_sse.copy()
     if sigmas is not None:  # residuals in metres again
         residual_image *= sigmas
@@ -498,8 +550,14 @@ class LabeledPlanes:
     residuals: np.ndarray
 
 
-def fit_labeled_planes(points: np.ndarray, labels: np.ndarray, *, origins: np.ndarray | None = None,
-                       min_plane_points: int = 4, ignore_labels_below: int = 1) -> LabeledPlanes:
+def fit_labeled_planes(
+    points: np.ndarray,
+    labels: np.ndarray,
+    *,
+    origins: np.ndarray | None = None,
+    min_plane_points: int = 4,
+    ignore_labels_below: int = 1,
+) -> LabeledPlanes:
     """Fit one maximum-likelihood plane per label of an organized scan.
 
     Args:

@@ -120,8 +120,17 @@ def _msac_kernel(xyz, valid, distance, stop_count, max_trials, confidence, max_s
             i0 = remaining[np.random.randint(0, n_rem)]  # noqa: NPY002
             i1 = remaining[np.random.randint(0, n_rem)]  # noqa: NPY002
             i2 = remaining[np.random.randint(0, n_rem)]  # noqa: NPY002
-            nx, ny, nz, d = _plane_through(xyz[i0, 0], xyz[i0, 1], xyz[i0, 2], xyz[i1, 0], xyz[i1, 1], xyz[i1, 2],
-                                           xyz[i2, 0], xyz[i2, 1], xyz[i2, 2])
+            nx, ny, nz, d = _plane_through(
+                xyz[i0, 0],
+                xyz[i0, 1],
+                xyz[i0, 2],
+                xyz[i1, 0],
+                xyz[i1, 1],
+                xyz[i1, 2],
+                xyz[i2, 0],
+                xyz[i2, 1],
+                xyz[i2, 2],
+            )
             if nx == 0.0 and ny == 0.0 and nz == 0.0:
                 degenerate += 1
                 if degenerate > _MAX_DEGENERATE_FACTOR * max_trials:
@@ -227,7 +236,13 @@ def extract_planes_msac(
     stop_count = max(min_remaining_fraction * xyz.shape[0], 2.0)
     start = time.perf_counter()
     labels, normals, offsets, counts, trials = _msac_kernel(
-        xyz, valid, float(distance), float(stop_count), int(max_trials), float(confidence), int(max_scored_points),
+        xyz,
+        valid,
+        float(distance),
+        float(stop_count),
+        int(max_trials),
+        float(confidence),
+        int(max_scored_points),
         int(seed) % (2**32),
     )
     seconds = time.perf_counter() - start

@@ -114,8 +114,9 @@ class RangeImageProjection:
         out[held] = values[self.cell_points[held]]
         return out.reshape(self.rows, self.columns, values.shape[1])
 
-    def point_labels(self, cell_labels: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                     offsets: np.ndarray, tolerance: float) -> np.ndarray:
+    def point_labels(
+        self, cell_labels: np.ndarray, points: np.ndarray, normals: np.ndarray, offsets: np.ndarray, tolerance: float
+    ) -> np.ndarray:
         """``(N,)`` int32 plane label of every input point (0 = no plane), in the input order.
 
         Args:
@@ -130,9 +131,15 @@ class RangeImageProjection:
             raise ValueError(f'cell_labels must be {self.shape}; got {np.shape(cell_labels)}')
         if not (np.isfinite(tolerance) and tolerance >= 0):
             raise ValueError(f'tolerance must be a finite length >= 0 m; got {tolerance!r}')
-        return _point_labels_kernel(self.point_cells, self.cell_points, labels, _as_points(points),
-                                    np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3),
-                                    np.ascontiguousarray(offsets, dtype=np.float64).reshape(-1), float(tolerance))
+        return _point_labels_kernel(
+            self.point_cells,
+            self.cell_points,
+            labels,
+            _as_points(points),
+            np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3),
+            np.ascontiguousarray(offsets, dtype=np.float64).reshape(-1),
+            float(tolerance),
+        )
 
 
 def _as_points(points: np.ndarray, name: str = 'points') -> np.ndarray:
@@ -160,10 +167,16 @@ def _rays(points: np.ndarray, origins: np.ndarray | None) -> tuple[np.ndarray, n
     return rays, valid
 
 
-def project_points(points: np.ndarray, rings: np.ndarray | None = None, *, origins: np.ndarray | None = None,
-                   rows: str = 'auto', azimuth_bins: int | None = None,
-                   angular_resolution: float = DEFAULT_ANGULAR_RESOLUTION_DEG,
-                   azimuth_start: float = DEFAULT_AZIMUTH_START_DEG) -> RangeImageProjection:
+def project_points(
+    points: np.ndarray,
+    rings: np.ndarray | None = None,
+    *,
+    origins: np.ndarray | None = None,
+    rows: str = 'auto',
+    azimuth_bins: int | None = None,
+    angular_resolution: float = DEFAULT_ANGULAR_RESOLUTION_DEG,
+    azimuth_start: float = DEFAULT_AZIMUTH_START_DEG,
+) -> RangeImageProjection:
     """Put an unorganized cloud on a range image (see the module docstring for how).
 
     Args:
@@ -209,16 +222,25 @@ def project_points(points: np.ndarray, rings: np.ndarray | None = None, *, origi
     start_bin = math.ceil((start - centre) / step - 1e-9) % bins  # the first bin centred at or after it
     column_of, n_columns = _crop_columns(column_of, row_of >= 0, bins, start_bin)
     if n_rows * n_columns > MAX_CELLS:
-        raise ValueError(f'the range image would have {n_rows} x {n_columns} cells (more than {MAX_CELLS}); '
-                         'give azimuth_bins or a coarser angular_resolution')
+        raise ValueError(
+            f'the range image would have {n_rows} x {n_columns} cells (more than {MAX_CELLS}); '
+            'give azimuth_bins or a coarser angular_resolution'
+        )
     cells = np.where(row_of >= 0, row_of * n_columns + column_of, -1).astype(np.int64)
     ranges = np.sqrt(np.einsum('ij,ij->i', rays, rays))
     winners = _claim_cells(cells, ranges, n_rows * n_columns)
     held = winners[winners >= 0]
     row_elevations = _group_means(row_of[held], elevation[held], n_rows)
-    return RangeImageProjection(rows=n_rows, columns=n_columns, point_cells=cells, cell_points=winners,
-                                method=method, azimuth_bins=int(bins), row_elevations=row_elevations,
-                                beam_origin_offset=(float(offset[0]), float(offset[1])))
+    return RangeImageProjection(
+        rows=n_rows,
+        columns=n_columns,
+        point_cells=cells,
+        cell_points=winners,
+        method=method,
+        azimuth_bins=int(bins),
+        row_elevations=row_elevations,
+        beam_origin_offset=(float(offset[0]), float(offset[1])),
+    )
 
 
 def _row_method(rows: str, rings: np.ndarray | None) -> str:
@@ -372,8 +394,9 @@ def _grid_rows(elevation: np.ndarray, valid: np.ndarray, step: float) -> tuple[n
     return row_of, int(row_of.max()) + 1
 
 
-def _azimuth_columns(azimuth: np.ndarray, row_of: np.ndarray, n_rows: int, bins: int | None,
-                     *, phased: bool) -> tuple[np.ndarray, int, float, float]:
+def _azimuth_columns(
+    azimuth: np.ndarray, row_of: np.ndarray, n_rows: int, bins: int | None, *, phased: bool
+) -> tuple[np.ndarray, int, float, float]:
     """Azimuth bin (0 .. bins - 1, periodic) of every point, the bins per revolution, the step (rad)
     and the common offset (rad, in [0, step)) of the bins' centres from -pi + k step.
 
@@ -505,19 +528,26 @@ def _point_labels_kernel(cells, winners, cell_labels, points, normals, offsets, 
             out[i] = label
             continue
         j = label - 1
-        distance = abs(normals[j, 0] * points[i, 0] + normals[j, 1] * points[i, 1] + normals[j, 2] * points[i, 2]
-                       - offsets[j])
+        distance = abs(
+            normals[j, 0] * points[i, 0] + normals[j, 1] * points[i, 1] + normals[j, 2] * points[i, 2] - offsets[j]
+        )
         if distance <= tolerance:
             out[i] = label
     return out
 
 
-def extract_planes_unorganized(points: np.ndarray, rings: np.ndarray | None = None, *,
-                               origins: np.ndarray | None = None, rows: str = 'auto',
-                               azimuth_bins: int | None = None,
-                               angular_resolution: float = DEFAULT_ANGULAR_RESOLUTION_DEG,
-                               azimuth_start: float = DEFAULT_AZIMUTH_START_DEG,
-                               lost_point_tolerance: float | None = None, **extract_options):
+def extract_planes_unorganized(
+    points: np.ndarray,
+    rings: np.ndarray | None = None,
+    *,
+    origins: np.ndarray | None = None,
+    rows: str = 'auto',
+    azimuth_bins: int | None = None,
+    angular_resolution: float = DEFAULT_ANGULAR_RESOLUTION_DEG,
+    azimuth_start: float = DEFAULT_AZIMUTH_START_DEG,
+    lost_point_tolerance: float | None = None,
+    **extract_options,
+):
     """Extract planes from an unorganized lidar cloud: project it, run PPE on the image, label every point.
 
     Args:
@@ -540,8 +570,15 @@ def extract_planes_unorganized(points: np.ndarray, rings: np.ndarray | None = No
     from ppe_ros.core.sensor import sensor_profile
 
     pts = _as_points(points)
-    projection = project_points(pts, rings, origins=origins, rows=rows, azimuth_bins=azimuth_bins,
-                                angular_resolution=angular_resolution, azimuth_start=azimuth_start)
+    projection = project_points(
+        pts,
+        rings,
+        origins=origins,
+        rows=rows,
+        azimuth_bins=azimuth_bins,
+        angular_resolution=angular_resolution,
+        azimuth_start=azimuth_start,
+    )
     tolerance = lost_point_tolerance
     if tolerance is None:
         tolerance = extract_options.get('surface_tolerance', PROFILE_DEFAULT)

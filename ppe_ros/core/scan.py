@@ -58,9 +58,7 @@ def as_points_array(points: np.ndarray, *, name: str = 'points') -> np.ndarray:
     """Validate an organized ``(H, W, 3)`` cloud and return it as C-contiguous float64."""
     array = np.asarray(points)
     if array.ndim != 3 or array.shape[2] != 3:
-        raise ValueError(
-            f'{name} must be an organized (H, W, 3) array of x, y, z in metres; got shape {array.shape}'
-        )
+        raise ValueError(f'{name} must be an organized (H, W, 3) array of x, y, z in metres; got shape {array.shape}')
     if array.shape[0] < 1 or array.shape[1] < 1:
         raise ValueError(f'{name} is empty: shape {array.shape}')
     if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):

@@ -90,8 +90,13 @@ class NoiseModel:
         factor = float(factor)
         if not (np.isfinite(factor) and factor > 0.0):
             raise ValueError(f'noise scale must be finite and > 0; got {factor!r}')
-        return replace(self, constant=self.constant * factor, proportional=self.proportional * factor,
-                       depth_quadratic=self.depth_quadratic * factor, minimum=self.minimum * factor)
+        return replace(
+            self,
+            constant=self.constant * factor,
+            proportional=self.proportional * factor,
+            depth_quadratic=self.depth_quadratic * factor,
+            minimum=self.minimum * factor,
+        )
 
 
 def estimate_noise_scale(ranges: np.ndarray, sigmas: np.ndarray) -> float:
@@ -209,16 +214,33 @@ REALSENSE_NOISE = NoiseModel(constant=0.001, depth_quadratic=5e-3)
 #: for how they were chosen). 'none' is the paper's model without a distance limit: the defaults of
 #: extract_planes(sensor=None) and of the node; 'paper' the paper's setting, the defaults of ppe extract.
 PROFILES: dict[str, SensorProfile] = {
-    'none': SensorProfile(name='none', noise=None, max_error_increment=0.01, max_neighbor_distance=np.inf,
-                          min_plane_points=4),
-    'paper': SensorProfile(name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18,
-                           min_plane_points=4),
-    'lidar': SensorProfile(name='lidar', noise=LIDAR_NOISE, max_error_increment=16.0, surface_tolerance=0.05,
-                           min_plane_points=40, max_plane_rmse_factor=1.3, correlation_length=1.3,
-                           flatness_length=4.0),
-    'depth_camera': SensorProfile(name='depth_camera', noise=KINECT_V1_NOISE, max_error_increment=16.0,
-                                  surface_tolerance=0.005, noise_factor=3.0, min_plane_points=100,
-                                  max_plane_rmse_factor=1.5, correlation_length=0.7, noise_scale_bounds=(0.1, 4.0)),
+    'none': SensorProfile(
+        name='none', noise=None, max_error_increment=0.01, max_neighbor_distance=np.inf, min_plane_points=4
+    ),
+    'paper': SensorProfile(
+        name='paper', noise=None, max_error_increment=0.0484, max_neighbor_distance=0.18, min_plane_points=4
+    ),
+    'lidar': SensorProfile(
+        name='lidar',
+        noise=LIDAR_NOISE,
+        max_error_increment=16.0,
+        surface_tolerance=0.05,
+        min_plane_points=40,
+        max_plane_rmse_factor=1.3,
+        correlation_length=1.3,
+        flatness_length=4.0,
+    ),
+    'depth_camera': SensorProfile(
+        name='depth_camera',
+        noise=KINECT_V1_NOISE,
+        max_error_increment=16.0,
+        surface_tolerance=0.005,
+        noise_factor=3.0,
+        min_plane_points=100,
+        max_plane_rmse_factor=1.5,
+        correlation_length=0.7,
+        noise_scale_bounds=(0.1, 4.0),
+    ),
 }
 
 
@@ -229,5 +251,6 @@ def sensor_profile(sensor: str | SensorProfile) -> SensorProfile:
     try:
         return PROFILES[str(sensor)]
     except KeyError:
-        raise ValueError(f"sensor must be one of {', '.join(repr(k) for k in PROFILES)} or a SensorProfile; "
-                         f'got {sensor!r}') from None
+        raise ValueError(
+            f'sensor must be one of {", ".join(repr(k) for k in PROFILES)} or a SensorProfile; got {sensor!r}'
+        ) from None

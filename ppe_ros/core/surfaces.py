@@ -23,8 +23,14 @@ if TYPE_CHECKING:
     from ppe_ros.core.extraction import PlaneHierarchy
 
 
-def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile | None, min_plane_points: int,
-              surface_tolerance: float | None, connected_only: bool) -> PlaneSet:
+def whole_surfaces(
+    hierarchy: PlaneHierarchy,
+    cut: dict,
+    profile: SensorProfile | None,
+    min_plane_points: int,
+    surface_tolerance: float | None,
+    connected_only: bool,
+) -> PlaneSet:
     """One snapshot of the greedy, consolidated into whole surfaces and filtered for planarity."""
     if 'max_error_increment' in cut:
         steps = hierarchy.steps_for_error(cut['max_error_increment'])
@@ -33,27 +39,56 @@ def whole_surfaces(hierarchy: PlaneHierarchy, cut: dict, profile: SensorProfile 
     ids = hierarchy.plane_ids(steps)
     scan = hierarchy.scan
     sigmas = hierarchy.sigmas
-    unit_scan = scan if sigmas is None else replace(
-        scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
+    unit_scan = (
+        scan
+        if sigmas is None
+        else replace(scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
+    )
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
         noise_factor = 0.0 if profile is None else profile.noise_factor
-        ids = _consolidate(unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor,
-                           min_plane_points)
-    planes, _ = fit_pixel_groups(scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
-                                  actions=steps, **cut)
+        ids = _consolidate(
+            unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points
+        )
+    planes, _ = fit_pixel_groups(
+        scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
+    )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
-        planes = _drop_non_planar(unit_scan, scan, planes, ray_sigmas, surface_tolerance or 0.0, profile.noise_factor,
-                                  factor, sigmas, min_plane_points, steps, cut, profile.flatness_length)
+        planes = _drop_non_planar(
+            unit_scan,
+            scan,
+            planes,
+            ray_sigmas,
+            surface_tolerance or 0.0,
+            profile.noise_factor,
+            factor,
+            sigmas,
+            min_plane_points,
+            steps,
+            cut,
+            profile.flatness_length,
+        )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
-        planes = replace(planes, covariances=planes.covariances + systematic_covariances(
-            unit_scan, planes, _independent_sigmas(unit_scan, ray_sigmas, profile), profile.correlation_length))
+        planes = replace(
+            planes,
+            covariances=planes.covariances
+            + systematic_covariances(
+                unit_scan, planes, _independent_sigmas(unit_scan, ray_sigmas, profile), profile.correlation_length
+            ),
+        )
     return planes
 
 
-def _consolidate(unit_scan: RayScan, ids: np.ndarray, ray_sigmas: np.ndarray, tau: float, connected_only: bool,
-                 noise_factor: float, min_points: int) -> np.ndarray:
+def _consolidate(
+    unit_scan: RayScan,
+    ids: np.ndarray,
+    ray_sigmas: np.ndarray,
+    tau: float,
+    connected_only: bool,
+    noise_factor: float,
+    min_points: int,
+) -> np.ndarray:
     """consolidate_pieces then absorb_rays, across the seam of a full revolution: in the columns (a
     sweep with one row per beam) or in the rows (a transposed sweep, one column per beam), so that a
     transposed grid gives the same surfaces."""
@@ -61,15 +96,22 @@ def _consolidate(unit_scan: RayScan, ids: np.ndarray, ray_sigmas: np.ndarray, ta
     wrap = columns_wrap(unit_scan)
     if not wrap:
         order = np.arange(unit_scan.size).reshape(unit_scan.height, unit_scan.width).T.reshape(-1)
-        transposed = replace(unit_scan, height=unit_scan.width, width=unit_scan.height,
-                             endpoints=unit_scan.endpoints[order], directions=unit_scan.directions[order],
-                             ranges=unit_scan.ranges[order], valid=unit_scan.valid[order])
+        transposed = replace(
+            unit_scan,
+            height=unit_scan.width,
+            width=unit_scan.height,
+            endpoints=unit_scan.endpoints[order],
+            directions=unit_scan.directions[order],
+            ranges=unit_scan.ranges[order],
+            valid=unit_scan.valid[order],
+        )
         if columns_wrap(transposed):
             scan, ids, ray_sigmas, wrap = transposed, ids[order], ray_sigmas[order], True
         else:
             order = None
-    ids = consolidate_pieces(scan, ids, ray_sigmas, tau, connected_only=connected_only, noise_factor=noise_factor,
-                             wrap_columns=wrap)
+    ids = consolidate_pieces(
+        scan, ids, ray_sigmas, tau, connected_only=connected_only, noise_factor=noise_factor, wrap_columns=wrap
+    )
     ids = absorb_rays(scan, ids, ray_sigmas, tau, noise_factor=noise_factor, min_points=min_points, wrap_columns=wrap)
     if order is None:
         return ids
@@ -99,13 +141,15 @@ def _plane_scatter(points: np.ndarray, j: np.ndarray, count: np.ndarray, n_plane
     scatter = np.empty((n_planes, 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            scatter[:, a, b] = scatter[:, b, a] = np.bincount(j, weights=rel[:, a] * rel[:, b],
-                                                              minlength=n_planes) / count
+            scatter[:, a, b] = scatter[:, b, a] = (
+                np.bincount(j, weights=rel[:, a] * rel[:, b], minlength=n_planes) / count
+            )
     return centroid, scatter
 
 
-def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray,
-                           correlation_length: float) -> np.ndarray:
+def systematic_covariances(
+    scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, correlation_length: float
+) -> np.ndarray:
     """``(J, 3, 3)`` covariance (m^2) of each plane's closest point d n from errors that do not average out.
 
     The model: a plane's points deviate from it by the sensor's independent noise (already in the
@@ -136,8 +180,11 @@ def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarr
     area = 12.0 * np.sqrt(lam1 * lam2)
     n_eff = np.clip(area / float(correlation_length) ** 2, 1.0, count)
     out = np.zeros((n_planes, 3, 3))
-    for variance, axis in ((systematic2 / n_eff, None), (systematic2 / (n_eff * lam1), 2),
-                           (systematic2 / (n_eff * lam2), 1)):
+    for variance, axis in (
+        (systematic2 / n_eff, None),
+        (systematic2 / (n_eff * lam1), 2),
+        (systematic2 / (n_eff * lam2), 1),
+    ):
         if axis is None:
             column = normals
         else:
@@ -147,9 +194,20 @@ def systematic_covariances(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarr
     return np.where(np.isfinite(out), out, 0.0)
 
 
-def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, tau: float,
-                     noise_factor: float, factor: float, sigmas: np.ndarray | None, min_plane_points: int,
-                     steps: int, cut: dict, flatness_length: float | None = None) -> PlaneSet:
+def _drop_non_planar(
+    scan: RayScan,
+    fit_scan: RayScan,
+    planes: PlaneSet,
+    ray_sigmas: np.ndarray,
+    tau: float,
+    noise_factor: float,
+    factor: float,
+    sigmas: np.ndarray | None,
+    min_plane_points: int,
+    steps: int,
+    cut: dict,
+    flatness_length: float | None = None,
+) -> PlaneSet:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
     plus the sensor's noise along the normal (lambda: noise_factor). tau_D = tau min(1, D /
@@ -181,6 +239,7 @@ def _drop_non_planar(scan: RayScan, fit_scan: RayScan, planes: PlaneSet, ray_sig
         return planes
     keep = np.concatenate([[False], planar])
     ids = np.where(keep[labels], labels, -1).astype(np.int64)
-    refit, _ = fit_pixel_groups(fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas,
-                                 actions=steps, **cut)
+    refit, _ = fit_pixel_groups(
+        fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
+    )
     return refit

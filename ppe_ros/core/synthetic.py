@@ -869,8 +869,25 @@ def _pack_faces(polygons: Sequence[np.ndarray]) -> _PackedFaces:
 
 
 @njit(cache=True, nogil=True, inline='always')
-def _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, edge_offsets, edge_counts, centers,
-              radii, inside_tolerance, min_distance):
+def _face_hit(
+    f,
+    ox,
+    oy,
+    oz,
+    dx,
+    dy,
+    dz,
+    best,
+    normals,
+    offsets,
+    edge_normals,
+    edge_offsets,
+    edge_counts,
+    centers,
+    radii,
+    inside_tolerance,
+    min_distance,
+):
     """Distance t along the ray (o, d) at which it meets face f inside its polygon, if min_distance < t < best;
     else inf. The face's bounding sphere (centers, radii) is tested first."""
     cx = centers[f, 0] - ox
@@ -893,9 +910,9 @@ def _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, e
     py = oy + t * dy
     pz = oz + t * dz
     for e in range(edge_counts[f]):
-        value = (
-            edge_normals[f, e, 0] * px + edge_normals[f, e, 1] * py + edge_normals[f, e, 2] * pz
-        ) - edge_offsets[f, e]
+        value = (edge_normals[f, e, 0] * px + edge_normals[f, e, 1] * py + edge_normals[f, e, 2] * pz) - edge_offsets[
+            f, e
+        ]
         if value < -inside_tolerance:
             return np.inf
     return t
@@ -929,8 +946,25 @@ def _cast_rays_kernel(
         best = np.inf
         best_face = -1
         for f in range(n_faces):
-            t = _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, edge_offsets, edge_counts,
-                          centers, radii, inside_tolerance, min_distance)
+            t = _face_hit(
+                f,
+                ox,
+                oy,
+                oz,
+                dx,
+                dy,
+                dz,
+                best,
+                normals,
+                offsets,
+                edge_normals,
+                edge_offsets,
+                edge_counts,
+                centers,
+                radii,
+                inside_tolerance,
+                min_distance,
+            )
             if t < best:
                 best = t
                 best_face = f
@@ -1374,6 +1408,7 @@ def generate_scan(
         region_faces=region_faces,
     )
 
+
 def plane_scan(
     n_planes: int = 3,
     *,
@@ -1438,11 +1473,16 @@ def polygon_room_lidar_scan(
     rng = np.random.default_rng(seed)
     elevation = np.radians(np.linspace(22.5, -22.5, height))[:, None]
     azimuth = np.linspace(0.0, 2 * np.pi, width, endpoint=False)[None, :]
-    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
-                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
+    directions = np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+        ),
+        -1,
+    )
     angles = (np.arange(sides) + 0.5) * 2 * np.pi / sides
-    outward = np.concatenate([np.stack([np.cos(angles), np.sin(angles), np.zeros(sides)], 1),
-                              [[0, 0, 1.0], [0, 0, -1.0]]])
+    outward = np.concatenate(
+        [np.stack([np.cos(angles), np.sin(angles), np.zeros(sides)], 1), [[0, 0, 1.0], [0, 0, -1.0]]]
+    )
     distances = np.concatenate([np.full(sides, float(radius)), [float(ceiling), float(floor)]])
     along = directions @ outward.T
     with np.errstate(divide='ignore'):

@@ -73,23 +73,171 @@ CLUTTER_LABEL = 2
 visible, but no plane; below :data:`~ppe_ros.core.synthetic.FIRST_LABEL`, so never a GT region."""
 
 OS1_128_ALTITUDES_DEG = (
-    20.95, 20.67, 20.36, 20.03, 19.73, 19.41, 19.11, 18.76, 18.47, 18.14, 17.82, 17.5, 17.19, 16.86, 16.53, 16.2,
-    15.89, 15.56, 15.23, 14.9, 14.57, 14.23, 13.9, 13.57, 13.25, 12.91, 12.57, 12.22, 11.9, 11.55, 11.2, 10.87,
-    10.54, 10.18, 9.84, 9.51, 9.15, 8.81, 8.47, 8.11, 7.78, 7.43, 7.08, 6.74, 6.39, 6.04, 5.7, 5.34, 4.98, 4.64,
-    4.29, 3.93, 3.58, 3.24, 2.88, 2.53, 2.17, 1.82, 1.47, 1.12, 0.78, 0.41, 0.07, -0.28, -0.64, -0.99, -1.35,
-    -1.7, -2.07, -2.4, -2.75, -3.11, -3.46, -3.81, -4.15, -4.5, -4.86, -5.22, -5.57, -5.9, -6.27, -6.61, -6.97,
-    -7.3, -7.67, -8.01, -8.35, -8.69, -9.05, -9.38, -9.71, -10.07, -10.42, -10.76, -11.09, -11.43, -11.78,
-    -12.12, -12.46, -12.78, -13.15, -13.46, -13.8, -14.12, -14.48, -14.79, -15.11, -15.46, -15.79, -16.12,
-    -16.45, -16.76, -17.11, -17.44, -17.74, -18.06, -18.39, -18.72, -19.02, -19.32, -19.67, -19.99, -20.27,
-    -20.57, -20.92, -21.22, -21.54, -21.82,
+    20.95,
+    20.67,
+    20.36,
+    20.03,
+    19.73,
+    19.41,
+    19.11,
+    18.76,
+    18.47,
+    18.14,
+    17.82,
+    17.5,
+    17.19,
+    16.86,
+    16.53,
+    16.2,
+    15.89,
+    15.56,
+    15.23,
+    14.9,
+    14.57,
+    14.23,
+    13.9,
+    13.57,
+    13.25,
+    12.91,
+    12.57,
+    12.22,
+    11.9,
+    11.55,
+    11.2,
+    10.87,
+    10.54,
+    10.18,
+    9.84,
+    9.51,
+    9.15,
+    8.81,
+    8.47,
+    8.11,
+    7.78,
+    7.43,
+    7.08,
+    6.74,
+    6.39,
+    6.04,
+    5.7,
+    5.34,
+    4.98,
+    4.64,
+    4.29,
+    3.93,
+    3.58,
+    3.24,
+    2.88,
+    2.53,
+    2.17,
+    1.82,
+    1.47,
+    1.12,
+    0.78,
+    0.41,
+    0.07,
+    -0.28,
+    -0.64,
+    -0.99,
+    -1.35,
+    -1.7,
+    -2.07,
+    -2.4,
+    -2.75,
+    -3.11,
+    -3.46,
+    -3.81,
+    -4.15,
+    -4.5,
+    -4.86,
+    -5.22,
+    -5.57,
+    -5.9,
+    -6.27,
+    -6.61,
+    -6.97,
+    -7.3,
+    -7.67,
+    -8.01,
+    -8.35,
+    -8.69,
+    -9.05,
+    -9.38,
+    -9.71,
+    -10.07,
+    -10.42,
+    -10.76,
+    -11.09,
+    -11.43,
+    -11.78,
+    -12.12,
+    -12.46,
+    -12.78,
+    -13.15,
+    -13.46,
+    -13.8,
+    -14.12,
+    -14.48,
+    -14.79,
+    -15.11,
+    -15.46,
+    -15.79,
+    -16.12,
+    -16.45,
+    -16.76,
+    -17.11,
+    -17.44,
+    -17.74,
+    -18.06,
+    -18.39,
+    -18.72,
+    -19.02,
+    -19.32,
+    -19.67,
+    -19.99,
+    -20.27,
+    -20.57,
+    -20.92,
+    -21.22,
+    -21.54,
+    -21.82,
 )
 """Beam elevations (degrees, top beam first) of an OS-1-128 (``beam_altitude_angles`` of the Ouster
 sample metadata OS-1-128_v2.3.0_1024x10.json, ouster-sdk, BSD-3-Clause): 0.28-0.37 deg apart, not uniform."""
 
 OS1_32_ALTITUDES_DEG = (
-    12.75, 10.03, 7.27, 4.47, 3.41, 2.35, 2.02, 1.65, 1.29, 0.93, 0.6, 0.23, -0.13, -0.49, -0.83, -1.17,
-    -1.54, -1.88, -2.24, -2.6, -2.96, -3.65, -4.36, -5.06, -5.76, -7.17, -8.57, -9.95, -11.31, -12.66,
-    -14.01, -15.32,
+    12.75,
+    10.03,
+    7.27,
+    4.47,
+    3.41,
+    2.35,
+    2.02,
+    1.65,
+    1.29,
+    0.93,
+    0.6,
+    0.23,
+    -0.13,
+    -0.49,
+    -0.83,
+    -1.17,
+    -1.54,
+    -1.88,
+    -2.24,
+    -2.6,
+    -2.96,
+    -3.65,
+    -4.36,
+    -5.06,
+    -5.76,
+    -7.17,
+    -8.57,
+    -9.95,
+    -11.31,
+    -12.66,
+    -14.01,
+    -15.32,
 )
 """Beam elevations (degrees) of an OS-1-32 gradient unit (OS-1-32-G_v2.1.1_1024x10.json): dense near the
 horizon (0.33-0.37 deg), 1.4-2.8 deg apart at the top and bottom."""
@@ -172,8 +320,11 @@ class LidarErrorModel:
             raise ValueError(f'LidarErrorModel.min_cos must be in (0, 1]; got {self.min_cos}')
         if not (0.0 < self.surface_wavelength_min <= self.surface_wavelength_max):
             raise ValueError('LidarErrorModel surface wavelengths must satisfy 0 < min <= max')
-        if isinstance(self.surface_waves, bool) or int(self.surface_waves) != self.surface_waves \
-                or self.surface_waves < 1:
+        if (
+            isinstance(self.surface_waves, bool)
+            or int(self.surface_waves) != self.surface_waves
+            or self.surface_waves < 1
+        ):
             raise ValueError(f'LidarErrorModel.surface_waves must be an integer >= 1; got {self.surface_waves!r}')
         if not (self.dropout_rate < 1.0 and self.max_range > self.min_range):
             raise ValueError('LidarErrorModel needs dropout_rate < 1 and max_range > min_range')
@@ -181,9 +332,16 @@ class LidarErrorModel:
     @classmethod
     def exact(cls, **changes) -> LidarErrorModel:
         """No noise, no biases, no undulation, no dropouts (range limits and beam offsets kept)."""
-        zero = {'range_sigma': 0.0, 'grazing_sigma': 0.0, 'beam_range_bias_sigma': 0.0,
-                'beam_elevation_sigma_deg': 0.0, 'surface_amplitude': 0.0, 'grazing_dropout_deg': 90.0,
-                'grazing_dropout_width_deg': 0.0, 'dropout_rate': 0.0}
+        zero = {
+            'range_sigma': 0.0,
+            'grazing_sigma': 0.0,
+            'beam_range_bias_sigma': 0.0,
+            'beam_elevation_sigma_deg': 0.0,
+            'surface_amplitude': 0.0,
+            'grazing_dropout_deg': 90.0,
+            'grazing_dropout_width_deg': 0.0,
+            'dropout_rate': 0.0,
+        }
         return cls(**{**zero, **changes})
 
     def sigma(self, cos_incidence: np.ndarray) -> np.ndarray:
@@ -256,24 +414,39 @@ class DepthErrorModel:
 
     def __post_init__(self) -> None:
         _check_non_negative(self, [f.name for f in fields(self) if f.name not in ('surface_waves',)])
-        if not (self.baseline > 0.0 and self.focal_px > 0.0 and self.band_period_px > 0.0
-                and self.max_depth > self.min_depth):
-            raise ValueError('DepthErrorModel needs baseline > 0, focal_px > 0, band_period_px > 0 and '
-                             'max_depth > min_depth')
+        if not (
+            self.baseline > 0.0
+            and self.focal_px > 0.0
+            and self.band_period_px > 0.0
+            and self.max_depth > self.min_depth
+        ):
+            raise ValueError(
+                'DepthErrorModel needs baseline > 0, focal_px > 0, band_period_px > 0 and max_depth > min_depth'
+            )
         if not (0.0 < self.surface_wavelength_min <= self.surface_wavelength_max):
             raise ValueError('DepthErrorModel surface wavelengths must satisfy 0 < min <= max')
         if self.edge_dropout_probability > 1.0 or self.dropout_rate >= 1.0:
             raise ValueError('DepthErrorModel probabilities must be at most 1 (dropout_rate below 1)')
-        if isinstance(self.surface_waves, bool) or int(self.surface_waves) != self.surface_waves \
-                or self.surface_waves < 1:
+        if (
+            isinstance(self.surface_waves, bool)
+            or int(self.surface_waves) != self.surface_waves
+            or self.surface_waves < 1
+        ):
             raise ValueError(f'DepthErrorModel.surface_waves must be an integer >= 1; got {self.surface_waves!r}')
 
     @classmethod
     def exact(cls, **changes) -> DepthErrorModel:
         """No noise, quantisation, distortion, undulation or dropouts (the depth range kept)."""
-        zero = {'disparity_step_px': 0.0, 'axial_noise_coefficient': 0.0, 'lateral_sigma_px': 0.0,
-                'distortion_coefficient': 0.0, 'surface_amplitude': 0.0, 'projector_offset': 0.0,
-                'edge_dropout_probability': 0.0, 'dropout_rate': 0.0}
+        zero = {
+            'disparity_step_px': 0.0,
+            'axial_noise_coefficient': 0.0,
+            'lateral_sigma_px': 0.0,
+            'distortion_coefficient': 0.0,
+            'surface_amplitude': 0.0,
+            'projector_offset': 0.0,
+            'edge_dropout_probability': 0.0,
+            'dropout_rate': 0.0,
+        }
         return cls(**{**zero, **changes})
 
     def disparity_sigma(self) -> float:
@@ -286,8 +459,10 @@ class DepthErrorModel:
         total = self.axial_noise_coefficient * focal_px * self.baseline
         quantisation = self.disparity_step_px**2 / 12.0
         if total**2 < quantisation:
-            raise ValueError(f'disparity quantisation ({self.disparity_step_px} px) alone exceeds the axial noise '
-                             f'c = {self.axial_noise_coefficient} 1/m at f = {focal_px} px')
+            raise ValueError(
+                f'disparity quantisation ({self.disparity_step_px} px) alone exceeds the axial noise '
+                f'c = {self.axial_noise_coefficient} 1/m at f = {focal_px} px'
+            )
         return math.sqrt(total**2 - quantisation)
 
     def to_dict(self) -> dict:
@@ -415,8 +590,14 @@ class SurfaceSceneBuilder:
         order = sorted(range(len(self._faces)), key=lambda i: self._groups[i])
         scene = Scene(faces=tuple(self._faces[i] for i in order), description=description)
         groups = tuple(self._groups[i] for i in order)
-        return SurfaceScene(scene=scene, clutter_labels=frozenset(self._clutter), names=dict(self._names),
-                            shape_waves=dict(self._waves), description=description, groups=groups)
+        return SurfaceScene(
+            scene=scene,
+            clutter_labels=frozenset(self._clutter),
+            names=dict(self._names),
+            shape_waves=dict(self._waves),
+            description=description,
+            groups=groups,
+        )
 
 
 def _is_planar_convex(corners: list[list[float]]) -> bool:
@@ -443,8 +624,11 @@ def _is_planar_convex(corners: list[list[float]]) -> bool:
         a, b, c = corners[i], corners[(i + 1) % count], corners[(i + 2) % count]
         e1 = [b[k] - a[k] for k in range(3)]
         e2 = [c[k] - b[k] for k in range(3)]
-        turn = ((e1[1] * e2[2] - e1[2] * e2[1]) * normal[0] + (e1[2] * e2[0] - e1[0] * e2[2]) * normal[1]
-                + (e1[0] * e2[1] - e1[1] * e2[0]) * normal[2])
+        turn = (
+            (e1[1] * e2[2] - e1[2] * e2[1]) * normal[0]
+            + (e1[2] * e2[0] - e1[0] * e2[2]) * normal[1]
+            + (e1[0] * e2[1] - e1[1] * e2[0]) * normal[2]
+        )
         if turn < -1e-12 * scale**2:
             return False
     return True
@@ -463,8 +647,9 @@ def _quad(a, b, c, d) -> np.ndarray:
     return np.array([a, b, c, d], dtype=np.float64)
 
 
-def _rectangles_minus_holes(width: float, height: float, holes: Sequence[tuple[float, float, float, float]]
-                            ) -> list[tuple[float, float, float, float]]:
+def _rectangles_minus_holes(
+    width: float, height: float, holes: Sequence[tuple[float, float, float, float]]
+) -> list[tuple[float, float, float, float]]:
     """Cover ``[0, width] x [0, height]`` minus rectangular holes ``(s0, s1, z0, z1)`` with rectangles.
 
     Horizontal bands between the holes' z edges, each split at the holes it crosses; vertically
@@ -497,8 +682,16 @@ def _rectangles_minus_holes(width: float, height: float, holes: Sequence[tuple[f
     return [tuple(r) for r in rectangles]  # type: ignore[misc]
 
 
-def _add_facade(builder: SurfaceSceneBuilder, name: str, origin: np.ndarray, along: np.ndarray, outward: np.ndarray,
-                width: float, height: float, openings: Sequence[tuple[str, float, float, float, float, float]]) -> None:
+def _add_facade(
+    builder: SurfaceSceneBuilder,
+    name: str,
+    origin: np.ndarray,
+    along: np.ndarray,
+    outward: np.ndarray,
+    width: float,
+    height: float,
+    openings: Sequence[tuple[str, float, float, float, float, float]],
+) -> None:
     """A vertical wall ``width`` x ``height`` (origin = bottom corner, ``along`` its horizontal unit
     direction, ``outward`` its unit normal towards the viewer) with recessed openings
     ``(kind, s0, s1, z0, z1, depth)``: each opening is its own pane surface set ``depth`` metres back,
@@ -544,8 +737,15 @@ def _subdivided_sphere(level: int) -> np.ndarray:
 _SPHERE_1 = _subdivided_sphere(1)
 
 
-def _add_foliage(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator, center: Sequence[float],
-                 radii: Sequence[float], n_leaves: int, leaf_size: float) -> None:
+def _add_foliage(
+    builder: SurfaceSceneBuilder,
+    label: int,
+    rng: np.random.Generator,
+    center: Sequence[float],
+    radii: Sequence[float],
+    n_leaves: int,
+    leaf_size: float,
+) -> None:
     """A porous, non-planar blob: a lumpy closed core (80 jittered facets at 60 % of the size) and
     ``n_leaves`` random small triangles (``leaf_size`` metres) scattered in the ellipsoid ``radii``."""
     center = np.asarray(center, dtype=np.float64)
@@ -565,8 +765,14 @@ def _add_foliage(builder: SurfaceSceneBuilder, label: int, rng: np.random.Genera
     builder.add_triangles(label, leaves[area2 > 0.2 * leaf_size**2])
 
 
-def _add_car(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator, position: Sequence[float],
-             yaw_deg: float, z_ground: float) -> None:
+def _add_car(
+    builder: SurfaceSceneBuilder,
+    label: int,
+    rng: np.random.Generator,
+    position: Sequence[float],
+    yaw_deg: float,
+    z_ground: float,
+) -> None:
     """A car body of many small triangles: rounded superelliptic cross-sections lofted along the
     length, a bonnet and boot lower than the cabin, and closed ends."""
     length, width = rng.uniform(3.9, 4.9), rng.uniform(1.7, 1.9)
@@ -575,7 +781,7 @@ def _add_car(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator,
     n_along, n_around = 14, 16
     s = np.linspace(-0.5, 0.5, n_along)
     # Height profile along the car: low at the ends, cabin in the middle (smooth).
-    roof = body + (cabin - body) * np.exp(-((s - 0.05) / 0.22) ** 4)
+    roof = body + (cabin - body) * np.exp(-(((s - 0.05) / 0.22) ** 4))
     ends = 1.0 - 0.35 * np.abs(2 * s) ** 6  # the ends taper
     theta = np.linspace(0.0, 2 * np.pi, n_around, endpoint=False)
     exponent = 2.0 / 4.0
@@ -593,8 +799,10 @@ def _add_car(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator,
     world = rings @ rotation.T + np.array([position[0], position[1], z_ground])
     here, ahead = world[:-1], world[1:]
     here_next, ahead_next = np.roll(here, -1, axis=1), np.roll(ahead, -1, axis=1)
-    triangles = [np.stack([here, ahead, ahead_next], axis=2).reshape(-1, 3, 3),
-                 np.stack([here, ahead_next, here_next], axis=2).reshape(-1, 3, 3)]
+    triangles = [
+        np.stack([here, ahead, ahead_next], axis=2).reshape(-1, 3, 3),
+        np.stack([here, ahead_next, here_next], axis=2).reshape(-1, 3, 3),
+    ]
     for i in (0, n_along - 1):
         centre = np.broadcast_to(world[i].mean(axis=0), (n_around, 3))
         triangles.append(np.stack([centre, world[i], np.roll(world[i], -1, axis=0)], axis=1))
@@ -603,26 +811,43 @@ def _add_car(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator,
     builder.add_triangles(label, triangles[area2 > 1e-8])
 
 
-def _add_person(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator, x: float, y: float,
-                z_ground: float) -> None:
+def _add_person(
+    builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator, x: float, y: float, z_ground: float
+) -> None:
     height = rng.uniform(1.55, 1.9)
     radius = rng.uniform(0.17, 0.24)
     yaw = float(rng.uniform(0, 360))
-    builder.add_polygons(label, prism_polygons((x, y, z_ground), (2 * radius, 1.4 * radius, height - 0.25),
-                                               n_sides=12, yaw_deg=yaw))
+    builder.add_polygons(
+        label, prism_polygons((x, y, z_ground), (2 * radius, 1.4 * radius, height - 0.25), n_sides=12, yaw_deg=yaw)
+    )
     builder.add_triangles(label, _SPHERE_1 * np.array([0.1, 0.1, 0.12]) + np.array([x, y, z_ground + height - 0.12]))
 
 
-def _add_tree(builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator, x: float, y: float,
-              z_ground: float) -> None:
+def _add_tree(
+    builder: SurfaceSceneBuilder, label: int, rng: np.random.Generator, x: float, y: float, z_ground: float
+) -> None:
     trunk_height = rng.uniform(2.0, 3.2)
     trunk_radius = rng.uniform(0.1, 0.2)
-    builder.add_polygons(label, prism_polygons((x, y, z_ground), (2 * trunk_radius, 2 * trunk_radius, trunk_height),
-                                               n_sides=10, yaw_deg=float(rng.uniform(0, 36))))
+    builder.add_polygons(
+        label,
+        prism_polygons(
+            (x, y, z_ground),
+            (2 * trunk_radius, 2 * trunk_radius, trunk_height),
+            n_sides=10,
+            yaw_deg=float(rng.uniform(0, 36)),
+        ),
+    )
     radius = rng.uniform(1.3, 2.4)
     crown = (x, y, z_ground + trunk_height + 0.7 * radius)
-    _add_foliage(builder, label, rng, crown, (radius, radius, radius * rng.uniform(0.8, 1.1)),
-                 n_leaves=int(140 * radius**2), leaf_size=0.22)
+    _add_foliage(
+        builder,
+        label,
+        rng,
+        crown,
+        (radius, radius, radius * rng.uniform(0.8, 1.1)),
+        n_leaves=int(140 * radius**2),
+        leaf_size=0.22,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -663,24 +888,49 @@ def make_street_scene(seed: int = 0, *, clutter: bool = True) -> SurfaceScene:
     length = STREET_HALF_LENGTH
     facade_y = half_width + pavement
 
-    road = _add_wall(builder, 'road', [(-length, -half_width, 0.0), (length, -half_width, 0.0),
-                                        (length, half_width, 0.0), (-length, half_width, 0.0)])
+    road = _add_wall(
+        builder,
+        'road',
+        [
+            (-length, -half_width, 0.0),
+            (length, -half_width, 0.0),
+            (length, half_width, 0.0),
+            (-length, half_width, 0.0),
+        ],
+    )
     builder.add_shape_wave(road, (0.0, math.pi / (2 * half_width), 0.0), 0.0, float(rng.uniform(0.02, 0.05)))
     wavelength = float(rng.uniform(20.0, 40.0))
     heading = float(rng.uniform(-0.3, 0.3))
-    builder.add_shape_wave(road, (2 * math.pi / wavelength * math.cos(heading),
-                                  2 * math.pi / wavelength * math.sin(heading), 0.0),
-                           float(rng.uniform(0, 2 * math.pi)), float(rng.uniform(0.01, 0.02)))
+    builder.add_shape_wave(
+        road,
+        (2 * math.pi / wavelength * math.cos(heading), 2 * math.pi / wavelength * math.sin(heading), 0.0),
+        float(rng.uniform(0, 2 * math.pi)),
+        float(rng.uniform(0.01, 0.02)),
+    )
     for side, sign in (('left', 1.0), ('right', -1.0)):
         y_kerb = sign * half_width
-        _add_wall(builder, f'kerb_{side}', [(-length, y_kerb, 0.0), (length, y_kerb, 0.0),
-                                            (length, y_kerb, kerb), (-length, y_kerb, kerb)])
-        label = _add_wall(builder, f'pavement_{side}', [(-length, y_kerb, kerb), (length, y_kerb, kerb),
-                                                       (length, sign * (facade_y + back), kerb),
-                                                       (-length, sign * (facade_y + back), kerb)])
+        _add_wall(
+            builder,
+            f'kerb_{side}',
+            [(-length, y_kerb, 0.0), (length, y_kerb, 0.0), (length, y_kerb, kerb), (-length, y_kerb, kerb)],
+        )
+        label = _add_wall(
+            builder,
+            f'pavement_{side}',
+            [
+                (-length, y_kerb, kerb),
+                (length, y_kerb, kerb),
+                (length, sign * (facade_y + back), kerb),
+                (-length, sign * (facade_y + back), kerb),
+            ],
+        )
         wavelength = float(rng.uniform(10.0, 25.0))
-        builder.add_shape_wave(label, (2 * math.pi / wavelength, 0.0, 0.0), float(rng.uniform(0, 2 * math.pi)),
-                               float(rng.uniform(0.003, 0.008)))
+        builder.add_shape_wave(
+            label,
+            (2 * math.pi / wavelength, 0.0, 0.0),
+            float(rng.uniform(0, 2 * math.pi)),
+            float(rng.uniform(0.003, 0.008)),
+        )
 
     # Buildings along each side, with gaps; a wide gap with the ramp on the left near the sensor.
     ramp_gap = (float(rng.uniform(-8.0, 4.0)), 0.0)
@@ -706,12 +956,21 @@ def make_street_scene(seed: int = 0, *, clutter: bool = True) -> SurfaceScene:
 
     if clutter:
         _add_street_clutter(builder, rng, half_width, pavement, facade_y, kerb, ramp_gap)
-    return builder.build(f'street (road half-width {half_width:.2f} m, pavement {pavement:.2f} m, kerb '
-                         f'{kerb * 100:.1f} cm), seed {seed}')
+    return builder.build(
+        f'street (road half-width {half_width:.2f} m, pavement {pavement:.2f} m, kerb {kerb * 100:.1f} cm), seed {seed}'
+    )
 
 
-def _add_building(builder: SurfaceSceneBuilder, rng: np.random.Generator, name: str, x0: float, x1: float,
-                  sign: float, facade_y: float, kerb: float) -> None:
+def _add_building(
+    builder: SurfaceSceneBuilder,
+    rng: np.random.Generator,
+    name: str,
+    x0: float,
+    x1: float,
+    sign: float,
+    facade_y: float,
+    kerb: float,
+) -> None:
     builder.new_group()
     height = float(rng.uniform(6.0, 16.0))
     depth = float(rng.uniform(8.0, 12.0))
@@ -740,22 +999,28 @@ def _add_building(builder: SurfaceSceneBuilder, rng: np.random.Generator, name: 
     # The facade faces the street: outward normal -sign * y; its origin is the corner at x0 (left side)
     # so that "along" is +x.
     origin = np.array([x0, sign * facade_y, kerb])
-    _add_facade(builder, name, origin, np.array([1.0, 0.0, 0.0]), np.array([0.0, -sign, 0.0]), width, height,
-                openings)
+    _add_facade(builder, name, origin, np.array([1.0, 0.0, 0.0]), np.array([0.0, -sign, 0.0]), width, height, openings)
     y_front, y_back = sign * facade_y, sign * (facade_y + depth)
     for end, x in (('end0', x0), ('end1', x1)):
-        _add_wall(builder, f'{name}.{end}', [(x, y_front, kerb), (x, y_back, kerb), (x, y_back, kerb + height),
-                                             (x, y_front, kerb + height)])
-    _add_wall(builder, f'{name}.back', [(x0, y_back, kerb), (x1, y_back, kerb), (x1, y_back, kerb + height),
-                                        (x0, y_back, kerb + height)])
+        _add_wall(
+            builder,
+            f'{name}.{end}',
+            [(x, y_front, kerb), (x, y_back, kerb), (x, y_back, kerb + height), (x, y_front, kerb + height)],
+        )
+    _add_wall(
+        builder,
+        f'{name}.back',
+        [(x0, y_back, kerb), (x1, y_back, kerb), (x1, y_back, kerb + height), (x0, y_back, kerb + height)],
+    )
 
 
 RAMP_SLOPE_DEG = 5.0
 """Slope of the ramp of :func:`make_street_scene`."""
 
 
-def _add_ramp(builder: SurfaceSceneBuilder, rng: np.random.Generator, gap: tuple[float, float], facade_y: float,
-              kerb: float) -> None:
+def _add_ramp(
+    builder: SurfaceSceneBuilder, rng: np.random.Generator, gap: tuple[float, float], facade_y: float, kerb: float
+) -> None:
     builder.new_group()
     x0, x1 = gap[0] + 0.8, gap[1] - 0.8
     run, top_length = 4.0, float(rng.uniform(2.5, 4.0))
@@ -766,12 +1031,22 @@ def _add_ramp(builder: SurfaceSceneBuilder, rng: np.random.Generator, gap: tuple
     _add_wall(builder, 'ramp.top', [(x0, y1, z1), (x1, y1, z1), (x1, y2, z1), (x0, y2, z1)])
     for side, x in (('side0', x0), ('side1', x1)):
         _add_wall(builder, f'ramp.{side}', [(x, y0, z0), (x, y1, z1), (x, y2, z1), (x, y2, z0)])
-    _add_wall(builder, 'ramp.back_wall', [(x0 - 0.8, y2, z0), (x1 + 0.8, y2, z0), (x1 + 0.8, y2, z1 + 3.0),
-                                          (x0 - 0.8, y2, z1 + 3.0)])
+    _add_wall(
+        builder,
+        'ramp.back_wall',
+        [(x0 - 0.8, y2, z0), (x1 + 0.8, y2, z0), (x1 + 0.8, y2, z1 + 3.0), (x0 - 0.8, y2, z1 + 3.0)],
+    )
 
 
-def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, half_width: float, pavement: float,
-                        facade_y: float, kerb: float, ramp_gap: tuple[float, float]) -> None:
+def _add_street_clutter(
+    builder: SurfaceSceneBuilder,
+    rng: np.random.Generator,
+    half_width: float,
+    pavement: float,
+    facade_y: float,
+    kerb: float,
+    ramp_gap: tuple[float, float],
+) -> None:
     length = STREET_HALF_LENGTH - 5.0
     parked: list[tuple[float, float]] = []  # (side sign, x) of the parked cars
     for side, sign in (('left', 1.0), ('right', -1.0)):
@@ -780,8 +1055,14 @@ def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, 
         while x < length:
             if rng.random() < 0.75:
                 builder.new_group()
-                _add_tree(builder, builder.surface(f'tree_{side}{index}', clutter=True), rng, x,
-                          sign * (half_width + min(0.9, pavement / 3)), kerb)
+                _add_tree(
+                    builder,
+                    builder.surface(f'tree_{side}{index}', clutter=True),
+                    rng,
+                    x,
+                    sign * (half_width + min(0.9, pavement / 3)),
+                    kerb,
+                )
             x += float(rng.uniform(8.0, 16.0))
             index += 1
         for index in range(int(rng.integers(3, 7))):
@@ -795,15 +1076,23 @@ def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, 
             if ramp_gap[0] - 2.0 < bx < ramp_gap[1] + 2.0:
                 continue
             r = float(rng.uniform(0.4, 0.8))
-            _add_foliage(builder, builder.surface(f'bush_{side}{index}', clutter=True), rng,
-                         (bx, sign * (facade_y - r - 0.05), kerb + 0.6 * r), (1.6 * r, r, 0.8 * r),
-                         n_leaves=int(120 * r), leaf_size=0.12)
+            _add_foliage(
+                builder,
+                builder.surface(f'bush_{side}{index}', clutter=True),
+                rng,
+                (bx, sign * (facade_y - r - 0.05), kerb + 0.6 * r),
+                (1.6 * r, r, 0.8 * r),
+                n_leaves=int(120 * r),
+                leaf_size=0.12,
+            )
         x = -length + float(rng.uniform(0.0, 15.0))
         index = 0
         while x < length:
             builder.new_group()
-            builder.add_polygons(builder.surface(f'lamp_{side}{index}', clutter=True),
-                                 prism_polygons((x, sign * (half_width + 0.35), kerb), (0.14, 0.14, 5.5), n_sides=8))
+            builder.add_polygons(
+                builder.surface(f'lamp_{side}{index}', clutter=True),
+                prism_polygons((x, sign * (half_width + 0.35), kerb), (0.14, 0.14, 5.5), n_sides=8),
+            )
             x += float(rng.uniform(18.0, 30.0))
             index += 1
         # Parked cars along the kerb, moving cars in the lane.
@@ -812,8 +1101,14 @@ def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, 
         while x < length:
             if rng.random() < 0.45 and not abs(x) < 12.0:
                 builder.new_group()
-                _add_car(builder, builder.surface(f'car_parked_{side}{index}', clutter=True), rng,
-                         (x, sign * (half_width - 1.1), 0.0), float(rng.uniform(-3, 3)), 0.0)
+                _add_car(
+                    builder,
+                    builder.surface(f'car_parked_{side}{index}', clutter=True),
+                    rng,
+                    (x, sign * (half_width - 1.1), 0.0),
+                    float(rng.uniform(-3, 3)),
+                    0.0,
+                )
                 parked.append((sign, x))
             x += float(rng.uniform(5.5, 9.0))
             index += 1
@@ -823,8 +1118,14 @@ def _add_street_clutter(builder: SurfaceSceneBuilder, rng: np.random.Generator, 
             sign = 1.0 if rng.random() < 0.5 else -1.0
             if all(abs(x - px) > 5.5 for ps, px in parked if ps == sign):
                 builder.new_group()
-                _add_car(builder, builder.surface(f'car_moving{index}', clutter=True), rng,
-                         (x, sign * half_width / 2, 0.0), float(rng.uniform(-4, 4)), 0.0)
+                _add_car(
+                    builder,
+                    builder.surface(f'car_moving{index}', clutter=True),
+                    rng,
+                    (x, sign * half_width / 2, 0.0),
+                    float(rng.uniform(-4, 4)),
+                    0.0,
+                )
                 break
 
 
@@ -834,9 +1135,12 @@ def street_sensor_pose(seed: int = 0) -> SensorPose:
     within 1.5 deg. Deterministic in ``seed``."""
     rng = np.random.default_rng([_check_seed(seed), 8])
     yaw = float(rng.uniform(-15.0, 15.0)) + (180.0 if rng.random() < 0.3 else 0.0)
-    return SensorPose(position=(float(rng.uniform(-10, 10)), float(rng.uniform(-1.2, 1.2)),
-                                float(rng.uniform(1.7, 2.0))),
-                      roll_deg=float(rng.uniform(-1.5, 1.5)), pitch_deg=float(rng.uniform(-1.5, 1.5)), yaw_deg=yaw)
+    return SensorPose(
+        position=(float(rng.uniform(-10, 10)), float(rng.uniform(-1.2, 1.2)), float(rng.uniform(1.7, 2.0))),
+        roll_deg=float(rng.uniform(-1.5, 1.5)),
+        pitch_deg=float(rng.uniform(-1.5, 1.5)),
+        yaw_deg=yaw,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -844,8 +1148,9 @@ def street_sensor_pose(seed: int = 0) -> SensorPose:
 # --------------------------------------------------------------------------------------------
 
 
-def make_indoor_scene(seed: int = 0, *, sensor_pose: SensorPose | None = None, n_objects: int = 8,
-                      clutter: bool = True) -> SurfaceScene:
+def make_indoor_scene(
+    seed: int = 0, *, sensor_pose: SensorPose | None = None, n_objects: int = 8, clutter: bool = True
+) -> SurfaceScene:
     """A room of :func:`ppe_ros.core.synthetic.make_room_scene` (walls, floor, ceiling, furniture;
     every face its own planar surface) with non-planar clutter in view of ``sensor_pose``: a potted
     plant (a 12-sided pot and a porous foliage blob) and a floor lamp (a thin pole and a 16-sided
@@ -881,13 +1186,21 @@ def make_indoor_scene(seed: int = 0, *, sensor_pose: SensorPose | None = None, n
                     pot = float(rng.uniform(0.25, 0.4))
                     builder.add_polygons(label, prism_polygons((x, y, 0.0), (0.3, 0.3, pot), n_sides=12))
                     leaves = float(rng.uniform(0.3, 0.5))
-                    _add_foliage(builder, label, rng, (x, y, pot + leaves), (leaves, leaves, 1.2 * leaves),
-                                 n_leaves=int(500 * leaves), leaf_size=0.06)
+                    _add_foliage(
+                        builder,
+                        label,
+                        rng,
+                        (x, y, pot + leaves),
+                        (leaves, leaves, 1.2 * leaves),
+                        n_leaves=int(500 * leaves),
+                        leaf_size=0.06,
+                    )
                 else:
                     height = float(rng.uniform(1.5, 1.8))
                     builder.add_polygons(label, prism_polygons((x, y, 0.0), (0.04, 0.04, height), n_sides=8))
-                    builder.add_polygons(label, prism_polygons((x, y, height), (0.4, 0.4, 0.3), n_sides=16,
-                                                               bottom=True))
+                    builder.add_polygons(
+                        label, prism_polygons((x, y, height), (0.4, 0.4, 0.3), n_sides=16, bottom=True)
+                    )
                 break
     return builder.build(f'{room.description}; clutter {clutter}')
 
@@ -911,9 +1224,23 @@ def _footprints(scene: Scene) -> list[tuple[float, float, float, float]]:
 
 
 @njit(cache=True, nogil=True)
-def _cast_grouped_kernel(origins, directions, normals, offsets, edge_normals, edge_offsets, edge_counts, centers,
-                         radii, object_bounds, chunk_bounds, sphere_centers, sphere_radii, inside_tolerance,
-                         min_distance):
+def _cast_grouped_kernel(
+    origins,
+    directions,
+    normals,
+    offsets,
+    edge_normals,
+    edge_offsets,
+    edge_counts,
+    centers,
+    radii,
+    object_bounds,
+    chunk_bounds,
+    sphere_centers,
+    sphere_radii,
+    inside_tolerance,
+    min_distance,
+):
     """Nearest face per ray (distance or NaN, face index or -1) through a two-level hierarchy of
     bounding spheres: objects (``object_bounds`` into the chunks) and chunks of a few faces
     (``chunk_bounds`` into the faces); spheres the ray misses or that lie beyond the best hit are
@@ -950,8 +1277,25 @@ def _cast_grouped_kernel(origins, directions, normals, offsets, edge_normals, ed
                 if gx * gx + gy * gy + gz * gz - along * along > radius * radius:
                     continue
                 for f in range(chunk_bounds[c], chunk_bounds[c + 1]):
-                    t = _face_hit(f, ox, oy, oz, dx, dy, dz, best, normals, offsets, edge_normals, edge_offsets,
-                                  edge_counts, centers, radii, inside_tolerance, min_distance)
+                    t = _face_hit(
+                        f,
+                        ox,
+                        oy,
+                        oz,
+                        dx,
+                        dy,
+                        dz,
+                        best,
+                        normals,
+                        offsets,
+                        edge_normals,
+                        edge_offsets,
+                        edge_counts,
+                        centers,
+                        radii,
+                        inside_tolerance,
+                        min_distance,
+                    )
                     if t < best:
                         best = t
                         best_face = f
@@ -990,11 +1334,14 @@ def _pack_polygons(polygons: Sequence[np.ndarray]) -> _PackedPolygons:
     nxt = np.take_along_axis(padded, following_index[..., None], axis=1)  # next vertex, cyclic per polygon
     nxt = np.where(valid[..., None], nxt, 0.0)
     # Newell's normal over the real edges.
-    normal = np.stack([
-        np.sum((following[..., 1] - nxt[..., 1]) * (following[..., 2] + nxt[..., 2]), axis=1),
-        np.sum((following[..., 2] - nxt[..., 2]) * (following[..., 0] + nxt[..., 0]), axis=1),
-        np.sum((following[..., 0] - nxt[..., 0]) * (following[..., 1] + nxt[..., 1]), axis=1),
-    ], axis=1)
+    normal = np.stack(
+        [
+            np.sum((following[..., 1] - nxt[..., 1]) * (following[..., 2] + nxt[..., 2]), axis=1),
+            np.sum((following[..., 2] - nxt[..., 2]) * (following[..., 0] + nxt[..., 0]), axis=1),
+            np.sum((following[..., 0] - nxt[..., 0]) * (following[..., 1] + nxt[..., 1]), axis=1),
+        ],
+        axis=1,
+    )
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     inward = np.cross(normal[:, None, :], nxt - following)
     length = np.linalg.norm(inward, axis=2, keepdims=True)
@@ -1005,10 +1352,15 @@ def _pack_polygons(polygons: Sequence[np.ndarray]) -> _PackedPolygons:
     inward[~valid] = 0.0
     edge_offsets[~valid] = 0.0
     distances = np.where(valid, np.linalg.norm(padded - centroid[:, None, :], axis=2), 0.0)
-    return _PackedPolygons(normals=normal, offsets=np.einsum('fk,fk->f', normal, centroid),
-                           edge_normals=np.ascontiguousarray(inward), edge_offsets=np.ascontiguousarray(edge_offsets),
-                           edge_counts=counts, centers=centroid,
-                           radii=distances.max(axis=1) * (1 + 1e-12) + 1e-9)
+    return _PackedPolygons(
+        normals=normal,
+        offsets=np.einsum('fk,fk->f', normal, centroid),
+        edge_normals=np.ascontiguousarray(inward),
+        edge_offsets=np.ascontiguousarray(edge_offsets),
+        edge_counts=counts,
+        centers=centroid,
+        radii=distances.max(axis=1) * (1 + 1e-12) + 1e-9,
+    )
 
 
 def _bounding_sphere(centers: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, float]:
@@ -1082,14 +1434,21 @@ class _Caster:
             object_spheres.append(_bounding_sphere(scene_packed.centers[members], scene_packed.radii[members]))
         order = np.concatenate(chunks)
         chunk_bounds = np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).astype(np.int64)
-        chunk_centers, chunk_radii = _chunk_spheres(scene_packed.centers[order], scene_packed.radii[order],
-                                                    chunk_bounds)
+        chunk_centers, chunk_radii = _chunk_spheres(
+            scene_packed.centers[order], scene_packed.radii[order], chunk_bounds
+        )
         spheres = object_spheres + list(zip(chunk_centers, chunk_radii, strict=True))
-        packed = _PackedPolygons(**{f.name: np.ascontiguousarray(getattr(scene_packed, f.name)[order])
-                                    for f in fields(_PackedPolygons)})
-        return cls(packed=packed, order=order, object_bounds=np.array(object_bounds, dtype=np.int64),
-                   chunk_bounds=chunk_bounds, sphere_centers=np.array([c for c, _ in spheres]),
-                   sphere_radii=np.array([r for _, r in spheres]))
+        packed = _PackedPolygons(
+            **{f.name: np.ascontiguousarray(getattr(scene_packed, f.name)[order]) for f in fields(_PackedPolygons)}
+        )
+        return cls(
+            packed=packed,
+            order=order,
+            object_bounds=np.array(object_bounds, dtype=np.int64),
+            chunk_bounds=chunk_bounds,
+            sphere_centers=np.array([c for c, _ in spheres]),
+            sphere_radii=np.array([r for _, r in spheres]),
+        )
 
     @property
     def normals(self) -> np.ndarray:
@@ -1102,15 +1461,28 @@ class _Caster:
         """``(N,)`` distances (NaN: no hit) and scene face indices (-1) of ``(N, 3)`` world-frame rays."""
         p = self.packed
         distances, hits = _cast_grouped_kernel(
-            np.ascontiguousarray(origins, dtype=np.float64), np.ascontiguousarray(directions, dtype=np.float64),
-            p.normals, p.offsets, p.edge_normals, p.edge_offsets, p.edge_counts, p.centers, p.radii,
-            self.object_bounds, self.chunk_bounds, self.sphere_centers, self.sphere_radii,
-            _INSIDE_TOLERANCE, _MIN_HIT_DISTANCE)
+            np.ascontiguousarray(origins, dtype=np.float64),
+            np.ascontiguousarray(directions, dtype=np.float64),
+            p.normals,
+            p.offsets,
+            p.edge_normals,
+            p.edge_offsets,
+            p.edge_counts,
+            p.centers,
+            p.radii,
+            self.object_bounds,
+            self.chunk_bounds,
+            self.sphere_centers,
+            self.sphere_radii,
+            _INSIDE_TOLERANCE,
+            _MIN_HIT_DISTANCE,
+        )
         return distances, np.where(hits >= 0, self.order[np.maximum(hits, 0)], -1)
 
 
-def cast_surface_rays(surface_scene: SurfaceScene, origins: np.ndarray,
-                      directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cast_surface_rays(
+    surface_scene: SurfaceScene, origins: np.ndarray, directions: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Cast ``(N, 3)`` world-frame rays (unit directions) against a surface scene.
 
     Returns:
@@ -1134,8 +1506,14 @@ def cast_surface_rays(surface_scene: SurfaceScene, origins: np.ndarray,
 # --------------------------------------------------------------------------------------------
 
 
-def _undulation_waves(surface_scene: SurfaceScene, normals: np.ndarray, amplitude: float,
-                      wavelengths: tuple[float, float], count: int, seed: int) -> dict[int, np.ndarray]:
+def _undulation_waves(
+    surface_scene: SurfaceScene,
+    normals: np.ndarray,
+    amplitude: float,
+    wavelengths: tuple[float, float],
+    count: int,
+    seed: int,
+) -> dict[int, np.ndarray]:
     """Per planar surface ``(K, 5)`` waves (k vector in the surface's plane, phase, amplitude) with
     RMS height ``amplitude`` (metres), plus the scene's own ``shape_waves``. ``normals`` are the
     ``(F, 3)`` face normals in scene order."""
@@ -1153,10 +1531,12 @@ def _undulation_waves(surface_scene: SurfaceScene, normals: np.ndarray, amplitud
     angles = rng.uniform(0.0, 2 * np.pi, (len(labels), count))
     lengths = rng.uniform(wavelengths[0], wavelengths[1], (len(labels), count))
     phases = rng.uniform(0.0, 2 * np.pi, (len(labels), count))
-    vectors = (2 * np.pi / lengths)[..., None] * (np.cos(angles)[..., None] * first[:, None, :]
-                                                  + np.sin(angles)[..., None] * second[:, None, :])
-    rows = np.concatenate([vectors, phases[..., None], np.full((len(labels), count, 1),
-                                                               amplitude * math.sqrt(2.0 / count))], axis=2)
+    vectors = (2 * np.pi / lengths)[..., None] * (
+        np.cos(angles)[..., None] * first[:, None, :] + np.sin(angles)[..., None] * second[:, None, :]
+    )
+    rows = np.concatenate(
+        [vectors, phases[..., None], np.full((len(labels), count, 1), amplitude * math.sqrt(2.0 / count))], axis=2
+    )
     waves: dict[int, np.ndarray] = {}
     for index, label in enumerate(labels.tolist()):
         if amplitude > 0.0:
@@ -1183,8 +1563,15 @@ def _surface_heights(points: np.ndarray, labels: np.ndarray, waves: dict[int, np
     return np.einsum('nw,nw->n', np.cos(phase), rows[..., 4])
 
 
-def _displace_hits(origins: np.ndarray, directions: np.ndarray, distances: np.ndarray, labels: np.ndarray,
-                   normals: np.ndarray, waves: dict[int, np.ndarray], max_factor: float = 50.0) -> np.ndarray:
+def _displace_hits(
+    origins: np.ndarray,
+    directions: np.ndarray,
+    distances: np.ndarray,
+    labels: np.ndarray,
+    normals: np.ndarray,
+    waves: dict[int, np.ndarray],
+    max_factor: float = 50.0,
+) -> np.ndarray:
     """Distances to the undulating surfaces: the flat surface moved by ``h(x)`` along its normal
     towards the ray start, solved by three fixed-point steps ``t = t0 - h(x(t)) / |cos inc|``."""
     if not waves:
@@ -1257,8 +1644,9 @@ class SensorScan(SyntheticScan):
         return normal, offset
 
 
-def _ground_truth(face_labels: np.ndarray, returned: np.ndarray, clutter: frozenset[int],
-                  min_surface_pixels: int) -> np.ndarray:
+def _ground_truth(
+    face_labels: np.ndarray, returned: np.ndarray, clutter: frozenset[int], min_surface_pixels: int
+) -> np.ndarray:
     labels = np.where(returned, face_labels, 0).astype(np.int64)
     if clutter:
         labels[np.isin(labels, np.fromiter(clutter, dtype=np.int64))] = CLUTTER_LABEL
@@ -1305,12 +1693,18 @@ def _cast_undulated(scene, world_starts, world_directions, errors, seed):
     hit = faces >= 0
     face_labels = np.where(hit, scene.scene.labels[np.maximum(faces, 0)], 0)
     normals = caster.normals[np.maximum(faces, 0)]
-    waves = _undulation_waves(scene, caster.normals, errors.surface_amplitude,
-                              (errors.surface_wavelength_min, errors.surface_wavelength_max),
-                              int(errors.surface_waves), seed)
+    waves = _undulation_waves(
+        scene,
+        caster.normals,
+        errors.surface_amplitude,
+        (errors.surface_wavelength_min, errors.surface_wavelength_max),
+        int(errors.surface_waves),
+        seed,
+    )
     undulated = np.full(distances.shape, np.nan)
-    undulated[hit] = _displace_hits(world_starts[hit], world_directions[hit], distances[hit], face_labels[hit],
-                                    normals[hit], waves)
+    undulated[hit] = _displace_hits(
+        world_starts[hit], world_directions[hit], distances[hit], face_labels[hit], normals[hit], waves
+    )
     return distances, hit, face_labels, normals, undulated
 
 
@@ -1366,8 +1760,11 @@ def generate_lidar_scan(
     if not isinstance(pose, SensorPose):
         raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
     height, width = grid.shape
-    min_pixels = default_min_surface_pixels(height, width) if min_surface_pixels is None \
+    min_pixels = (
+        default_min_surface_pixels(height, width)
+        if min_surface_pixels is None
         else _check_count(min_surface_pixels, 'min_surface_pixels')
+    )
 
     calibration = np.random.default_rng([sensor_seed, 4])
     beam_bias = errors.beam_range_bias_sigma * calibration.standard_normal(height)
@@ -1383,8 +1780,9 @@ def generate_lidar_scan(
     rotation = pose.rotation()
     world_starts = starts.reshape(-1, 3) @ rotation.T + np.asarray(pose.position)
     world_directions = cast.reshape(-1, 3) @ rotation.T
-    distances, hit, face_labels, normals, undulated = _cast_undulated(scene, world_starts, world_directions, errors,
-                                                                      seed)
+    distances, hit, face_labels, normals, undulated = _cast_undulated(
+        scene, world_starts, world_directions, errors, seed
+    )
     cos_inc = np.abs(np.einsum('ij,ij->i', normals, world_directions))
     sigma = errors.sigma(cos_inc).reshape(height, width)
     measured = undulated.reshape(height, width) + beam_bias[:, None] + sigma * range_noise
@@ -1396,8 +1794,12 @@ def generate_lidar_scan(
         grazing_probability = (incidence_deg > errors.grazing_dropout_deg).astype(np.float64)
     drop_probability = 1.0 - (1.0 - grazing_probability) * (1.0 - errors.dropout_rate)
     true_ranges = distances.reshape(height, width)
-    returned = (hit.reshape(height, width) & (dropout_draw >= drop_probability) & (true_ranges <= errors.max_range)
-                & (measured >= errors.min_range))
+    returned = (
+        hit.reshape(height, width)
+        & (dropout_draw >= drop_probability)
+        & (true_ranges <= errors.max_range)
+        & (measured >= errors.min_range)
+    )
     measured = np.where(returned, measured, np.nan)
     points = starts + nominal * measured[..., None]
     face_image = face_labels.reshape(height, width).astype(np.int64)
@@ -1419,10 +1821,22 @@ def generate_lidar_scan(
         'n_surfaces': len(np.unique(labels[labels >= FIRST_LABEL])),
         'scene': scene.description,
     }
-    return SensorScan(points=points, labels=labels, origins=starts, scene=scene.scene, grid=grid, params=params,
-                      sensor_pose=pose, true_ranges=true_ranges, face_labels=face_image, region_faces={},
-                      clutter_labels=scene.clutter_labels, surface_names=dict(scene.names), frame='sensor',
-                      undulated_ranges=undulated.reshape(height, width))
+    return SensorScan(
+        points=points,
+        labels=labels,
+        origins=starts,
+        scene=scene.scene,
+        grid=grid,
+        params=params,
+        sensor_pose=pose,
+        true_ranges=true_ranges,
+        face_labels=face_image,
+        region_faces={},
+        clutter_labels=scene.clutter_labels,
+        surface_names=dict(scene.names),
+        frame='sensor',
+        undulated_ranges=undulated.reshape(height, width),
+    )
 
 
 def generate_lidar_sequence(
@@ -1450,10 +1864,24 @@ def generate_lidar_sequence(
     heading = np.array([math.cos(math.radians(pose.yaw_deg)), math.sin(math.radians(pose.yaw_deg)), 0.0])
     sweeps = []
     for k in range(n_sweeps):
-        moved = SensorPose(position=tuple(np.asarray(pose.position) + k * step * heading), roll_deg=pose.roll_deg,
-                           pitch_deg=pose.pitch_deg, yaw_deg=pose.yaw_deg)
-        sweeps.append(generate_lidar_scan(scene, seed=seed, model=model, cols=cols, sensor_pose=moved, errors=errors,
-                                          sensor_seed=seed, noise_seed=seed + 10**7 * k))
+        moved = SensorPose(
+            position=tuple(np.asarray(pose.position) + k * step * heading),
+            roll_deg=pose.roll_deg,
+            pitch_deg=pose.pitch_deg,
+            yaw_deg=pose.yaw_deg,
+        )
+        sweeps.append(
+            generate_lidar_scan(
+                scene,
+                seed=seed,
+                model=model,
+                cols=cols,
+                sensor_pose=moved,
+                errors=errors,
+                sensor_seed=seed,
+                noise_seed=seed + 10**7 * k,
+            )
+        )
     return sweeps
 
 
@@ -1464,8 +1892,9 @@ KINECT_INTRINSICS = (575.0, 575.0, 319.5, 239.5)
 _SENSOR_FROM_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-def _check_depth_setup(scene, seed, width, height, intrinsics, sensor_pose, errors, sensor_seed, noise_seed,
-                       min_surface_pixels):
+def _check_depth_setup(
+    scene, seed, width, height, intrinsics, sensor_pose, errors, sensor_seed, noise_seed, min_surface_pixels
+):
     """Validated set-up of :func:`generate_depth_scan` with the defaults filled in.
 
     Returns ``(scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy) in
@@ -1493,13 +1922,17 @@ def _check_depth_setup(scene, seed, width, height, intrinsics, sensor_pose, erro
         scene = make_indoor_scene(seed, sensor_pose=pose)
     elif not isinstance(scene, SurfaceScene):
         raise ValueError(f'scene must be a SurfaceScene or None; got {type(scene).__name__}')
-    min_pixels = default_min_surface_pixels(height, width, reference_pixels=500 * 500) \
-        if min_surface_pixels is None else _check_count(min_surface_pixels, 'min_surface_pixels')
+    min_pixels = (
+        default_min_surface_pixels(height, width, reference_pixels=500 * 500)
+        if min_surface_pixels is None
+        else _check_count(min_surface_pixels, 'min_surface_pixels')
+    )
     return scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy), pose, min_pixels
 
 
-def _pixel_rays(intrinsics: tuple[float, float, float, float], lateral: np.ndarray,
-                lateral_sigma_px: float) -> np.ndarray:
+def _pixel_rays(
+    intrinsics: tuple[float, float, float, float], lateral: np.ndarray, lateral_sigma_px: float
+) -> np.ndarray:
     """``(H, W, 3)`` unit ray directions in the optical frame through the pixels, each pixel position
     jittered by ``lateral_sigma_px`` times the standard normal draws ``lateral`` ``(H, W, 2)`` (u, v)."""
     fx, fy, cx, cy = intrinsics
@@ -1511,9 +1944,16 @@ def _pixel_rays(intrinsics: tuple[float, float, float, float], lateral: np.ndarr
     return rays
 
 
-def _projector_shadow(scene: SurfaceScene, projector_offset: float, position: np.ndarray, rotation: np.ndarray,
-                      world_starts: np.ndarray, world_directions: np.ndarray, distances: np.ndarray,
-                      hit: np.ndarray) -> np.ndarray:
+def _projector_shadow(
+    scene: SurfaceScene,
+    projector_offset: float,
+    position: np.ndarray,
+    rotation: np.ndarray,
+    world_starts: np.ndarray,
+    world_directions: np.ndarray,
+    distances: np.ndarray,
+    hit: np.ndarray,
+) -> np.ndarray:
     """Flat bool mask of the hits the projector (``projector_offset`` metres along the camera's
     optical x axis) does not see: the ray from the projector to the hit point is blocked first."""
     shadowed = np.zeros(hit.shape, dtype=bool)
@@ -1527,8 +1967,14 @@ def _projector_shadow(scene: SurfaceScene, projector_offset: float, position: np
     return shadowed
 
 
-def _disparity_depth(depth: np.ndarray, errors: DepthErrorModel, principal_point: tuple[float, float],
-                     band_phase: float, sigma_d: float, disparity_noise: np.ndarray) -> np.ndarray:
+def _disparity_depth(
+    depth: np.ndarray,
+    errors: DepthErrorModel,
+    principal_point: tuple[float, float],
+    band_phase: float,
+    sigma_d: float,
+    disparity_noise: np.ndarray,
+) -> np.ndarray:
     """``(H, W)`` measured depth (metres; non-finite where the disparity is not usable) from the
     depth of the undulated surfaces: low-frequency distortion (fixed per sensor), then disparity
     noise (``sigma_d`` px times the standard normal draws) and quantisation."""
@@ -1537,8 +1983,9 @@ def _disparity_depth(depth: np.ndarray, errors: DepthErrorModel, principal_point
     uu = np.arange(width, dtype=np.float64)[None, :]
     vv = np.arange(height, dtype=np.float64)[:, None]
     rho2 = ((uu - cx) ** 2 + (vv - cy) ** 2) / (cx**2 + cy**2)
-    pattern = errors.radial_weight * (rho2 - 0.5) + errors.band_weight * np.cos(2 * np.pi * uu / errors.band_period_px
-                                                                                  + band_phase)
+    pattern = errors.radial_weight * (rho2 - 0.5) + errors.band_weight * np.cos(
+        2 * np.pi * uu / errors.band_period_px + band_phase
+    )
     distorted = depth + errors.distortion_coefficient * depth**2 * pattern
     focal_baseline = errors.focal_px * errors.baseline
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -1558,8 +2005,10 @@ def _depth_edges(true_depth: np.ndarray, edge_draw: np.ndarray, errors: DepthErr
         filled = np.where(np.isfinite(true_depth), true_depth, np.inf)
         for axis in (0, 1):
             jump = np.abs(np.diff(filled, axis=axis))
-            limit = errors.edge_jump_fraction * np.minimum(np.take(filled, range(filled.shape[axis] - 1), axis=axis),
-                                                           np.take(filled, range(1, filled.shape[axis]), axis=axis))
+            limit = errors.edge_jump_fraction * np.minimum(
+                np.take(filled, range(filled.shape[axis] - 1), axis=axis),
+                np.take(filled, range(1, filled.shape[axis]), axis=axis),
+            )
             big = ~(jump <= limit)
             if axis == 0:
                 edge[:-1] |= big
@@ -1611,9 +2060,11 @@ def generate_depth_scan(
         A :class:`SensorScan` with ``points`` in the optical frame (``frame='camera'``), ``origins``
         None (every ray starts at the camera centre), ``intrinsics`` and ``true_depth`` set.
     """
-    scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy), pose, min_pixels = \
-        _check_depth_setup(scene, seed, width, height, intrinsics, sensor_pose, errors, sensor_seed, noise_seed,
-                           min_surface_pixels)
+    scene, (seed, sensor_seed, noise_seed), errors, (width, height), (fx, fy, cx, cy), pose, min_pixels = (
+        _check_depth_setup(
+            scene, seed, width, height, intrinsics, sensor_pose, errors, sensor_seed, noise_seed, min_surface_pixels
+        )
+    )
     sigma_d = errors.disparity_sigma() if errors.axial_noise_coefficient > 0 else 0.0
 
     rng = np.random.default_rng([noise_seed, 2])
@@ -1629,21 +2080,28 @@ def generate_depth_scan(
     position = np.asarray(pose.position)
     world_directions = rays.reshape(-1, 3) @ rotation.T
     world_starts = np.broadcast_to(position, world_directions.shape)
-    distances, hit, face_labels, _, undulated = _cast_undulated(scene, world_starts, world_directions, errors,
-                                                                seed)
+    distances, hit, face_labels, _, undulated = _cast_undulated(scene, world_starts, world_directions, errors, seed)
     ray_z = rays[..., 2]
     true_depth = distances.reshape(height, width) * ray_z
     depth = undulated.reshape(height, width) * ray_z
 
     # The error model: projector shadow, distorted and noisy disparity, then the dropouts (next to
     # a jump of the true depth, at random) and the range limits.
-    shadowed = _projector_shadow(scene, errors.projector_offset, position, rotation, world_starts, world_directions,
-                                 distances, hit).reshape(height, width)
+    shadowed = _projector_shadow(
+        scene, errors.projector_offset, position, rotation, world_starts, world_directions, distances, hit
+    ).reshape(height, width)
     measured = _disparity_depth(depth, errors, (cx, cy), band_phase, sigma_d, disparity_noise)
     edge = _depth_edges(true_depth, edge_draw, errors)
-    returned = (hit.reshape(height, width) & ~shadowed & ~edge & (dropout_draw >= errors.dropout_rate)
-                & np.isfinite(measured) & (measured >= errors.min_depth) & (measured <= errors.max_depth)
-                & (true_depth <= errors.max_depth))
+    returned = (
+        hit.reshape(height, width)
+        & ~shadowed
+        & ~edge
+        & (dropout_draw >= errors.dropout_rate)
+        & np.isfinite(measured)
+        & (measured >= errors.min_depth)
+        & (measured <= errors.max_depth)
+        & (true_depth <= errors.max_depth)
+    )
     measured = np.where(returned, measured, np.nan)
     points = _camera_points(measured, (fx, fy, cx, cy))
     face_image = face_labels.reshape(height, width).astype(np.int64)
@@ -1665,10 +2123,23 @@ def generate_depth_scan(
         'n_surfaces': len(np.unique(labels[labels >= FIRST_LABEL])),
         'scene': scene.description,
     }
-    scan = SensorScan(points=points, labels=labels, origins=None, scene=scene.scene, grid=None, params=params,
-                      sensor_pose=pose, true_ranges=distances.reshape(height, width), face_labels=face_image,
-                      region_faces={}, clutter_labels=scene.clutter_labels, surface_names=dict(scene.names),
-                      frame='camera', sensor_from_frame=_SENSOR_FROM_CAMERA.copy(),
-                      undulated_ranges=undulated.reshape(height, width), true_depth=true_depth,
-                      intrinsics=(fx, fy, cx, cy))
+    scan = SensorScan(
+        points=points,
+        labels=labels,
+        origins=None,
+        scene=scene.scene,
+        grid=None,
+        params=params,
+        sensor_pose=pose,
+        true_ranges=distances.reshape(height, width),
+        face_labels=face_image,
+        region_faces={},
+        clutter_labels=scene.clutter_labels,
+        surface_names=dict(scene.names),
+        frame='camera',
+        sensor_from_frame=_SENSOR_FROM_CAMERA.copy(),
+        undulated_ranges=undulated.reshape(height, width),
+        true_depth=true_depth,
+        intrinsics=(fx, fy, cx, cy),
+    )
     return scan

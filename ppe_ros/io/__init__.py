@@ -1,7 +1,7 @@
 """Scan files (PCD, NPY, depth PNG) -> organized clouds, and PCD writing. Pure numpy/numba (+ Pillow for PNG).
 
-    from ppe_ros.io import load_scan
-    scan = load_scan('../shared/data/synpeb/pc_01.pcd')   # scan.points (H, W, 3) metres, scan.labels
+from ppe_ros.io import load_scan
+scan = load_scan('../shared/data/synpeb/pc_01.pcd')   # scan.points (H, W, 3) metres, scan.labels
 """
 
 from __future__ import annotations

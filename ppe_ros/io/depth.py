@@ -54,7 +54,7 @@ class PinholeIntrinsics:
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(
                 f'focal lengths must be positive for the y-down camera frame; got fx={self.fx}, fy={self.fy} '
-                f'(a negative fy, like ICL-NUIM\'s -480, means +480 here)'
+                f"(a negative fy, like ICL-NUIM's -480, means +480 here)"
             )
 
     def as_tuple(self) -> tuple[float, float, float, float]:
@@ -106,8 +106,18 @@ def read_depth_png(path: str | os.PathLike[str]) -> np.ndarray:
                 )
             image.load()
             depth = np.array(image)
-    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, SyntaxError, ValueError, TypeError,
-            IndexError, struct.error, zlib.error, EOFError) as exc:
+    except (
+        UnidentifiedImageError,
+        Image.DecompressionBombError,
+        OSError,
+        SyntaxError,
+        ValueError,
+        TypeError,
+        IndexError,
+        struct.error,
+        zlib.error,
+        EOFError,
+    ) as exc:
         if isinstance(exc, ScanFileError):
             raise
         text = ' '.join(str(exc).split()) or type(exc).__name__

@@ -33,8 +33,9 @@ def same_file(first: str | os.PathLike[str], second: str | os.PathLike[str]) -> 
         return Path(first).resolve() == Path(second).resolve()
 
 
-def refuse_overwriting_inputs(outputs: Sequence[str | os.PathLike[str]],
-                              inputs: Iterable[str | os.PathLike[str]]) -> None:
+def refuse_overwriting_inputs(
+    outputs: Sequence[str | os.PathLike[str]], inputs: Iterable[str | os.PathLike[str]]
+) -> None:
     """Raise ValueError if an output is an input (by device and inode) or two outputs are one file."""
     input_list = [Path(p) for p in inputs]
     output_list = [Path(p) for p in outputs]
@@ -69,8 +70,9 @@ def _open_for_writing(path: Path) -> BinaryIO:
     return os.fdopen(fd, 'wb')
 
 
-def write_files_atomically(files: Sequence[tuple[str | os.PathLike[str], Writer]], *,
-                           overwrite: bool = False) -> list[Path]:
+def write_files_atomically(
+    files: Sequence[tuple[str | os.PathLike[str], Writer]], *, overwrite: bool = False
+) -> list[Path]:
     """Write several files all-or-nothing: every file complete under its name, or none changed.
 
     Args:

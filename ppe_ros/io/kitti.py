@@ -32,12 +32,15 @@ def read_kitti_bin(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray
     if size == 0:
         raise ScanFileError(f'{file_path}: empty file; a KITTI .bin holds 16-byte points (float32 x y z reflectance)')
     if size % KITTI_POINT_BYTES:
-        raise ScanFileError(f'{file_path}: {size} bytes is not a whole number of 16-byte points '
-                            f'(float32 x y z reflectance): truncated, or not a KITTI .bin file')
+        raise ScanFileError(
+            f'{file_path}: {size} bytes is not a whole number of 16-byte points '
+            f'(float32 x y z reflectance): truncated, or not a KITTI .bin file'
+        )
     count = size // KITTI_POINT_BYTES
     if count > MAX_SCAN_POINTS:
-        raise ScanFileError(f'{file_path}: holds {count} points; at most {MAX_SCAN_POINTS} points per scan are '
-                            'supported')
+        raise ScanFileError(
+            f'{file_path}: holds {count} points; at most {MAX_SCAN_POINTS} points per scan are supported'
+        )
     values = np.fromfile(file_path, dtype='<f4', count=count * 4).reshape(count, 4)
     with np.errstate(invalid='ignore', over='ignore'):
         return values[:, :3].astype(np.float64), values[:, 3].copy()

@@ -47,8 +47,11 @@ def check_grid_size(path: str | os.PathLike[str], rows: int, columns: int, what:
         ScanFileError: names the file, the declared size and the limit.
     """
     if rows * columns > MAX_SCAN_POINTS:
-        raise ScanFileError(f'{path}: declares a {rows} x {columns} {what} = {rows * columns} points; at most '
-                            f'{MAX_SCAN_POINTS} points per scan are supported')
+        raise ScanFileError(
+            f'{path}: declares a {rows} x {columns} {what} = {rows * columns} points; at most '
+            f'{MAX_SCAN_POINTS} points per scan are supported'
+        )
     if max(rows, columns) > MAX_GRID_DIMENSION:
-        raise ScanFileError(f'{path}: declares a {rows} x {columns} {what}; at most {MAX_GRID_DIMENSION} rows '
-                            f'and columns are supported')
+        raise ScanFileError(
+            f'{path}: declares a {rows} x {columns} {what}; at most {MAX_GRID_DIMENSION} rows and columns are supported'
+        )

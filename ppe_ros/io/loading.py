@@ -230,8 +230,9 @@ def _check_npy_scan(path: Path, shape: tuple[int, ...], dtype: np.dtype) -> None
 
 
 def _load_npy(path: Path, scale: float | None, meta: dict[str, Any]):
-    array = read_npy(path, lambda shape, dtype: _check_npy_scan(path, shape, dtype),
-                     what='.npy scan (an H x W x 3 float array)')
+    array = read_npy(
+        path, lambda shape, dtype: _check_npy_scan(path, shape, dtype), what='.npy scan (an H x W x 3 float array)'
+    )
     meta.update(dtype=str(array.dtype))
     factor = 1.0 if scale is None else scale
     origins = None
@@ -279,9 +280,7 @@ def _load_depth_png(
     elif calibration is not None:
         metres_per_count, scale_source = calibration.depth_scale, calibration.source
     else:
-        raise ScanFileError(
-            f'{path}: unknown depth unit: pass units (e.g. "mm") or depth_scale (metres per count)'
-        )
+        raise ScanFileError(f'{path}: unknown depth unit: pass units (e.g. "mm") or depth_scale (metres per count)')
     meta.update(
         intrinsics=list(camera.as_tuple()),
         intrinsics_source=intrinsics_source,
@@ -376,5 +375,12 @@ def load_scan(
         labels = _load_labels_file(sidecar, shape)
         meta.update(labels_source=str(sidecar), min_plane_label=1)
     rings = meta.pop('rings', None)
-    return Scan(points=points, labels=labels, origins=origins, path=file_path, format=fmt, meta=meta,
-                rings=None if rings is None else rings.reshape(shape))
+    return Scan(
+        points=points,
+        labels=labels,
+        origins=origins,
+        path=file_path,
+        format=fmt,
+        meta=meta,
+        rings=None if rings is None else rings.reshape(shape),
+    )

@@ -165,8 +165,7 @@ def lzf_decompress(data: bytes | bytearray | memoryview | np.ndarray, raw_size: 
         )
     if status == _BAD_BACKREFERENCE:
         raise ValueError(
-            f'corrupt LZF data: back-reference before the start of the output at input byte {ip} '
-            f'(output position {op})'
+            f'corrupt LZF data: back-reference before the start of the output at input byte {ip} (output position {op})'
         )
     if op != raw_size:
         raise ValueError(

@@ -23,8 +23,12 @@ from ppe_ros.io.errors import ScanFileError
 _HEADER_ERRORS = (ValueError, SyntaxError, TypeError, KeyError, EOFError, tokenize.TokenError, RecursionError)
 
 
-def read_npy(path: str | os.PathLike[str], check: Callable[[tuple[int, ...], np.dtype], None] | None = None,
-             *, what: str = '.npy array') -> np.ndarray:
+def read_npy(
+    path: str | os.PathLike[str],
+    check: Callable[[tuple[int, ...], np.dtype], None] | None = None,
+    *,
+    what: str = '.npy array',
+) -> np.ndarray:
     """Read a ``.npy`` file after checking its header.
 
     Args:
@@ -41,16 +45,22 @@ def read_npy(path: str | os.PathLike[str], check: Callable[[tuple[int, ...], np.
         return read_npy_stream(stream, file_path.stat().st_size, str(file_path), check, what=what)
 
 
-def read_npy_stream(stream: BinaryIO, size: int, name: str,
-                    check: Callable[[tuple[int, ...], np.dtype], None] | None = None,
-                    *, what: str = '.npy array') -> np.ndarray:
+def read_npy_stream(
+    stream: BinaryIO,
+    size: int,
+    name: str,
+    check: Callable[[tuple[int, ...], np.dtype], None] | None = None,
+    *,
+    what: str = '.npy array',
+) -> np.ndarray:
     """:func:`read_npy` from an open binary stream of ``size`` bytes (e.g. a member of an ``.npz``)
     named ``name`` in the messages."""
     try:
         version = np.lib.format.read_magic(stream)
     except _HEADER_ERRORS as exc:
-        raise ScanFileError(f'{name}: not a readable {what} (no .npy header; empty or not a .npy '
-                            f'file): {_one_line(exc)}') from None
+        raise ScanFileError(
+            f'{name}: not a readable {what} (no .npy header; empty or not a .npy file): {_one_line(exc)}'
+        ) from None
     if version not in ((1, 0), (2, 0)):
         raise ScanFileError(f'{name}: unsupported .npy format version {version[0]}.{version[1]}')
     reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
@@ -66,8 +76,10 @@ def read_npy_stream(stream: BinaryIO, size: int, name: str,
     declared = count * dtype.itemsize
     available = size - stream.tell()
     if declared > available:
-        raise ScanFileError(f'{name}: truncated .npy data: the header declares shape {shape} of {dtype} '
-                            f'= {declared} bytes, the file holds {available} after the header')
+        raise ScanFileError(
+            f'{name}: truncated .npy data: the header declares shape {shape} of {dtype} '
+            f'= {declared} bytes, the file holds {available} after the header'
+        )
     buffer = bytearray(declared)
     filled = 0
     view = memoryview(buffer)

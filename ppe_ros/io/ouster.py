@@ -47,8 +47,9 @@ def read_ouster_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise ScanFileError(f'{file_path}: not a readable JSON file: {exc}') from None
     if not isinstance(metadata, dict):
-        raise ScanFileError(f'{file_path}: not Ouster sensor metadata (a JSON {type(metadata).__name__}, '
-                            f'expected an object)')
+        raise ScanFileError(
+            f'{file_path}: not Ouster sensor metadata (a JSON {type(metadata).__name__}, expected an object)'
+        )
     required = ('lidar_origin_to_beam_origin_mm', 'lidar_to_sensor_transform', 'data_format')
     missing = [key for key in required if key not in metadata]
     if missing:
@@ -98,16 +99,20 @@ def ouster_ray_origins(metadata: dict[str, Any], height: int, width: int, *, sou
     rows = _count(source, 'data_format.pixels_per_column', data_format.get('pixels_per_column'))
     columns = _count(source, 'data_format.columns_per_frame', data_format.get('columns_per_frame'))
     if (rows, columns) != (height, width):
-        raise ScanFileError(
-            f'{source}: describes a {rows} x {columns} image, the scan is {height} x {width}'
-        )
+        raise ScanFileError(f'{source}: describes a {rows} x {columns} image, the scan is {height} x {width}')
     window = data_format.get('column_window', [0, width - 1])
     if window != [0, width - 1]:
         raise ScanFileError(f'{source}: column_window {window} is not the full sweep; ray starts unknown')
-    shifts = _numbers(source, 'data_format.pixel_shift_by_row', data_format.get('pixel_shift_by_row', [0] * height),
-                      height, 'one per row')
-    transform = _numbers(source, 'lidar_to_sensor_transform', metadata.get('lidar_to_sensor_transform'), 16,
-                         'a row-major 4 x 4 matrix').reshape(4, 4)
+    shifts = _numbers(
+        source,
+        'data_format.pixel_shift_by_row',
+        data_format.get('pixel_shift_by_row', [0] * height),
+        height,
+        'one per row',
+    )
+    transform = _numbers(
+        source, 'lidar_to_sensor_transform', metadata.get('lidar_to_sensor_transform'), 16, 'a row-major 4 x 4 matrix'
+    ).reshape(4, 4)
     rotation = transform[:3, :3]
     translation = transform[:3, 3] / 1000.0
     offset = _number(source, 'lidar_origin_to_beam_origin_mm', metadata.get('lidar_origin_to_beam_origin_mm')) / 1000.0

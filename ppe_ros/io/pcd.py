@@ -149,8 +149,11 @@ def parse_pcd_header(raw: bytes, path: Path | str = '<bytes>') -> PcdHeader:
         keyword = keyword.upper()
         if keyword not in _KEYWORDS:
             if not entries:
-                raise _error(path, f'not a PCD file: line {line_number} starts with {keyword[:40]!r}, '
-                                   f'expected a PCD header keyword such as VERSION or FIELDS')
+                raise _error(
+                    path,
+                    f'not a PCD file: line {line_number} starts with {keyword[:40]!r}, '
+                    f'expected a PCD header keyword such as VERSION or FIELDS',
+                )
             raise _error(path, f'unknown PCD header keyword {keyword[:40]!r} on line {line_number}')
         entries[keyword] = values
         if keyword == 'DATA':
@@ -175,8 +178,11 @@ def parse_pcd_header(raw: bytes, path: Path | str = '<bytes>') -> PcdHeader:
     counts = _parse_ints(path, 'COUNT', entries['COUNT'], n_fields) if 'COUNT' in entries else (1,) * n_fields
     for name, size, kind, count in zip(fields, sizes, types, counts, strict=True):
         if (kind, size) not in _PCD_TO_NUMPY:
-            raise _error(path, f'field {name!r}: unsupported TYPE {kind} with SIZE {size} '
-                               f'(supported: I/U with 1, 2, 4, 8 bytes, F with 4 or 8)')
+            raise _error(
+                path,
+                f'field {name!r}: unsupported TYPE {kind} with SIZE {size} '
+                f'(supported: I/U with 1, 2, 4, 8 bytes, F with 4 or 8)',
+            )
         if count < 1:
             raise _error(path, f'field {name!r}: COUNT must be >= 1; found {count}')
     (width,) = _parse_ints(path, 'WIDTH', entries['WIDTH'], 1)
@@ -187,8 +193,9 @@ def parse_pcd_header(raw: bytes, path: Path | str = '<bytes>') -> PcdHeader:
     if 'POINTS' in entries:
         (declared,) = _parse_ints(path, 'POINTS', entries['POINTS'], 1)
         if declared != points:
-            raise _error(path, f'PCD header POINTS {declared} differs from WIDTH × HEIGHT = '
-                               f'{width} × {height} = {points}')
+            raise _error(
+                path, f'PCD header POINTS {declared} differs from WIDTH × HEIGHT = {width} × {height} = {points}'
+            )
     viewpoint = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
     if 'VIEWPOINT' in entries:
         try:
@@ -196,8 +203,7 @@ def parse_pcd_header(raw: bytes, path: Path | str = '<bytes>') -> PcdHeader:
         except ValueError:
             raise _error(path, f'PCD header VIEWPOINT must be 7 numbers; found {entries["VIEWPOINT"]}') from None
         if len(viewpoint) != 7:
-            raise _error(path, f'PCD header VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz); '
-                               f'found {len(viewpoint)}')
+            raise _error(path, f'PCD header VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz); found {len(viewpoint)}')
     encoding = ' '.join(entries['DATA']).lower()
     if encoding not in ENCODINGS:
         raise _error(path, f'unsupported PCD DATA encoding {encoding!r} (supported: {", ".join(ENCODINGS)})')
@@ -221,14 +227,23 @@ def _check_limits(path: Path | str, header: PcdHeader) -> int:
     """Refuse declared sizes beyond :mod:`ppe_ros.io.limits`; returns the bytes per point."""
     values_per_point = sum(header.counts)
     if values_per_point > MAX_PCD_VALUES_PER_POINT:
-        raise _error(path, f'PCD header COUNT declares {values_per_point} values per point; at most '
-                           f'{MAX_PCD_VALUES_PER_POINT} are supported (corrupt header?)')
+        raise _error(
+            path,
+            f'PCD header COUNT declares {values_per_point} values per point; at most '
+            f'{MAX_PCD_VALUES_PER_POINT} are supported (corrupt header?)',
+        )
     if header.points > MAX_SCAN_POINTS:
-        raise _error(path, f'PCD header declares {header.points} points (WIDTH {header.width} × HEIGHT '
-                           f'{header.height}); at most {MAX_SCAN_POINTS} points per scan are supported')
+        raise _error(
+            path,
+            f'PCD header declares {header.points} points (WIDTH {header.width} × HEIGHT '
+            f'{header.height}); at most {MAX_SCAN_POINTS} points per scan are supported',
+        )
     if header.height > 1 and max(header.width, header.height) > MAX_GRID_DIMENSION:
-        raise _error(path, f'PCD header declares a {header.height} × {header.width} grid; at most '
-                           f'{MAX_GRID_DIMENSION} rows and columns are supported')
+        raise _error(
+            path,
+            f'PCD header declares a {header.height} × {header.width} grid; at most '
+            f'{MAX_GRID_DIMENSION} rows and columns are supported',
+        )
     return sum(size * count for size, count in zip(header.sizes, header.counts, strict=True))
 
 
@@ -237,7 +252,7 @@ def _ascii_chunks(body: bytes, chunk_bytes: int = 1 << 23):
     position = 0
     while position < len(body):
         end = min(position + chunk_bytes, len(body))
-        while end < len(body) and not body[end:end + 1].isspace():
+        while end < len(body) and not body[end : end + 1].isspace():
             end += 1
         yield body[position:end]
         position = end
@@ -251,21 +266,27 @@ def _read_ascii(path: Path | str, header: PcdHeader, body: bytes, dtype: np.dtyp
     for chunk in _ascii_chunks(body):  # in pieces: a list of all tokens would need ~50 bytes per value
         tokens = chunk.split()
         if found + len(tokens) > expected:
-            raise _error(path, f'corrupt DATA ascii: expected {expected} values (POINTS {header.points} × '
-                               f'{values_per_point} per point), found more')
+            raise _error(
+                path,
+                f'corrupt DATA ascii: expected {expected} values (POINTS {header.points} × '
+                f'{values_per_point} per point), found more',
+            )
         try:
-            numbers[found:found + len(tokens)] = np.array(tokens, dtype=np.float64)
+            numbers[found : found + len(tokens)] = np.array(tokens, dtype=np.float64)
         except ValueError as exc:
             raise _error(path, f'corrupt DATA ascii: a value is not a number ({exc})') from None
         found += len(tokens)
     if found != expected:
-        raise _error(path, f'truncated DATA ascii: expected {expected} values (POINTS {header.points} × '
-                           f'{values_per_point} per point), found {found}')
+        raise _error(
+            path,
+            f'truncated DATA ascii: expected {expected} values (POINTS {header.points} × '
+            f'{values_per_point} per point), found {found}',
+        )
     numbers = numbers.reshape(header.points, values_per_point)
     out = np.zeros(header.points, dtype=dtype)
     column = 0
     for name, count in zip(dtype.names, header.counts, strict=True):
-        block = numbers[:, column:column + count]
+        block = numbers[:, column : column + count]
         target = out[name]
         if np.issubdtype(target.dtype, np.integer):
             if not np.all(np.isfinite(block)):
@@ -299,33 +320,51 @@ def _read_body(path: Path, header: PcdHeader, dtype: np.dtype, bytes_per_point: 
         if header.encoding == 'binary':
             expected = header.points * bytes_per_point
             if available < expected:
-                raise _error(path, f'truncated DATA binary: expected {expected} bytes (POINTS {header.points} × '
-                                   f'{bytes_per_point} bytes per point), found {available}')
+                raise _error(
+                    path,
+                    f'truncated DATA binary: expected {expected} bytes (POINTS {header.points} × '
+                    f'{bytes_per_point} bytes per point), found {available}',
+                )
             body = _read_exactly(stream, expected)
             return np.frombuffer(body, dtype=dtype, count=header.points)
         if header.encoding == 'ascii':
             values = header.points * sum(header.counts)
             if available < 2 * values - 1:  # each value takes a character and a separator
-                raise _error(path, f'truncated DATA ascii: expected {values} values (POINTS {header.points} × '
-                                   f'{sum(header.counts)} per point), found only {available} bytes of text')
+                raise _error(
+                    path,
+                    f'truncated DATA ascii: expected {values} values (POINTS {header.points} × '
+                    f'{sum(header.counts)} per point), found only {available} bytes of text',
+                )
             if available > values * MAX_ASCII_BYTES_PER_VALUE + (1 << 16):
-                raise _error(path, f'corrupt DATA ascii: {available} bytes of text for {values} values '
-                                   f'(POINTS {header.points}); a value takes at most {MAX_ASCII_BYTES_PER_VALUE}')
+                raise _error(
+                    path,
+                    f'corrupt DATA ascii: {available} bytes of text for {values} values '
+                    f'(POINTS {header.points}); a value takes at most {MAX_ASCII_BYTES_PER_VALUE}',
+                )
             return _read_ascii(path, header, bytes(_read_exactly(stream, available)), dtype)
         if available < 8:
-            raise _error(path, f'truncated DATA binary_compressed: expected an 8-byte size prefix, '
-                               f'found {available} bytes')
+            raise _error(
+                path, f'truncated DATA binary_compressed: expected an 8-byte size prefix, found {available} bytes'
+            )
         compressed_size, raw_size = struct.unpack('<II', _read_exactly(stream, 8))
         expected_raw = header.points * bytes_per_point
         if raw_size != expected_raw:
-            raise _error(path, f'corrupt DATA binary_compressed: the size prefix says {raw_size} raw bytes, '
-                               f'the header needs {expected_raw} (POINTS {header.points} × {bytes_per_point})')
+            raise _error(
+                path,
+                f'corrupt DATA binary_compressed: the size prefix says {raw_size} raw bytes, '
+                f'the header needs {expected_raw} (POINTS {header.points} × {bytes_per_point})',
+            )
         if available - 8 < compressed_size:
-            raise _error(path, f'truncated DATA binary_compressed: expected {compressed_size} compressed bytes, '
-                               f'found {available - 8}')
+            raise _error(
+                path,
+                f'truncated DATA binary_compressed: expected {compressed_size} compressed bytes, found {available - 8}',
+            )
         if raw_size > LZF_MAX_EXPANSION * compressed_size + 264:
-            raise _error(path, f'corrupt DATA binary_compressed: {compressed_size} compressed bytes cannot expand to '
-                               f'the declared {raw_size} raw bytes (LZF expands at most {LZF_MAX_EXPANSION}-fold)')
+            raise _error(
+                path,
+                f'corrupt DATA binary_compressed: {compressed_size} compressed bytes cannot expand to '
+                f'the declared {raw_size} raw bytes (LZF expands at most {LZF_MAX_EXPANSION}-fold)',
+            )
         block = np.frombuffer(_read_exactly(stream, compressed_size), dtype=np.uint8)
     try:
         raw = lzf_decompress(block, raw_size)
@@ -338,7 +377,7 @@ def _read_body(path: Path, header: PcdHeader, dtype: np.dtype, bytes_per_point: 
         field_dtype = dtype.fields[name][0]
         nbytes = header.points * field_dtype.itemsize
         base = field_dtype.base
-        values = raw[start:start + nbytes].view(base)
+        values = raw[start : start + nbytes].view(base)
         out[name] = values.reshape((header.points, *field_dtype.shape))
         start += nbytes
     return out
@@ -378,17 +417,26 @@ def read_pcd(path: str | os.PathLike[str]) -> PcdCloud:
 # --------------------------------------------------------------------------------------------
 
 _NUMPY_TO_PCD: dict[str, tuple[str, int]] = {
-    'i1': ('I', 1), 'i2': ('I', 2), 'i4': ('I', 4), 'i8': ('I', 8),
-    'u1': ('U', 1), 'u2': ('U', 2), 'u4': ('U', 4), 'u8': ('U', 8),
-    'f4': ('F', 4), 'f8': ('F', 8),
+    'i1': ('I', 1),
+    'i2': ('I', 2),
+    'i4': ('I', 4),
+    'i8': ('I', 8),
+    'u1': ('U', 1),
+    'u2': ('U', 2),
+    'u4': ('U', 4),
+    'u8': ('U', 8),
+    'f4': ('F', 4),
+    'f8': ('F', 8),
 }
 
 
 def _pcd_type(name: str, dtype: np.dtype) -> tuple[str, int]:
     key = f'{dtype.kind}{dtype.itemsize}'
     if key not in _NUMPY_TO_PCD:
-        raise ValueError(f'field {name!r}: dtype {dtype} cannot be stored in a PCD file '
-                         f'(use int8..int64, uint8..uint64, float32 or float64)')
+        raise ValueError(
+            f'field {name!r}: dtype {dtype} cannot be stored in a PCD file '
+            f'(use int8..int64, uint8..uint64, float32 or float64)'
+        )
     return _NUMPY_TO_PCD[key]
 
 
@@ -422,8 +470,10 @@ def encode_pcd(
         if not np.issubdtype(label_array.dtype, np.integer):
             raise ValueError(f'labels must be integers; got dtype {label_array.dtype}')
         if label_array.size and (label_array.min() < 0 or label_array.max() > np.iinfo(np.uint32).max):
-            raise ValueError(f'labels must lie in 0 .. 2**32-1 to be stored as uint32; '
-                             f'found {label_array.min()} .. {label_array.max()}')
+            raise ValueError(
+                f'labels must lie in 0 .. 2**32-1 to be stored as uint32; '
+                f'found {label_array.min()} .. {label_array.max()}'
+            )
         columns['label'] = label_array.astype(np.uint32)
     for name, values in (extra_fields or {}).items():
         if name in columns:
@@ -442,20 +492,22 @@ def encode_pcd(
     types = [_pcd_type(name, array.dtype) for name, array in columns.items()]
     encoding = 'ascii' if not binary else ('binary_compressed' if compressed else 'binary')
     n_points = height * width
-    header = '\n'.join([
-        '# .PCD v0.7 - Point Cloud Data file format (written by ppe_ros)',
-        'VERSION 0.7',
-        'FIELDS ' + ' '.join(columns),
-        'SIZE ' + ' '.join(str(size) for _, size in types),
-        'TYPE ' + ' '.join(kind for kind, _ in types),
-        'COUNT ' + ' '.join('1' for _ in columns),
-        f'WIDTH {width}',
-        f'HEIGHT {height}',
-        'VIEWPOINT ' + ' '.join(f'{v:.9g}' for v in view),
-        f'POINTS {n_points}',
-        f'DATA {encoding}',
-        '',
-    ]).encode('ascii')
+    header = '\n'.join(
+        [
+            '# .PCD v0.7 - Point Cloud Data file format (written by ppe_ros)',
+            'VERSION 0.7',
+            'FIELDS ' + ' '.join(columns),
+            'SIZE ' + ' '.join(str(size) for _, size in types),
+            'TYPE ' + ' '.join(kind for kind, _ in types),
+            'COUNT ' + ' '.join('1' for _ in columns),
+            f'WIDTH {width}',
+            f'HEIGHT {height}',
+            'VIEWPOINT ' + ' '.join(f'{v:.9g}' for v in view),
+            f'POINTS {n_points}',
+            f'DATA {encoding}',
+            '',
+        ]
+    ).encode('ascii')
 
     record = np.dtype([(name, np.dtype(array.dtype).newbyteorder('<')) for name, array in columns.items()])
     if encoding == 'binary':
@@ -465,8 +517,7 @@ def encode_pcd(
         body = table.tobytes()
     elif encoding == 'binary_compressed':
         payload = b''.join(
-            np.ascontiguousarray(array.reshape(-1), dtype=record[name]).tobytes()
-            for name, array in columns.items()
+            np.ascontiguousarray(array.reshape(-1), dtype=record[name]).tobytes() for name, array in columns.items()
         )
         block = lzf_compress(payload)
         body = struct.pack('<II', len(block), len(payload)) + block
@@ -517,8 +568,9 @@ def save_pcd(
         FileExistsError: the file exists and ``overwrite`` is False.
         ValueError: wrong shapes, labels out of the uint32 range, unsupported dtypes.
     """
-    content = encode_pcd(points, labels=labels, extra_fields=extra_fields, binary=binary, compressed=compressed,
-                         viewpoint=viewpoint)
+    content = encode_pcd(
+        points, labels=labels, extra_fields=extra_fields, binary=binary, compressed=compressed, viewpoint=viewpoint
+    )
     out_path = Path(path)
 
     def write(stream) -> None:

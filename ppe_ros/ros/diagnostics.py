@@ -115,9 +115,16 @@ class FrameStats:
     def counts(self) -> dict[str, Any]:
         """Totals since start: received, processed, dropped, skipped, failed, idle, skipped_by_kind, last_error."""
         with self.lock:
-            return dict(received=self.received, processed=self.processed, dropped=self.dropped,
-                        skipped=self.skipped, failed=self.failed, idle=self.idle,
-                        skipped_by_kind=dict(self.skipped_by_kind), last_error=self.last_error)
+            return dict(
+                received=self.received,
+                processed=self.processed,
+                dropped=self.dropped,
+                skipped=self.skipped,
+                failed=self.failed,
+                idle=self.idle,
+                skipped_by_kind=dict(self.skipped_by_kind),
+                last_error=self.last_error,
+            )
 
     def take_window(self) -> ReportWindow:
         """The counters of the report window since the previous call, and the totals; starts a new window."""
@@ -128,18 +135,31 @@ class FrameStats:
                     times.popleft()
             rate_span = max(min(RATE_WINDOW_S, now - self.started), 1e-9)
             window = ReportWindow(
-                received=self.window_received, skipped=self.window_skipped, failed=self.window_failed,
-                dropped=self.window_dropped, times_ms=np.array(self.window_times) * 1e3,
+                received=self.window_received,
+                skipped=self.window_skipped,
+                failed=self.window_failed,
+                dropped=self.window_dropped,
+                times_ms=np.array(self.window_times) * 1e3,
                 input_rate_hz=len(self.received_times) / rate_span,
                 output_rate_hz=len(self.published_times) / rate_span,
                 to_extract_in_rate_window=len(self.received_times) - len(self.idle_times),
                 idle_in_rate_window=len(self.idle_times),
-                totals=dict(received=self.received, processed=self.processed, dropped=self.dropped,
-                            skipped=self.skipped, failed=self.failed, idle=self.idle),
-                skipped_by_kind=dict(self.skipped_by_kind), last_error=self.last_error,
+                totals=dict(
+                    received=self.received,
+                    processed=self.processed,
+                    dropped=self.dropped,
+                    skipped=self.skipped,
+                    failed=self.failed,
+                    idle=self.idle,
+                ),
+                skipped_by_kind=dict(self.skipped_by_kind),
+                last_error=self.last_error,
                 last_error_age_s=now - self.last_error_time if self.last_error else math.nan,
-                since_last_output_s=now - self.last_output_time, last_planes=self.last_planes,
-                last_frame_id=self.last_frame_id, busy=self.busy, busy_peak=self.busy_peak,
+                since_last_output_s=now - self.last_output_time,
+                last_planes=self.last_planes,
+                last_frame_id=self.last_frame_id,
+                busy=self.busy,
+                busy_peak=self.busy_peak,
             )
             self.window_start = now
             self.window_received = self.window_skipped = self.window_failed = self.window_dropped = 0
@@ -174,8 +194,11 @@ class ReportWindow:
         """Whether fewer than ``min_fraction`` of the frames to extract came out (0 never warns)."""
         if min_fraction <= 0.0 or self.to_extract_in_rate_window < MIN_FRAMES_FOR_RATE_CHECK:
             return False
-        expected_hz = self.input_rate_hz * self.to_extract_in_rate_window / max(
-            self.to_extract_in_rate_window + self.idle_in_rate_window, 1)
+        expected_hz = (
+            self.input_rate_hz
+            * self.to_extract_in_rate_window
+            / max(self.to_extract_in_rate_window + self.idle_in_rate_window, 1)
+        )
         return self.output_rate_hz < min_fraction * expected_hz
 
 
@@ -199,24 +222,29 @@ def _level_and_message(window: ReportWindow, state: NodeState, status_type: type
     """The status level and its one-line message (module docstring: the first that applies)."""
     last_error = window.last_error
     if state.stopped_workers:
-        return status_type.ERROR, (f'worker thread(s) {", ".join(state.stopped_workers)} not running: '
-                                   f'frames are not processed; last error: {last_error or "none"}')
+        return status_type.ERROR, (
+            f'worker thread(s) {", ".join(state.stopped_workers)} not running: '
+            f'frames are not processed; last error: {last_error or "none"}'
+        )
     if window.failed:
         return status_type.ERROR, f'{window.failed} frame(s) failed: {last_error}'
     if window.skipped:
         return status_type.WARN, f'{window.skipped} frame(s) skipped: {last_error}'
     if state.ready and not state.idle and window.output_rate_too_low(state.min_output_rate_fraction):
         dropped = f'; {window.dropped} dropped in the last report' if window.dropped else ''
-        return status_type.WARN, (f'output rate {window.output_rate_hz:.2f} Hz is below '
-                                  f'{state.min_output_rate_fraction:g} x the input rate '
-                                  f'{window.input_rate_hz:.2f} Hz{dropped}: processing is slower than the input')
+        return status_type.WARN, (
+            f'output rate {window.output_rate_hz:.2f} Hz is below '
+            f'{state.min_output_rate_fraction:g} x the input rate '
+            f'{window.input_rate_hz:.2f} Hz{dropped}: processing is slower than the input'
+        )
     if window.dropped:
         return status_type.WARN, f'{window.dropped} frame(s) dropped: input faster than processing'
     if not state.ready:
         return status_type.OK, 'warming up (JIT compilation)'
     if state.idle:
-        return status_type.OK, ('idle: no subscriber on any output, frames are not extracted '
-                                '(process_without_subscribers: false)')
+        return status_type.OK, (
+            'idle: no subscriber on any output, frames are not extracted (process_without_subscribers: false)'
+        )
     if window.totals['received'] == 0:
         return status_type.OK, f'waiting for input on {state.input_topic}'
     return status_type.OK, 'extracting planes'
@@ -253,8 +281,13 @@ def diagnostics_status(window: ReportWindow, state: NodeState, types: Any) -> An
         'worker_threads_alive': '0' if state.stopping else str(state.worker_threads_alive),
     }
     key_value = types.KeyValue
-    return status_type(level=level, name=state.name, message=message, hardware_id=window.last_frame_id,
-                       values=[key_value(key=k, value=v) for k, v in values.items()])
+    return status_type(
+        level=level,
+        name=state.name,
+        message=message,
+        hardware_id=window.last_frame_id,
+        values=[key_value(key=k, value=v) for k, v in values.items()],
+    )
 
 
 class ThrottledLog:

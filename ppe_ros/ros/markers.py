@@ -165,9 +165,9 @@ def _put_triangle(triangles, areas, slot, normal, label, va, vb, vc):
     """Write triangle (va, vb, vc) (3-tuples) into ``triangles[slot]``, wound counter-clockwise around ``normal``."""
     e10, e11, e12 = vb[0] - va[0], vb[1] - va[1], vb[2] - va[2]
     e20, e21, e22 = vc[0] - va[0], vc[1] - va[1], vc[2] - va[2]
-    facing = (normal[0] * (e11 * e22 - e12 * e21)
-              + normal[1] * (e12 * e20 - e10 * e22)
-              + normal[2] * (e10 * e21 - e11 * e20))
+    facing = (
+        normal[0] * (e11 * e22 - e12 * e21) + normal[1] * (e12 * e20 - e10 * e22) + normal[2] * (e10 * e21 - e11 * e20)
+    )
     first, second = (vb, vc) if facing >= 0.0 else (vc, vb)
     for k in range(3):
         triangles[slot, 0, k] = va[k]
@@ -198,14 +198,16 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
     # side edges used by exactly one cell's triangles are boundary edges
     for r in range(height):
         for c in range(width - 1):  # horizontal edge (r, c)-(r, c+1): cells above and below
-            label = _boundary_label(labels[r, c], labels[r, c + 1],
-                                    _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c))
+            label = _boundary_label(
+                labels[r, c], labels[r, c + 1], _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c)
+            )
             if label > 0:
                 segment_counts[label] += 1
     for r in range(height - 1):
         for c in range(width):  # vertical edge (r, c)-(r+1, c): cells left and right
-            label = _boundary_label(labels[r, c], labels[r + 1, c],
-                                    _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c))
+            label = _boundary_label(
+                labels[r, c], labels[r + 1, c], _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c)
+            )
             if label > 0:
                 segment_counts[label] += 1
     triangle_next = np.zeros(num_planes + 1, np.int64)
@@ -249,16 +251,18 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
             segment_next[label] = s + 1
     for r in range(height):
         for c in range(width - 1):
-            label = _boundary_label(labels[r, c], labels[r, c + 1],
-                                    _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c))
+            label = _boundary_label(
+                labels[r, c], labels[r, c + 1], _cell_label_at(cell_labels, r - 1, c), _cell_label_at(cell_labels, r, c)
+            )
             if label > 0:
                 s = segment_next[label]
                 _put_segment(segments, s, vertices, r, c, r, c + 1)
                 segment_next[label] = s + 1
     for r in range(height - 1):
         for c in range(width):
-            label = _boundary_label(labels[r, c], labels[r + 1, c],
-                                    _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c))
+            label = _boundary_label(
+                labels[r, c], labels[r + 1, c], _cell_label_at(cell_labels, r, c - 1), _cell_label_at(cell_labels, r, c)
+            )
             if label > 0:
                 s = segment_next[label]
                 _put_segment(segments, s, vertices, r, c, r + 1, c)
@@ -271,8 +275,9 @@ def _mesh_kernel(vertices, labels, normals, num_planes):
 # --------------------------------------------------------------------------------------------
 
 
-def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarray | None = None,
-                   stride: int = 1) -> PlaneGeometry:
+def plane_geometry(
+    points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarray | None = None, stride: int = 1
+) -> PlaneGeometry:
     """Mesh triangles, outline segments and areas of every plane of an organized scan.
 
     Args:
@@ -288,9 +293,7 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
     points = np.asarray(points, dtype=np.float64)
     labels = np.asarray(planes.labels)
     if points.ndim != 3 or points.shape[2] != 3 or points.shape[:2] != labels.shape:
-        raise ValueError(
-            f'points must be (H, W, 3) with the grid of planes.labels {labels.shape}; got {points.shape}'
-        )
+        raise ValueError(f'points must be (H, W, 3) with the grid of planes.labels {labels.shape}; got {points.shape}')
     if int(stride) != stride or stride < 1:
         raise ValueError(f'stride must be an integer >= 1; got {stride}')
     origin = np.zeros(3) if ray_origin is None else np.asarray(ray_origin, dtype=np.float64)
@@ -303,21 +306,22 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
     stride = int(stride)
     points = np.ascontiguousarray(points[::stride, ::stride])
     labels = np.ascontiguousarray(labels[::stride, ::stride], dtype=np.int64)
-    origins = np.ascontiguousarray(np.broadcast_to(origin, points.shape) if origin.shape == (3,)
-                                   else origin[::stride, ::stride])
+    origins = np.ascontiguousarray(
+        np.broadcast_to(origin, points.shape) if origin.shape == (3,) else origin[::stride, ::stride]
+    )
     height, width = labels.shape
     if num_planes == 0 or height < 2 or width < 2:
         return PlaneGeometry(
-            triangles=np.zeros((0, 3, 3)), triangle_counts=np.zeros(num_planes, np.int64),
-            segments=np.zeros((0, 2, 3)), segment_counts=np.zeros(num_planes, np.int64),
+            triangles=np.zeros((0, 3, 3)),
+            triangle_counts=np.zeros(num_planes, np.int64),
+            segments=np.zeros((0, 2, 3)),
+            segment_counts=np.zeros(num_planes, np.int64),
             areas=np.zeros(num_planes),
         )
     normals = np.ascontiguousarray(planes.normals, dtype=np.float64)
     offsets = np.ascontiguousarray(planes.offsets, dtype=np.float64)
     vertices = _project_vertices(points, labels, normals, offsets, origins, GRAZING_COSINE)
-    triangles, triangle_counts, segments, segment_counts, areas = _mesh_kernel(
-        vertices, labels, normals, num_planes
-    )
+    triangles, triangle_counts, segments, segment_counts, areas = _mesh_kernel(vertices, labels, normals, num_planes)
     return PlaneGeometry(
         triangles=triangles,
         triangle_counts=triangle_counts,
@@ -327,8 +331,14 @@ def plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarr
     )
 
 
-def budgeted_plane_geometry(points: np.ndarray, planes: PlaneSet, *, ray_origin: np.ndarray | None = None,
-                            stride: int = 1, max_triangles: int = 0) -> tuple[PlaneGeometry, int]:
+def budgeted_plane_geometry(
+    points: np.ndarray,
+    planes: PlaneSet,
+    *,
+    ray_origin: np.ndarray | None = None,
+    stride: int = 1,
+    max_triangles: int = 0,
+) -> tuple[PlaneGeometry, int]:
     """:func:`plane_geometry` within a mesh budget: ``(geometry, stride used)``.
 
     The stride starts at ``stride`` and grows until the meshes of all planes together have at most
@@ -385,9 +395,18 @@ def _write_marker_tail(writer: CdrWriter, stamped: StampedFrame) -> None:
     writer.boolean(False)  # mesh_use_embedded_materials
 
 
-def _write_marker(writer: CdrWriter, stamped: StampedFrame, *, ns: str, marker_id: int, marker_type: int,
-                  action: int, scale: tuple[float, float, float], rgba: tuple[float, float, float, float],
-                  points: np.ndarray | None) -> None:
+def _write_marker(
+    writer: CdrWriter,
+    stamped: StampedFrame,
+    *,
+    ns: str,
+    marker_id: int,
+    marker_type: int,
+    action: int,
+    scale: tuple[float, float, float],
+    rgba: tuple[float, float, float, float],
+    points: np.ndarray | None,
+) -> None:
     """One ``visualization_msgs/Marker`` (identity pose, lifetime 0 = until replaced), field by field."""
     writer.header(stamped)
     writer.string(ns)
@@ -421,12 +440,16 @@ class _MarkerEncoder:
         self._writer = writer
         self._size = writer.size
         self._chunks: list[bytes | memoryview] = []
-        self._head = (stamped.sec, stamped.nanosec, len(frame_id := stamped.frame_id.encode('utf-8') + b'\x00'),
-                      frame_id)
+        self._head = (
+            stamped.sec,
+            stamped.nanosec,
+            len(frame_id := stamped.frame_id.encode('utf-8') + b'\x00'),
+            frame_id,
+        )
         self._frame_id_length = len(frame_id)
         tail = CdrWriter()
         _write_marker_tail(tail, stamped)
-        self._tail = tail.getvalue()[len(CDR_LE_HEADER):]
+        self._tail = tail.getvalue()[len(CDR_LE_HEADER) :]
 
     def _prefix(self, ns: bytes, phase: int) -> struct.Struct:
         """Everything of an ADD marker before its vertices, in namespace ``ns``, starting at ``phase`` (mod 8)."""
@@ -458,9 +481,16 @@ class _MarkerEncoder:
         """The bound ``pack`` of the prefix struct of namespace ``ns`` for each alignment phase 0..7."""
         return [self._prefix(ns, phase).pack for phase in range(8)]
 
-    def write_planes(self, namespaces: tuple[bytes, bytes, bytes], rgb: list, alphas: tuple[float, float],
-                     line_width: float, lengths: list, blocks: tuple[memoryview, memoryview, memoryview],
-                     ends: tuple[list, list]) -> None:
+    def write_planes(
+        self,
+        namespaces: tuple[bytes, bytes, bytes],
+        rgb: list,
+        alphas: tuple[float, float],
+        line_width: float,
+        lengths: list,
+        blocks: tuple[memoryview, memoryview, memoryview],
+        ends: tuple[list, list],
+    ) -> None:
         """Per plane j (id j + 1): its mesh if it has triangles, its outline if it has segments, its
         arrow; each byte for byte what :func:`_write_marker` writes for an ADD marker, with the loop's
         lookups hoisted (thousands of markers per frame)."""
@@ -481,20 +511,85 @@ class _MarkerEncoder:
             r, g, b = rgb[j]
             start, end = triangle_ends[j], triangle_ends[j + 1]
             if end > start:
-                head = mesh_pack[size & 7](*mesh_head, plane_id, TRIANGLE_LIST, ADD, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                                           1.0, 1.0, 1.0, 1.0, r, g, b, mesh_alpha, 0, 0, 0, (end - start) // 24)
+                head = mesh_pack[size & 7](
+                    *mesh_head,
+                    plane_id,
+                    TRIANGLE_LIST,
+                    ADD,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    1.0,
+                    1.0,
+                    1.0,
+                    1.0,
+                    r,
+                    g,
+                    b,
+                    mesh_alpha,
+                    0,
+                    0,
+                    0,
+                    (end - start) // 24,
+                )
                 chunks += (head, triangle_bytes[start:end], tail)
                 size += len(head) + end - start + tail_length
             start, end = segment_ends[j], segment_ends[j + 1]
             if end > start:
-                head = outline_pack[size & 7](*outline_head, plane_id, LINE_LIST, ADD, 0.0, 0.0, 0.0, 0.0, 0.0,
-                                              0.0, 1.0, line_width, 1.0, 1.0, r, g, b, line_alpha, 0, 0, 0,
-                                              (end - start) // 24)
+                head = outline_pack[size & 7](
+                    *outline_head,
+                    plane_id,
+                    LINE_LIST,
+                    ADD,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    1.0,
+                    line_width,
+                    1.0,
+                    1.0,
+                    r,
+                    g,
+                    b,
+                    line_alpha,
+                    0,
+                    0,
+                    0,
+                    (end - start) // 24,
+                )
                 chunks += (head, segment_bytes[start:end], tail)
                 size += len(head) + end - start + tail_length
-            head = normal_pack[size & 7](*normal_head, plane_id, ARROW, ADD, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0,
-                                         0.1 * length, 0.2 * length, 0.3 * length, r, g, b, line_alpha, 0, 0, 0, 2)
-            chunks += (head, arrow_bytes[48 * j:48 * j + 48], tail)
+            head = normal_pack[size & 7](
+                *normal_head,
+                plane_id,
+                ARROW,
+                ADD,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                0.1 * length,
+                0.2 * length,
+                0.3 * length,
+                r,
+                g,
+                b,
+                line_alpha,
+                0,
+                0,
+                0,
+                2,
+            )
+            chunks += (head, arrow_bytes[48 * j : 48 * j + 48], tail)
             size += len(head) + 48 + tail_length
         self._size = size
 
@@ -509,8 +604,15 @@ def _byte_view(values: np.ndarray) -> memoryview:
     return memoryview(np.ascontiguousarray(values, dtype='<f8').reshape(-1).view(np.uint8))
 
 
-def marker_array_cdr(geometry: PlaneGeometry, planes: PlaneSet, stamped: StampedFrame, *,
-                     colors: np.ndarray, mesh_alpha: float = 0.5, line_width: float = 0.02) -> bytes:
+def marker_array_cdr(
+    geometry: PlaneGeometry,
+    planes: PlaneSet,
+    stamped: StampedFrame,
+    *,
+    colors: np.ndarray,
+    mesh_alpha: float = 0.5,
+    line_width: float = 0.02,
+) -> bytes:
     """Serialize the markers of all planes to a CDR ``visualization_msgs/msg/MarkerArray``.
 
     Args:
@@ -544,12 +646,29 @@ def marker_array_cdr(geometry: PlaneGeometry, planes: PlaneSet, stamped: Stamped
     markers_per_plane = (geometry.triangle_counts > 0).astype(int) + (geometry.segment_counts > 0) + 1
     writer = CdrWriter()
     writer.uint32(1 + int(markers_per_plane.sum()))
-    _write_marker(writer, stamped, ns='', marker_id=0, marker_type=ARROW, action=DELETEALL,
-                  scale=(1.0, 1.0, 1.0), rgba=(0.0, 0.0, 0.0, 0.0), points=None)
+    _write_marker(
+        writer,
+        stamped,
+        ns='',
+        marker_id=0,
+        marker_type=ARROW,
+        action=DELETEALL,
+        scale=(1.0, 1.0, 1.0),
+        rgba=(0.0, 0.0, 0.0, 0.0),
+        points=None,
+    )
     encoder = _MarkerEncoder(writer, stamped)
-    mesh_ns, outline_ns, normal_ns = (ns.encode() + b'\x00' for ns in
-                                      (MESH_NAMESPACE, OUTLINE_NAMESPACE, NORMAL_NAMESPACE))
-    encoder.write_planes((mesh_ns, outline_ns, normal_ns), rgb, (float(mesh_alpha), 1.0), float(line_width),
-                         lengths.tolist(), (triangle_bytes, segment_bytes, arrow_bytes), (triangle_ends, segment_ends))
+    mesh_ns, outline_ns, normal_ns = (
+        ns.encode() + b'\x00' for ns in (MESH_NAMESPACE, OUTLINE_NAMESPACE, NORMAL_NAMESPACE)
+    )
+    encoder.write_planes(
+        (mesh_ns, outline_ns, normal_ns),
+        rgb,
+        (float(mesh_alpha), 1.0),
+        float(line_width),
+        lengths.tolist(),
+        (triangle_bytes, segment_bytes, arrow_bytes),
+        (triangle_ends, segment_ends),
+    )
     encoder.flush()
     return writer.getvalue()

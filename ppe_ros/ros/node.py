@@ -142,12 +142,15 @@ class ExtractorNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         overridable = QoSOverridingOptions.with_default_policies()
-        self._labeled_points_pub = self.create_publisher(self._types.PointCloud2, LABELED_POINTS_TOPIC,
-                                                         output_qos(), qos_overriding_options=overridable)
-        self._markers_pub = self.create_publisher(self._types.MarkerArray, MARKERS_TOPIC, output_qos(),
-                                                  qos_overriding_options=overridable)
-        self._plane_table_pub = self.create_publisher(self._types.PointCloud2, PLANE_TABLE_TOPIC, output_qos(),
-                                                      qos_overriding_options=overridable)
+        self._labeled_points_pub = self.create_publisher(
+            self._types.PointCloud2, LABELED_POINTS_TOPIC, output_qos(), qos_overriding_options=overridable
+        )
+        self._markers_pub = self.create_publisher(
+            self._types.MarkerArray, MARKERS_TOPIC, output_qos(), qos_overriding_options=overridable
+        )
+        self._plane_table_pub = self.create_publisher(
+            self._types.PointCloud2, PLANE_TABLE_TOPIC, output_qos(), qos_overriding_options=overridable
+        )
         self._diagnostics_pub = self.create_publisher(self._types.DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
 
         self._stats = FrameStats()
@@ -168,8 +171,9 @@ class ExtractorNode(Node):
         self._subscription = self._subscribe(self._params.input_reliability)
         from std_msgs.msg import String
 
-        self._metadata_subscription = self.create_subscription(String, METADATA_TOPIC, self._on_metadata,
-                                                               metadata_qos())
+        self._metadata_subscription = self.create_subscription(
+            String, METADATA_TOPIC, self._on_metadata, metadata_qos()
+        )
         self._warn_unused_qos_overrides()
         self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         self._start_workers(self._params.workers)
@@ -204,9 +208,13 @@ class ExtractorNode(Node):
     def _subscribe(self, reliability: str, qos: QoSProfile | None = None):
         """The ``points`` subscription; the first one declares the QoS override parameters."""
         options = QoSOverridingOptions.with_default_policies() if qos is None else None
-        return self.create_subscription(self._types.PointCloud2, INPUT_TOPIC, self._on_cloud,
-                                        input_qos(reliability) if qos is None else qos,
-                                        qos_overriding_options=options)
+        return self.create_subscription(
+            self._types.PointCloud2,
+            INPUT_TOPIC,
+            self._on_cloud,
+            input_qos(reliability) if qos is None else qos,
+            qos_overriding_options=options,
+        )
 
     def _input_override(self, policy: str) -> tuple[str, Any]:
         """(name, value given at start-up or None) of the input's QoS override parameter for ``policy``."""
@@ -233,12 +241,17 @@ class ExtractorNode(Node):
 
     def _warn_unused_qos_overrides(self) -> None:
         """A QoS override naming a topic (or policy) the node does not have would be ignored silently."""
-        unused = [name for name in qos_override_names(getattr(self, '_parameter_overrides', {}))
-                  if not self.has_parameter(name)]
+        unused = [
+            name
+            for name in qos_override_names(getattr(self, '_parameter_overrides', {}))
+            if not self.has_parameter(name)
+        ]
         if unused:
             known = sorted(name for name in self._parameters if name.startswith(QOS_OVERRIDES_PREFIX))
-            self.get_logger().warning(f'ignoring QoS override(s) {unused}: no such topic or policy of this node '
-                                      f'(topics are resolved names, after remapping); known: {known}')
+            self.get_logger().warning(
+                f'ignoring QoS override(s) {unused}: no such topic or policy of this node '
+                f'(topics are resolved names, after remapping); known: {known}'
+            )
 
     @property
     def input_topic(self) -> str:
@@ -259,8 +272,9 @@ class ExtractorNode(Node):
             while len(self._workers) < count and not self._stop_requested.is_set():
                 index = len(self._workers)
                 self._numba_threads_applied.append(None)
-                worker = threading.Thread(target=self._work, args=(index,),
-                                          name=f'{self.get_name()}-worker-{index}', daemon=False)
+                worker = threading.Thread(
+                    target=self._work, args=(index,), name=f'{self.get_name()}-worker-{index}', daemon=False
+                )
                 self._workers.append(worker)
                 worker.start()
 
@@ -281,15 +295,17 @@ class ExtractorNode(Node):
         """Run the whole pipeline once with the node's sensor profile (compiles or loads the numba cache)."""
         start = time.perf_counter()
         logger = self.get_logger()
-        logger.info('JIT warm-up: loading or compiling the kernels (a cold cache compiles for minutes; '
-                    '`ppe warmup` fills it once after an install)')
+        logger.info(
+            'JIT warm-up: loading or compiling the kernels (a cold cache compiles for minutes; '
+            '`ppe warmup` fills it once after an install)'
+        )
         steps = warm_up(self._types, self._params, log=logger.info)
         # numba's compiler leaves some 600 k long-lived objects; a full garbage collection scanned
         # them all (about 50 ms, every few hundred frames). Frozen, the collector skips them.
         gc.freeze()
-        logger.info(f'JIT warm-up done in {time.perf_counter() - start:.2f} s ({steps[-1].planes} planes '
-                    'in the warm-up cloud)')
-
+        logger.info(
+            f'JIT warm-up done in {time.perf_counter() - start:.2f} s ({steps[-1].planes} planes in the warm-up cloud)'
+        )
 
     def _active(self, index: int) -> bool:
         """Whether worker ``index`` takes frames under the current ``workers`` value."""
@@ -339,8 +355,7 @@ class ExtractorNode(Node):
     def _wanted_outputs(self, params: ExtractorParams) -> OutputSelection:
         """The enabled outputs that somebody subscribes to (nobody listening: not built)."""
         return OutputSelection(
-            labeled_points=(params.publish_labeled_points
-                            and self._labeled_points_pub.get_subscription_count() > 0),
+            labeled_points=(params.publish_labeled_points and self._labeled_points_pub.get_subscription_count() > 0),
             markers=params.publish_markers and self._markers_pub.get_subscription_count() > 0,
             plane_table=params.publish_plane_table and self._plane_table_pub.get_subscription_count() > 0,
         )
@@ -365,8 +380,13 @@ class ExtractorNode(Node):
             stats.busy_peak = max(stats.busy_peak, stats.busy)
         try:
             self._apply_numba_threads(index, params)
-            frame = process_cloud(msg, params, self._types, outputs=outputs,
-                                  ray_origins=self._ray_starts.for_cloud(msg, params.ray_origin))
+            frame = process_cloud(
+                msg,
+                params,
+                self._types,
+                outputs=outputs,
+                ray_origins=self._ray_starts.for_cloud(msg, params.ray_origin),
+            )
         except FrameSkipped as exc:
             self._record_skip(exc)
             return
@@ -432,10 +452,15 @@ class ExtractorNode(Node):
         params = self._params
         state = NodeState(
             name=f'{self.get_fully_qualified_name().lstrip("/")}: plane extraction',
-            input_topic=self.input_topic, ready=self.ready.is_set(), stopping=stopping,
-            workers=params.workers if self._parallel_workers_safe else 1, stopped_workers=stopped,
-            worker_threads_alive=len(workers) - len(stopped), idle=self._idle(params),
-            min_output_rate_fraction=params.min_output_rate_fraction, marker_mesh_stride=self._marker_stride,
+            input_topic=self.input_topic,
+            ready=self.ready.is_set(),
+            stopping=stopping,
+            workers=params.workers if self._parallel_workers_safe else 1,
+            stopped_workers=stopped,
+            worker_threads_alive=len(workers) - len(stopped),
+            idle=self._idle(params),
+            min_output_rate_fraction=params.min_output_rate_fraction,
+            marker_mesh_stride=self._marker_stride,
         )
         return diagnostics_status(window, state, self._types)
 
@@ -476,7 +501,7 @@ def usage() -> str:
         '',
         f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability;',
         '       NaN, infinite or exactly (0, 0, 0) points are no return)',
-        f'       {METADATA_TOPIC} (std_msgs/String, transient local: the Ouster driver\'s metadata JSON; per-beam',
+        f"       {METADATA_TOPIC} (std_msgs/String, transient local: the Ouster driver's metadata JSON; per-beam",
         '       ray starts while ray_origin is [0, 0, 0])',
         f'  out  {LABELED_POINTS_TOPIC} (sensor_msgs/PointCloud2: x y z label rgb)',
         f'       {MARKERS_TOPIC} (visualization_msgs/MarkerArray)',
@@ -535,8 +560,10 @@ def _run(argv: list[str]) -> int:
         print(usage())
         return 0
     if extra:
-        print(f'extractor: warning: ignoring arguments {extra} (ROS arguments go after --ros-args; see --help)',
-              file=sys.stderr)
+        print(
+            f'extractor: warning: ignoring arguments {extra} (ROS arguments go after --ros-args; see --help)',
+            file=sys.stderr,
+        )
     from rclpy._rclpy_pybind11 import RCLError
 
     try:

@@ -43,14 +43,22 @@ _PARAMETER_TYPE = {
 
 def input_qos(reliability: str) -> QoSProfile:
     """QoS of the ``points`` subscription: keep last 1, volatile, the given reliability."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=_RELIABILITY[reliability],
-                      durability=DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=_RELIABILITY[reliability],
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 def output_qos() -> QoSProfile:
     """QoS of the plane outputs: reliable keep-last 1 (matches reliable and best-effort readers)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
@@ -63,8 +71,9 @@ def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
         read_only=spec.read_only,
     )
     if spec.kind == 'double' and spec.low is not None and spec.high is not None:
-        descriptor.floating_point_range = [FloatingPointRange(from_value=float(spec.low),
-                                                              to_value=float(spec.high), step=0.0)]
+        descriptor.floating_point_range = [
+            FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high), step=0.0)
+        ]
     elif spec.kind == 'integer' and spec.low is not None and spec.high is not None:
         descriptor.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)]
     return descriptor
@@ -78,8 +87,11 @@ def as_declared_type(spec: ParamSpec, value: Any) -> Any:
     """
     if spec.kind == 'double' and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    if spec.kind == 'double_array' and isinstance(value, list | tuple | array.array) and all(
-            isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+    if (
+        spec.kind == 'double_array'
+        and isinstance(value, list | tuple | array.array)
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
         return [float(v) for v in value]
     return value
 
@@ -87,16 +99,22 @@ def as_declared_type(spec: ParamSpec, value: Any) -> Any:
 def unknown_parameter_names(names: Any) -> list[str]:
     """Names given to the node (params file, ``-p``) that it does not have (ROS's own ones excepted)."""
     return sorted(
-        str(name) for name in names
-        if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
+        str(name)
+        for name in names
+        if name not in PARAM_SPEC_BY_NAME
+        and name not in ROS_BUILTIN_PARAMETERS
         and not str(name).startswith('qos_overrides')
     )
 
 
 def metadata_qos() -> QoSProfile:
     """QoS of the sensor metadata subscription: reliable, transient local (the driver latches it), depth 1."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
 
 
 def qos_override_names(names: Any) -> list[str]:
@@ -145,8 +163,7 @@ def declare_extractor_parameters(node: Node) -> ExtractorParams:
     unknown = unknown_parameter_names(overrides)
     if unknown:
         node.get_logger().warning(
-            f'ignoring unknown parameter(s) {unknown} (a typo in the params file?); '
-            f'known: {sorted(PARAM_SPEC_BY_NAME)}'
+            f'ignoring unknown parameter(s) {unknown} (a typo in the params file?); known: {sorted(PARAM_SPEC_BY_NAME)}'
         )
     return params
 
@@ -156,7 +173,8 @@ def coerce_parameters(node: Node, parameters: list[Parameter]) -> list[Parameter
     unknown = sorted(p.name for p in parameters if not node.has_parameter(p.name))
     if unknown:  # rclpy's own message would be "Invalid access to undeclared parameter(s): []"
         raise ParameterNotDeclaredException(
-            f'{unknown}: the extractor has no such parameter; known: {sorted(PARAM_SPEC_BY_NAME)}')
+            f'{unknown}: the extractor has no such parameter; known: {sorted(PARAM_SPEC_BY_NAME)}'
+        )
     out = []
     for parameter in parameters:
         spec = PARAM_SPEC_BY_NAME.get(parameter.name)

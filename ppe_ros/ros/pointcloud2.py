@@ -45,7 +45,6 @@ _NUMPY_TO_DATATYPE: dict[str, int] = {code: datatype for datatype, code in POINT
 MAX_POINT_STEP = 2**31 - 1
 
 
-
 class PointCloudError(ValueError):
     """A PointCloud2 message that cannot be read as described by its own fields and sizes."""
 
@@ -304,8 +303,10 @@ def structured_to_pointcloud2(
         count = int(np.prod(field_dtype.shape)) if field_dtype.shape else 1
         code = f'{base.kind}{base.itemsize}'
         if code not in _NUMPY_TO_DATATYPE:
-            raise ValueError(f'field {name!r} has dtype {base}, which PointCloud2 cannot carry '
-                             f'(int8..int32, uint8..uint32, float32, float64)')
+            raise ValueError(
+                f'field {name!r} has dtype {base}, which PointCloud2 cannot carry '
+                f'(int8..int32, uint8..uint32, float32, float64)'
+            )
         datatype = _NUMPY_TO_DATATYPE[code]
         if name in overrides:
             declared = int(overrides[name])

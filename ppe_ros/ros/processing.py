@@ -104,8 +104,11 @@ class ParamSpec:
             if isinstance(value, str | bytes) or not hasattr(value, '__len__'):
                 raise ValueError(f'{name} must be a list of {self.constraints()}; got {value!r}')
             items = list(value)
-            if (len(items) != self.length or any(isinstance(v, bool) for v in items)
-                    or not all(isinstance(v, int | float | np.number) and math.isfinite(v) for v in items)):
+            if (
+                len(items) != self.length
+                or any(isinstance(v, bool) for v in items)
+                or not all(isinstance(v, int | float | np.number) and math.isfinite(v) for v in items)
+            ):
                 raise ValueError(f'{name} must be a list of {self.constraints()} (x y z, m); got {value!r}')
             return tuple(float(v) for v in items)
         if self.kind == 'integer':
@@ -127,75 +130,188 @@ class ParamSpec:
 
 #: Every parameter of the extractor node, in the order of config/extractor.yaml.
 PARAM_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec('max_error_increment', 'double', 0.0,
-              "PPE's threshold e: stop before the first action whose error increment exceeds it (m^2 with sensor "
-              "none, else in units of the profile's noise variance); 0 = the sensor profile's",
-              low=0.0, high=1.0e6),
-    ParamSpec('max_planes', 'integer', 0,
-              'stop once at most this many planes (atomic rays included) remain; 0 = no limit',
-              low=0, high=2**31 - 1),
-    ParamSpec('max_neighbor_distance', 'double', 0.0,
-              'largest distance (m) between neighbouring points that may join one plane; .inf = no limit; '
-              "0 = the sensor profile's", low=0.0, high=math.inf),
-    ParamSpec('min_plane_points', 'integer', 0,
-              "planes with fewer points are reported as no plane (label 0); 0 = the sensor profile's",
-              low=0, high=2**31 - 1),
-    ParamSpec('sensor', 'string', 'none',
-              "sensor profile: none (the paper's model with the parameters above), lidar or depth_camera (a noise "
-              'model and whole surfaces; e and lmax are then the profile\'s, see docs/algorithm.md), or paper',
-              choices=SENSOR_CHOICES),
-    ParamSpec('surface_tolerance', 'double', 0.0,
-              'with a sensor profile: RMS deviation (m) one physical surface may show from its plane; 0 = the '
-              "profile's", low=0.0, high=10.0),
-    ParamSpec('ray_origin', 'double_array', (0.0, 0.0, 0.0),
-              'start point x y z (m) of every ray, in the frame of the input cloud', length=3),
-    ParamSpec('max_points', 'integer', 2_000_000,
-              'clouds with more points (height x width) are skipped with a warning', low=1, high=2**31 - 1),
-    ParamSpec('input_reliability', 'string', 'best_effort',
-              'QoS reliability of the input subscription (best_effort matches every publisher)',
-              choices=RELIABILITY_CHOICES),
+    ParamSpec(
+        'max_error_increment',
+        'double',
+        0.0,
+        "PPE's threshold e: stop before the first action whose error increment exceeds it (m^2 with sensor "
+        "none, else in units of the profile's noise variance); 0 = the sensor profile's",
+        low=0.0,
+        high=1.0e6,
+    ),
+    ParamSpec(
+        'max_planes',
+        'integer',
+        0,
+        'stop once at most this many planes (atomic rays included) remain; 0 = no limit',
+        low=0,
+        high=2**31 - 1,
+    ),
+    ParamSpec(
+        'max_neighbor_distance',
+        'double',
+        0.0,
+        'largest distance (m) between neighbouring points that may join one plane; .inf = no limit; '
+        "0 = the sensor profile's",
+        low=0.0,
+        high=math.inf,
+    ),
+    ParamSpec(
+        'min_plane_points',
+        'integer',
+        0,
+        "planes with fewer points are reported as no plane (label 0); 0 = the sensor profile's",
+        low=0,
+        high=2**31 - 1,
+    ),
+    ParamSpec(
+        'sensor',
+        'string',
+        'none',
+        "sensor profile: none (the paper's model with the parameters above), lidar or depth_camera (a noise "
+        "model and whole surfaces; e and lmax are then the profile's, see docs/algorithm.md), or paper",
+        choices=SENSOR_CHOICES,
+    ),
+    ParamSpec(
+        'surface_tolerance',
+        'double',
+        0.0,
+        "with a sensor profile: RMS deviation (m) one physical surface may show from its plane; 0 = the profile's",
+        low=0.0,
+        high=10.0,
+    ),
+    ParamSpec(
+        'ray_origin',
+        'double_array',
+        (0.0, 0.0, 0.0),
+        'start point x y z (m) of every ray, in the frame of the input cloud',
+        length=3,
+    ),
+    ParamSpec(
+        'max_points',
+        'integer',
+        2_000_000,
+        'clouds with more points (height x width) are skipped with a warning',
+        low=1,
+        high=2**31 - 1,
+    ),
+    ParamSpec(
+        'input_reliability',
+        'string',
+        'best_effort',
+        'QoS reliability of the input subscription (best_effort matches every publisher)',
+        choices=RELIABILITY_CHOICES,
+    ),
     ParamSpec('publish_labeled_points', 'bool', True, 'publish planes/labeled_points'),
     ParamSpec('publish_markers', 'bool', True, 'publish planes/markers'),
     ParamSpec('publish_plane_table', 'bool', True, 'publish planes (the per-plane table)'),
-    ParamSpec('marker_alpha', 'double', 0.5,
-              'opacity of the plane meshes in RViz (0 = invisible, 1 = opaque)', low=0.0, high=1.0),
-    ParamSpec('marker_mesh_stride', 'integer', 1,
-              'mesh every n-th row and column (n^2 fewer triangles for big clouds)', low=1, high=64),
-    ParamSpec('marker_max_triangles', 'integer', 150_000,
-              'mesh budget per frame: the mesh stride grows (2, 3, ...) until all meshes together have at most '
-              'this many triangles (72 bytes each); 0 = no limit', low=0, high=2**31 - 1),
-    ParamSpec('numba_threads', 'integer', 0,
-              'threads of the extraction kernels per worker; 0 = the cores numba sees, shared out among the workers',
-              low=0, high=1024),
-    ParamSpec('workers', 'integer', 1,
-              'frames extracted at once, each in its own thread, outputs published in arrival order: more frames '
-              'per second on a multi-core machine, no frame faster (the node only; ppe bag has --jobs)',
-              low=1, high=64),
-    ParamSpec('process_without_subscribers', 'bool', False,
-              'extract frames even when no output has a subscriber (else the node idles: frames are counted, '
-              'not extracted)'),
-    ParamSpec('min_output_rate_fraction', 'double', 0.5,
-              'diagnostics say WARN when the output rate falls below this fraction of the input rate; 0 = never',
-              low=0.0, high=1.0),
-    ParamSpec('layout', 'string', 'auto',
-              'organized clouds: rows_are_beams (Ouster), columns_are_beams (Velodyne and RoboSense organized: '
-              "width = lasers), or auto (columns_are_beams when the ring field changes along the width)",
-              choices=LAYOUT_CHOICES),
-    ParamSpec('unorganized_rows', 'string', 'auto',
-              'clouds of height 1 are put on a range image with one row per: rings (the ring field), elevation '
-              '(beams found in the elevation angles), angular_grid (a fixed grid, Livox); auto = rings with a ring '
-              'field, angular_grid with a line field, else elevation', choices=UNORGANIZED_ROWS_CHOICES),
-    ParamSpec('azimuth_bins', 'integer', 0,
-              'unorganized clouds: azimuth bins (columns) per revolution; 0 = estimated from the points',
-              low=0, high=1_000_000),
-    ParamSpec('azimuth_start', 'double', 180.0,
-              'unorganized clouds covering the full circle: azimuth (deg, counter-clockwise from x) where the range '
-              'image starts (planes are cut there); 180 = behind the sensor', low=-360.0, high=360.0),
-    ParamSpec('angular_resolution', 'double', 0.8,
-              'unorganized_rows angular_grid: cell size (deg) of the fixed grid', low=0.01, high=10.0),
-    ParamSpec('lost_point_tolerance', 'double', 0.0,
-              'unorganized clouds: a point that lost its range-image cell to a nearer return gets the cell\'s plane '
-              "within this distance (m) of it; 0 = the profile's surface_tolerance, or 0.05 m", low=0.0, high=10.0),
+    ParamSpec(
+        'marker_alpha',
+        'double',
+        0.5,
+        'opacity of the plane meshes in RViz (0 = invisible, 1 = opaque)',
+        low=0.0,
+        high=1.0,
+    ),
+    ParamSpec(
+        'marker_mesh_stride',
+        'integer',
+        1,
+        'mesh every n-th row and column (n^2 fewer triangles for big clouds)',
+        low=1,
+        high=64,
+    ),
+    ParamSpec(
+        'marker_max_triangles',
+        'integer',
+        150_000,
+        'mesh budget per frame: the mesh stride grows (2, 3, ...) until all meshes together have at most '
+        'this many triangles (72 bytes each); 0 = no limit',
+        low=0,
+        high=2**31 - 1,
+    ),
+    ParamSpec(
+        'numba_threads',
+        'integer',
+        0,
+        'threads of the extraction kernels per worker; 0 = the cores numba sees, shared out among the workers',
+        low=0,
+        high=1024,
+    ),
+    ParamSpec(
+        'workers',
+        'integer',
+        1,
+        'frames extracted at once, each in its own thread, outputs published in arrival order: more frames '
+        'per second on a multi-core machine, no frame faster (the node only; ppe bag has --jobs)',
+        low=1,
+        high=64,
+    ),
+    ParamSpec(
+        'process_without_subscribers',
+        'bool',
+        False,
+        'extract frames even when no output has a subscriber (else the node idles: frames are counted, not extracted)',
+    ),
+    ParamSpec(
+        'min_output_rate_fraction',
+        'double',
+        0.5,
+        'diagnostics say WARN when the output rate falls below this fraction of the input rate; 0 = never',
+        low=0.0,
+        high=1.0,
+    ),
+    ParamSpec(
+        'layout',
+        'string',
+        'auto',
+        'organized clouds: rows_are_beams (Ouster), columns_are_beams (Velodyne and RoboSense organized: '
+        'width = lasers), or auto (columns_are_beams when the ring field changes along the width)',
+        choices=LAYOUT_CHOICES,
+    ),
+    ParamSpec(
+        'unorganized_rows',
+        'string',
+        'auto',
+        'clouds of height 1 are put on a range image with one row per: rings (the ring field), elevation '
+        '(beams found in the elevation angles), angular_grid (a fixed grid, Livox); auto = rings with a ring '
+        'field, angular_grid with a line field, else elevation',
+        choices=UNORGANIZED_ROWS_CHOICES,
+    ),
+    ParamSpec(
+        'azimuth_bins',
+        'integer',
+        0,
+        'unorganized clouds: azimuth bins (columns) per revolution; 0 = estimated from the points',
+        low=0,
+        high=1_000_000,
+    ),
+    ParamSpec(
+        'azimuth_start',
+        'double',
+        180.0,
+        'unorganized clouds covering the full circle: azimuth (deg, counter-clockwise from x) where the range '
+        'image starts (planes are cut there); 180 = behind the sensor',
+        low=-360.0,
+        high=360.0,
+    ),
+    ParamSpec(
+        'angular_resolution',
+        'double',
+        0.8,
+        'unorganized_rows angular_grid: cell size (deg) of the fixed grid',
+        low=0.01,
+        high=10.0,
+    ),
+    ParamSpec(
+        'lost_point_tolerance',
+        'double',
+        0.0,
+        "unorganized clouds: a point that lost its range-image cell to a nearer return gets the cell's plane "
+        "within this distance (m) of it; 0 = the profile's surface_tolerance, or 0.05 m",
+        low=0.0,
+        high=10.0,
+    ),
 )
 PARAM_SPEC_BY_NAME: dict[str, ParamSpec] = {spec.name: spec for spec in PARAM_SPECS}
 
@@ -247,8 +363,7 @@ class ExtractorParams:
 
     def as_dict(self) -> dict[str, Any]:
         """Parameter name -> value (arrays as lists), the layout of ``ros__parameters``."""
-        return {spec.name: list(v) if isinstance(v := getattr(self, spec.name), tuple) else v
-                for spec in PARAM_SPECS}
+        return {spec.name: list(v) if isinstance(v := getattr(self, spec.name), tuple) else v for spec in PARAM_SPECS}
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], *, source: str = 'parameters') -> ExtractorParams:
@@ -256,14 +371,14 @@ class ExtractorParams:
         if not isinstance(values, Mapping):
             raise ValueError(f'{source}: ros__parameters must be a mapping; got {type(values).__name__}')
         unknown = sorted(
-            name for name in values
-            if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
+            name
+            for name in values
+            if name not in PARAM_SPEC_BY_NAME
+            and name not in ROS_BUILTIN_PARAMETERS
             and not str(name).startswith('qos_overrides')
         )
         if unknown:
-            raise ValueError(
-                f'{source}: unknown extractor parameter(s) {unknown}; known: {sorted(PARAM_SPEC_BY_NAME)}'
-            )
+            raise ValueError(f'{source}: unknown extractor parameter(s) {unknown}; known: {sorted(PARAM_SPEC_BY_NAME)}')
         try:
             return cls(**{name: value for name, value in values.items() if name in PARAM_SPEC_BY_NAME})
         except ValueError as exc:
@@ -289,8 +404,7 @@ class ExtractorParams:
             raise ValueError(f'params file {path} must map node names to ros__parameters')
         bare = node_name.strip('/').split('/')[-1]
         sections = [key for key in document if key == '/**']
-        sections += [key for key in document
-                     if key != '/**' and str(key).strip('/').split('/')[-1] == bare]
+        sections += [key for key in document if key != '/**' and str(key).strip('/').split('/')[-1] == bare]
         if not sections:
             raise ValueError(
                 f'params file {path} has no section for node {bare!r}: expected a top-level "{bare}:" '
@@ -377,15 +491,31 @@ LABELED_POINTS_FIELDS: tuple[str, ...] = ('x', 'y', 'z', 'label', 'rgb')
 #: triangle of the 3x3 covariance (m^2) of the closest-point vector ``d * normal``;
 #: ``point_count`` points of the plane; ``label`` its id in the labelled cloud. Everything but
 #: ``x y z rgb`` is float64 or uint32: the plane itself (normal, d, covariance) at full precision.
-PLANE_TABLE_DTYPE = np.dtype([
-    ('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('rgb', '<u4'),
-    ('centroid_x', '<f8'), ('centroid_y', '<f8'), ('centroid_z', '<f8'),
-    ('normal_x', '<f8'), ('normal_y', '<f8'), ('normal_z', '<f8'), ('d', '<f8'),
-    ('rmse', '<f8'), ('sse', '<f8'),
-    ('cov_xx', '<f8'), ('cov_xy', '<f8'), ('cov_xz', '<f8'), ('cov_yy', '<f8'), ('cov_yz', '<f8'),
-    ('cov_zz', '<f8'),
-    ('point_count', '<u4'), ('label', '<u4'),
-])
+PLANE_TABLE_DTYPE = np.dtype(
+    [
+        ('x', '<f4'),
+        ('y', '<f4'),
+        ('z', '<f4'),
+        ('rgb', '<u4'),
+        ('centroid_x', '<f8'),
+        ('centroid_y', '<f8'),
+        ('centroid_z', '<f8'),
+        ('normal_x', '<f8'),
+        ('normal_y', '<f8'),
+        ('normal_z', '<f8'),
+        ('d', '<f8'),
+        ('rmse', '<f8'),
+        ('sse', '<f8'),
+        ('cov_xx', '<f8'),
+        ('cov_xy', '<f8'),
+        ('cov_xz', '<f8'),
+        ('cov_yy', '<f8'),
+        ('cov_yz', '<f8'),
+        ('cov_zz', '<f8'),
+        ('point_count', '<u4'),
+        ('label', '<u4'),
+    ]
+)
 PLANE_TABLE_FIELDS: tuple[str, ...] = PLANE_TABLE_DTYPE.names
 
 
@@ -397,14 +527,26 @@ def label_palette(num_planes: int) -> np.ndarray:
 def labeled_points_message(points: np.ndarray, planes: PlaneSet, header: Any, types: MessageTypes) -> Any:
     """The labelled cloud: the input grid with fields :data:`LABELED_POINTS_FIELDS`."""
     labels = planes.labels
-    return xyz_to_pointcloud2(points, header=header, msg_class=types.PointCloud2, field_class=types.PointField,
-                              labels=labels, rgb=label_palette(planes.num_planes)[labels])
+    return xyz_to_pointcloud2(
+        points,
+        header=header,
+        msg_class=types.PointCloud2,
+        field_class=types.PointField,
+        labels=labels,
+        rgb=label_palette(planes.num_planes)[labels],
+    )
 
 
 def plane_table_message(planes: PlaneSet, header: Any, types: MessageTypes) -> Any:
     """The plane table: height 1, one point per plane, fields :data:`PLANE_TABLE_FIELDS`."""
-    return structured_to_pointcloud2(plane_table_records(planes), header=header, msg_class=types.PointCloud2,
-                                     field_class=types.PointField, is_dense=True, datatypes={'rgb': FLOAT32})
+    return structured_to_pointcloud2(
+        plane_table_records(planes),
+        header=header,
+        msg_class=types.PointCloud2,
+        field_class=types.PointField,
+        is_dense=True,
+        datatypes={'rgb': FLOAT32},
+    )
 
 
 def plane_table_records(planes: PlaneSet) -> np.ndarray:
@@ -420,8 +562,11 @@ def plane_table_records(planes: PlaneSet) -> np.ndarray:
     table['rmse'] = planes.rmse
     table['sse'] = planes.sse
     cov = planes.covariances
-    for name, (i, j) in zip(('cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz', 'cov_zz'),
-                            ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), strict=True):
+    for name, (i, j) in zip(
+        ('cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz', 'cov_zz'),
+        ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)),
+        strict=True,
+    ):
         table[name] = cov[:, i, j]
     table['point_count'] = planes.point_counts
     table['label'] = np.arange(1, planes.num_planes + 1)
@@ -516,9 +661,11 @@ def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
         raise FrameSkipped('invalid_cloud', f'invalid PointCloud2: {exc}') from None
     # pointcloud2_to_xyz makes a point without a return all NaN: x alone tells
     if np.isnan(points[..., 0]).all():
-        raise FrameSkipped('no_valid_points',
-                           f'cloud of {height} x {width} points has no finite point other than (0, 0, 0) '
-                           '(every point NaN, infinite or exactly 0, 0, 0: no return)')
+        raise FrameSkipped(
+            'no_valid_points',
+            f'cloud of {height} x {width} points has no finite point other than (0, 0, 0) '
+            '(every point NaN, infinite or exactly 0, 0, 0: no return)',
+        )
     return points
 
 
@@ -575,12 +722,17 @@ def _extraction_settings(params: ExtractorParams) -> dict[str, Any]:
     surface_tolerance) leaves a setting to the sensor profile (sensor none: extract_planes's own)."""
     from ppe_ros.core.extraction import PROFILE_DEFAULT
 
-    settings = {name: getattr(params, name) or PROFILE_DEFAULT
-                for name in ('max_error_increment', 'max_neighbor_distance', 'min_plane_points')}
+    settings = {
+        name: getattr(params, name) or PROFILE_DEFAULT
+        for name in ('max_error_increment', 'max_neighbor_distance', 'min_plane_points')
+    }
     if params.sensor != 'none':
         settings.update(sensor=params.sensor, surface_tolerance=params.surface_tolerance or PROFILE_DEFAULT)
-    return {**settings, 'origins': np.asarray(params.ray_origin, dtype=np.float64),
-            'max_planes': params.max_planes or None}
+    return {
+        **settings,
+        'origins': np.asarray(params.ray_origin, dtype=np.float64),
+        'max_planes': params.max_planes or None,
+    }
 
 
 def _extract_grid(points: np.ndarray, settings: dict[str, Any]) -> PlaneSet:
@@ -611,13 +763,17 @@ def _unorganized_method(cloud: DecodedCloud, params: ExtractorParams) -> str:
     if method == 'auto':
         return {'ring': 'rings', 'line': 'angular_grid'}.get(cloud.beam_field, 'elevation')
     if method == 'rings' and cloud.beam_field != 'ring':
-        raise FrameSkipped('unorganized', f'unorganized cloud (height 1, width {cloud.points.shape[1]}) without a '
-                           'ring field, and unorganized_rows is rings (use auto or elevation)')
+        raise FrameSkipped(
+            'unorganized',
+            f'unorganized cloud (height 1, width {cloud.points.shape[1]}) without a '
+            'ring field, and unorganized_rows is rings (use auto or elevation)',
+        )
     return method
 
 
-def _extract_unorganized(cloud: DecodedCloud, params: ExtractorParams, settings: dict[str, Any],
-                         timings: dict[str, float]) -> tuple[PlaneSet, np.ndarray, PlaneSet]:
+def _extract_unorganized(
+    cloud: DecodedCloud, params: ExtractorParams, settings: dict[str, Any], timings: dict[str, float]
+) -> tuple[PlaneSet, np.ndarray, PlaneSet]:
     """Planes of an unorganized cloud: its range image, PPE on it, labels back ``(1, N)``."""
     from ppe_ros.core.projection import image_or_empty, planes_for_points, project_points
 
@@ -626,12 +782,20 @@ def _extract_unorganized(cloud: DecodedCloud, params: ExtractorParams, settings:
     method = _unorganized_method(cloud, params)
     rings = cloud.beams.reshape(-1) if method == 'rings' else None
     try:
-        projection = project_points(points, rings, origins=settings['origins'], rows=method,
-                                    azimuth_bins=params.azimuth_bins or None,
-                                    angular_resolution=params.angular_resolution, azimuth_start=params.azimuth_start)
+        projection = project_points(
+            points,
+            rings,
+            origins=settings['origins'],
+            rows=method,
+            azimuth_bins=params.azimuth_bins or None,
+            angular_resolution=params.angular_resolution,
+            azimuth_start=params.azimuth_start,
+        )
     except ValueError as exc:
-        raise FrameSkipped('unorganized', f'unorganized cloud (height 1, width {len(points)}) cannot be put on a '
-                           f'range image ({method}): {exc}') from None
+        raise FrameSkipped(
+            'unorganized',
+            f'unorganized cloud (height 1, width {len(points)}) cannot be put on a range image ({method}): {exc}',
+        ) from None
     image = image_or_empty(projection, points)
     timings['projection'] = time.perf_counter() - start
     grid_planes = _extract_grid(image, settings)
@@ -642,8 +806,14 @@ def _extract_unorganized(cloud: DecodedCloud, params: ExtractorParams, settings:
     return planes, image, grid_planes
 
 
-def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
-                  outputs: OutputSelection | None = None, ray_origins: np.ndarray | None = None) -> ProcessedFrame:
+def process_cloud(
+    msg: Any,
+    params: ExtractorParams,
+    types: MessageTypes,
+    *,
+    outputs: OutputSelection | None = None,
+    ray_origins: np.ndarray | None = None,
+) -> ProcessedFrame:
     """Convert, validate, extract planes and build the selected outputs of one PointCloud2.
 
     Organized clouds with the beams in columns are transposed for the extraction and their labels
@@ -682,15 +852,24 @@ def process_cloud(msg: Any, params: ExtractorParams, types: MessageTypes, *,
         else:
             planes = _extract_grid(cloud.points, settings)
         timings['extract'] = time.perf_counter() - mark
-    frame = ProcessedFrame(header=msg.header, stamped=StampedFrame.of(msg.header), points=cloud.points,
-                           planes=planes, timings=timings, ray_origins=settings['origins'], layout=cloud.layout,
-                           grid_points=grid_points, grid_planes=grid_planes)
+    frame = ProcessedFrame(
+        header=msg.header,
+        stamped=StampedFrame.of(msg.header),
+        points=cloud.points,
+        planes=planes,
+        timings=timings,
+        ray_origins=settings['origins'],
+        layout=cloud.layout,
+        grid_points=grid_points,
+        grid_planes=grid_planes,
+    )
     build_outputs(frame, params, types, OutputSelection.from_params(params) if outputs is None else outputs)
     return frame
 
 
-def build_outputs(frame: ProcessedFrame, params: ExtractorParams, types: MessageTypes,
-                  selection: OutputSelection) -> None:
+def build_outputs(
+    frame: ProcessedFrame, params: ExtractorParams, types: MessageTypes, selection: OutputSelection
+) -> None:
     """Build the selected output messages of ``frame`` in place (and their ``timings``)."""
     points, planes, header, timings = frame.points, frame.planes, frame.header, frame.timings
     mark = time.perf_counter()
@@ -705,11 +884,14 @@ def build_outputs(frame: ProcessedFrame, params: ExtractorParams, types: Message
         else:
             mesh_points, mesh_planes, origins = frame.grid_points, frame.grid_planes, np.asarray(params.ray_origin)
         geometry, frame.marker_stride = budgeted_plane_geometry(
-            mesh_points, mesh_planes, ray_origin=origins, stride=params.marker_mesh_stride,
-            max_triangles=params.marker_max_triangles)
+            mesh_points,
+            mesh_planes,
+            ray_origin=origins,
+            stride=params.marker_mesh_stride,
+            max_triangles=params.marker_max_triangles,
+        )
         colors = label_palette(planes.num_planes)[1:]
-        frame.markers = marker_array_cdr(geometry, planes, frame.stamped, colors=colors,
-                                         mesh_alpha=params.marker_alpha)
+        frame.markers = marker_array_cdr(geometry, planes, frame.stamped, colors=colors, mesh_alpha=params.marker_alpha)
         timings['markers'] = (now := time.perf_counter()) - mark
         mark = now
     if selection.plane_table:

@@ -55,8 +55,11 @@ def legacy_metadata(text: str, *, source: str = 'metadata') -> dict[str, Any]:
             legacy[legacy_key] = nested
         elif key in nested:
             legacy[legacy_key] = nested[key]
-    missing = [key for key in ('lidar_origin_to_beam_origin_mm', 'lidar_to_sensor_transform', 'data_format')
-               if key not in legacy]
+    missing = [
+        key
+        for key in ('lidar_origin_to_beam_origin_mm', 'lidar_to_sensor_transform', 'data_format')
+        if key not in legacy
+    ]
     if missing:
         raise ScanFileError(f'{source}: not Ouster metadata (missing {", ".join(missing)})')
     return legacy
@@ -123,8 +126,10 @@ class RayStarts:
             return
         self.ouster = ouster
         rows, columns = ouster.shape
-        self._info(f'Ouster metadata on {topic}: beam origins {ouster.beam_origin_mm:g} mm off the lidar axis; '
-                   f'{rows} x {columns} clouds get per-beam ray starts while ray_origin is [0, 0, 0]')
+        self._info(
+            f'Ouster metadata on {topic}: beam origins {ouster.beam_origin_mm:g} mm off the lidar axis; '
+            f'{rows} x {columns} clouds get per-beam ray starts while ray_origin is [0, 0, 0]'
+        )
 
     def for_cloud(self, msg: Any, ray_origin: tuple[float, float, float]) -> np.ndarray | None:
         """``(H, W, 3)`` starts for this cloud, or None (``ray_origin`` applies): no metadata, another
@@ -138,6 +143,9 @@ class RayStarts:
             return None  # process_cloud reports the cloud
         origins = ouster.for_cloud(height, width, frame_id)
         if origins is None:
-            self._warn('metadata_size', f'the Ouster metadata describes {ouster.shape[0]} x {ouster.shape[1]} '
-                       f'clouds; this one is {height} x {width}: ray_origin used')
+            self._warn(
+                'metadata_size',
+                f'the Ouster metadata describes {ouster.shape[0]} x {ouster.shape[1]} '
+                f'clouds; this one is {height} x {width}: ray_origin used',
+            )
         return origins

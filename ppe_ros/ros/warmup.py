@@ -38,24 +38,33 @@ def warm_up_header(types: MessageTypes) -> Any:
 
         return Header(frame_id='warm_up')
     store = types.typestore.types
-    return store['std_msgs/msg/Header'](stamp=store['builtin_interfaces/msg/Time'](sec=0, nanosec=0),
-                                        frame_id='warm_up')
+    return store['std_msgs/msg/Header'](
+        stamp=store['builtin_interfaces/msg/Time'](sec=0, nanosec=0), frame_id='warm_up'
+    )
 
 
 def warm_up_cloud(types: MessageTypes, height: int = 12, width: int = 16, *, header: Any = None) -> Any:
     """A small organized PointCloud2 of a floor and a wall (x forward, z up, 5 mm range noise) for the warm-up."""
     elevation = np.radians(np.linspace(10.0, -40.0, height))[:, None]
     azimuth = np.radians(np.linspace(-30.0, 30.0, width))[None, :]
-    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
-                                              np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), -1)
+    directions = np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+        ),
+        -1,
+    )
     with np.errstate(divide='ignore'):
         to_wall = np.where(directions[..., 0] > 0, 4.0 / directions[..., 0], np.inf)
         to_floor = np.where(directions[..., 2] < 0, -1.0 / directions[..., 2], np.inf)
     ranges = np.minimum(to_wall, to_floor) + np.random.default_rng(0).normal(0.0, 0.005, (height, width))
     points = (directions * ranges[..., None]).astype('<f4')
     points[0, 0] = np.nan  # a no-return, as real clouds have
-    return xyz_to_pointcloud2(points, header=warm_up_header(types) if header is None else header,
-                              msg_class=types.PointCloud2, field_class=types.PointField)
+    return xyz_to_pointcloud2(
+        points,
+        header=warm_up_header(types) if header is None else header,
+        msg_class=types.PointCloud2,
+        field_class=types.PointField,
+    )
 
 
 @dataclass(frozen=True)
@@ -93,13 +102,20 @@ class _Ticker:
 
     def _run(self) -> None:
         while not self._stop.wait(self._period_s):
-            self._log(f'JIT warm-up: still compiling ({self._what}; {time.perf_counter() - self._start:.0f} s '
-                      'so far; a cold cache takes minutes on a busy machine)')
+            self._log(
+                f'JIT warm-up: still compiling ({self._what}; {time.perf_counter() - self._start:.0f} s '
+                'so far; a cold cache takes minutes on a busy machine)'
+            )
 
 
-def warm_up(types: MessageTypes, params: ExtractorParams | None = None, *,
-            sensors: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
-            tick_s: float = TICK_S) -> list[WarmUpStep]:
+def warm_up(
+    types: MessageTypes,
+    params: ExtractorParams | None = None,
+    *,
+    sensors: Sequence[str] | None = None,
+    log: Callable[[str], None] | None = None,
+    tick_s: float = TICK_S,
+) -> list[WarmUpStep]:
     """Run :func:`~ppe_ros.ros.processing.process_cloud` with every output once per sensor profile.
 
     Args:
@@ -136,7 +152,8 @@ def warm_up(types: MessageTypes, params: ExtractorParams | None = None, *,
 #: Logged when ``workers`` > 1 but numba runs its parallel kernels on the workqueue layer.
 WORKQUEUE_LAYER_ERROR = (
     "workers > 1 needs numba's omp or tbb threading layer (numba uses 'workqueue' here, which aborts the process "
-    'when two threads launch parallel kernels at once; pip install tbb): running one worker')
+    'when two threads launch parallel kernels at once; pip install tbb): running one worker'
+)
 
 
 def parallel_workers_safe() -> bool:

@@ -64,37 +64,89 @@ def _positive(text: str) -> int:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``process_bag`` and ``ppe bag``."""
-    parser.add_argument('inputs', metavar='IN', nargs='+',
-                        help='input bag(s): rosbag2 directory (mcap or sqlite3), .mcap or .db3 file, ROS 1 .bag, or '
-                             'a directory of such bags')
-    parser.add_argument('output', metavar='OUT',
-                        help='output rosbag2 directory (must not exist unless --force); with several inputs, the '
-                             'directory of their output bags, one per input named after it')
-    parser.add_argument('-t', '--topic', dest='topics', action='extend', nargs='+', metavar='T', default=[],
-                        help='PointCloud2 topic(s) to process (default: every PointCloud2 topic)')
-    parser.add_argument('--params', metavar='FILE.yaml', default=None,
-                        help="the extractor node's parameter file (section 'extractor' or '/**'), e.g. "
-                             'config/extractor.yaml; default: the node defaults')
+    parser.add_argument(
+        'inputs',
+        metavar='IN',
+        nargs='+',
+        help='input bag(s): rosbag2 directory (mcap or sqlite3), .mcap or .db3 file, ROS 1 .bag, or '
+        'a directory of such bags',
+    )
+    parser.add_argument(
+        'output',
+        metavar='OUT',
+        help='output rosbag2 directory (must not exist unless --force); with several inputs, the '
+        'directory of their output bags, one per input named after it',
+    )
+    parser.add_argument(
+        '-t',
+        '--topic',
+        dest='topics',
+        action='extend',
+        nargs='+',
+        metavar='T',
+        default=[],
+        help='PointCloud2 topic(s) to process (default: every PointCloud2 topic)',
+    )
+    parser.add_argument(
+        '--params',
+        metavar='FILE.yaml',
+        default=None,
+        help="the extractor node's parameter file (section 'extractor' or '/**'), e.g. "
+        'config/extractor.yaml; default: the node defaults',
+    )
     parser.add_argument('--copy-input', action='store_true', help='also copy the input topics into OUT')
-    parser.add_argument('-j', '--jobs', type=_jobs, default=1, metavar='N',
-                        help='worker processes (default 1; 0 = one per CPU core); output order is kept')
-    parser.add_argument('--storage', choices=tuple(STORAGES), default=DEFAULT_STORAGE,
-                        help=f'storage of OUT (default {DEFAULT_STORAGE})')
+    parser.add_argument(
+        '-j',
+        '--jobs',
+        type=_jobs,
+        default=1,
+        metavar='N',
+        help='worker processes (default 1; 0 = one per CPU core); output order is kept',
+    )
+    parser.add_argument(
+        '--storage',
+        choices=tuple(STORAGES),
+        default=DEFAULT_STORAGE,
+        help=f'storage of OUT (default {DEFAULT_STORAGE})',
+    )
     parser.add_argument('--force', action='store_true', help='replace an existing OUT (never the input)')
-    parser.add_argument('--progress', dest='progress', action='store_true', default=None,
-                        help='always show the progress bar (default: when stderr is a terminal)')
+    parser.add_argument(
+        '--progress',
+        dest='progress',
+        action='store_true',
+        default=None,
+        help='always show the progress bar (default: when stderr is a terminal)',
+    )
     parser.add_argument('--no-progress', dest='progress', action='store_false', help='never show the progress bar')
-    parser.add_argument('--executor', choices=EXECUTORS, default='local',
-                        help="where frames are processed: 'local' (default: --jobs processes here) or 'ray' (Ray "
-                             'tasks; outputs byte-identical to local)')
-    parser.add_argument('--ray-address', metavar='ADDRESS', default=None,
-                        help="with --executor ray: the cluster to join ('auto', HOST:PORT or ray://HOST:10001); "
-                             'default: start a local Ray of --jobs CPUs on 127.0.0.1')
-    parser.add_argument('--task-frames', type=_positive, default=DEFAULT_TASK_FRAMES, metavar='N',
-                        help=f'with --executor ray: frames per task (default {DEFAULT_TASK_FRAMES})')
-    parser.add_argument('--task-retries', type=_count, default=DEFAULT_TASK_RETRIES, metavar='N',
-                        help='with --executor ray: times a task whose worker died runs again before the input is '
-                             f'reported incomplete (default {DEFAULT_TASK_RETRIES})')
+    parser.add_argument(
+        '--executor',
+        choices=EXECUTORS,
+        default='local',
+        help="where frames are processed: 'local' (default: --jobs processes here) or 'ray' (Ray "
+        'tasks; outputs byte-identical to local)',
+    )
+    parser.add_argument(
+        '--ray-address',
+        metavar='ADDRESS',
+        default=None,
+        help="with --executor ray: the cluster to join ('auto', HOST:PORT or ray://HOST:10001); "
+        'default: start a local Ray of --jobs CPUs on 127.0.0.1',
+    )
+    parser.add_argument(
+        '--task-frames',
+        type=_positive,
+        default=DEFAULT_TASK_FRAMES,
+        metavar='N',
+        help=f'with --executor ray: frames per task (default {DEFAULT_TASK_FRAMES})',
+    )
+    parser.add_argument(
+        '--task-retries',
+        type=_count,
+        default=DEFAULT_TASK_RETRIES,
+        metavar='N',
+        help='with --executor ray: times a task whose worker died runs again before the input is '
+        f'reported incomplete (default {DEFAULT_TASK_RETRIES})',
+    )
 
 
 def build_parser(prog: str = 'process_bag') -> argparse.ArgumentParser:
@@ -128,17 +180,31 @@ def options_from_args(args: argparse.Namespace) -> BagOptions:
             raise BagError(str(exc)) from None
         source = str(args.params)
         if unknown:  # like the node: a warning, not an error
-            warnings.append(f'params file {args.params}: ignoring unknown parameter(s) {unknown} (a typo in the '
-                            f'params file?); known: {sorted(PARAM_SPEC_BY_NAME)}')
+            warnings.append(
+                f'params file {args.params}: ignoring unknown parameter(s) {unknown} (a typo in the '
+                f'params file?); known: {sorted(PARAM_SPEC_BY_NAME)}'
+            )
     if args.executor != 'ray' and (args.ray_address is not None):
         raise BagError('--ray-address needs --executor ray')
     if args.ray_address is not None and args.jobs != 1:
         warnings.append(f'--jobs {args.jobs} is ignored with --ray-address: the tasks use the CPUs of the cluster')
-    return BagOptions(input=Path(args.inputs[0]), output=Path(args.output), topics=tuple(args.topics or ()),
-                      params=params, params_source=source, copy_input=args.copy_input, jobs=args.jobs,
-                      storage=args.storage, force=args.force, progress=args.progress,
-                      params_warnings=tuple(warnings), executor=args.executor, ray_address=args.ray_address,
-                      task_frames=args.task_frames, task_retries=args.task_retries)
+    return BagOptions(
+        input=Path(args.inputs[0]),
+        output=Path(args.output),
+        topics=tuple(args.topics or ()),
+        params=params,
+        params_source=source,
+        copy_input=args.copy_input,
+        jobs=args.jobs,
+        storage=args.storage,
+        force=args.force,
+        progress=args.progress,
+        params_warnings=tuple(warnings),
+        executor=args.executor,
+        ray_address=args.ray_address,
+        task_frames=args.task_frames,
+        task_retries=args.task_retries,
+    )
 
 
 def runs_from_args(args: argparse.Namespace) -> tuple[list[BagOptions], Path | None]:
@@ -155,15 +221,20 @@ def runs_from_args(args: argparse.Namespace) -> tuple[list[BagOptions], Path | N
         return [replace(base, input=inputs[0])], None
     directory = Path(args.output)
     outputs = output_paths(inputs, directory)
-    return [replace(base, input=source, output=output) for source, output in zip(inputs, outputs, strict=True)], \
-        directory
+    return [
+        replace(base, input=source, output=output) for source, output in zip(inputs, outputs, strict=True)
+    ], directory
 
 
 def _unknown_parameter_names(names: Any) -> list[str]:
     """Names the extractor does not have (ROS's own ones excepted), as the node reports them."""
-    return sorted(str(name) for name in names
-                  if name not in PARAM_SPEC_BY_NAME and name not in ROS_BUILTIN_PARAMETERS
-                  and not str(name).startswith('qos_overrides'))
+    return sorted(
+        str(name)
+        for name in names
+        if name not in PARAM_SPEC_BY_NAME
+        and name not in ROS_BUILTIN_PARAMETERS
+        and not str(name).startswith('qos_overrides')
+    )
 
 
 def read_params_file(path: str | os.PathLike[str]) -> tuple[ExtractorParams, list[str]]:
@@ -217,8 +288,10 @@ def _run_command(args: argparse.Namespace, prog: str, signals: CommandSignals) -
         for problem in report_problems(report):
             print(f'{prog}: {label}: {report.options.input}: {problem}', file=sys.stderr)
     if bags.interrupted_by is not None:
-        print(f'{prog}: stopped: interrupted ({signal.Signals(bags.interrupted_by).name}); '
-              f'{describe_completion(bags)}', file=sys.stderr)
+        print(
+            f'{prog}: stopped: interrupted ({signal.Signals(bags.interrupted_by).name}); {describe_completion(bags)}',
+            file=sys.stderr,
+        )
     return bags.exit_code
 
 
@@ -231,8 +304,11 @@ def _print_outcome(report: BagReport, prog: str, signals: CommandSignals) -> int
     for problem in problems:
         print(f'{prog}: {label}: {problem}', file=sys.stderr)
     if problems and report.output_path is not None:
-        print(f'{prog}: {report.output_path} is a complete, valid bag of the {report.frames_processed} frames '
-              'processed before that', file=sys.stderr)
+        print(
+            f'{prog}: {report.output_path} is a complete, valid bag of the {report.frames_processed} frames '
+            'processed before that',
+            file=sys.stderr,
+        )
     return report.exit_code
 
 
@@ -240,5 +316,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ros2 run ppe_ros process_bag``; returns the exit code."""
     arguments = list(sys.argv[1:] if argv is None else argv)
     if '--ros-args' in arguments:  # ros2 launch appends ROS arguments; they mean nothing here
-        arguments = arguments[:arguments.index('--ros-args')]
+        arguments = arguments[: arguments.index('--ros-args')]
     return run(build_parser().parse_args(arguments))

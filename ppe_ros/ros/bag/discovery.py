@@ -27,8 +27,11 @@ def _bags_in(folder: Path) -> list[Path]:
         entries = sorted(folder.iterdir())
     except OSError as exc:
         raise BagError(f'cannot list {folder}: {exc.strerror or exc}') from None
-    return [entry for entry in entries if (entry.is_dir() and is_bag_directory(entry))
-            or (entry.is_file() and entry.suffix in BAG_FILE_SUFFIXES)]
+    return [
+        entry
+        for entry in entries
+        if (entry.is_dir() and is_bag_directory(entry)) or (entry.is_file() and entry.suffix in BAG_FILE_SUFFIXES)
+    ]
 
 
 def expand_inputs(paths: Sequence[str | os.PathLike[str]]) -> tuple[list[Path], bool]:
@@ -76,8 +79,7 @@ def output_paths(inputs: Sequence[Path], directory: Path) -> list[Path]:
     twice = sorted(name for name, count in Counter(names).items() if count > 1)
     if twice:
         clashing = [str(path) for path, name in zip(inputs, names, strict=True) if name in twice]
-        raise BagError(f'inputs {clashing} would all write {directory / twice[0]}; give them separately or rename '
-                       'one')
+        raise BagError(f'inputs {clashing} would all write {directory / twice[0]}; give them separately or rename one')
     return [directory / name for name in names]
 
 

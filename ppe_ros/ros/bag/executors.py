@@ -112,8 +112,9 @@ class PoolExecutor:
 
         methods = multiprocessing.get_all_start_methods()
         context = multiprocessing.get_context('forkserver' if 'forkserver' in methods else 'spawn')
-        self._pool = ProcessPoolExecutor(max_workers=self._jobs, mp_context=context, initializer=_init_worker,
-                                         initargs=self._initargs)
+        self._pool = ProcessPoolExecutor(
+            max_workers=self._jobs, mp_context=context, initializer=_init_worker, initargs=self._initargs
+        )
 
     def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future:
         if self._pool is None:  # abandoned by the previous input

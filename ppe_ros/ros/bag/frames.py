@@ -45,9 +45,17 @@ def ros1_cloud_as_ros2(msg: Any, typestore: Any) -> Any:
     header = types['std_msgs/msg/Header'](stamp=stamp, frame_id=str(msg.header.frame_id))
     field_class = types['sensor_msgs/msg/PointField']
     fields = [field_class(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in msg.fields]
-    return types[POINTCLOUD2](header=header, height=msg.height, width=msg.width, fields=fields,
-                              is_bigendian=msg.is_bigendian, point_step=msg.point_step, row_step=msg.row_step,
-                              data=msg.data, is_dense=msg.is_dense)
+    return types[POINTCLOUD2](
+        header=header,
+        height=msg.height,
+        width=msg.width,
+        fields=fields,
+        is_bigendian=msg.is_bigendian,
+        point_step=msg.point_step,
+        row_step=msg.row_step,
+        data=msg.data,
+        is_dense=msg.is_dense,
+    )
 
 
 class FrameProcessor:
@@ -79,8 +87,11 @@ class FrameProcessor:
         try:
             msg = self.decode(raw, encoding)
         except Exception as exc:
-            return FrameResult('undecodable', f'the message does not decode as {POINTCLOUD2}: '
-                               f'{type(exc).__name__}: {exc}', seconds=time.perf_counter() - start)
+            return FrameResult(
+                'undecodable',
+                f'the message does not decode as {POINTCLOUD2}: {type(exc).__name__}: {exc}',
+                seconds=time.perf_counter() - start,
+            )
         result = FrameResult()
         try:
             if convert_copy:

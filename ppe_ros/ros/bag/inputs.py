@@ -48,9 +48,18 @@ class InputBag:
         damage: known damage (a salvaged file) to report even if the stream ends without an error.
     """
 
-    def __init__(self, path: Path, description: str, encoding: str, readers: Sequence[Any],
-                 stack: contextlib.ExitStack, *, notes: Sequence[str] = (), damage: str | None = None,
-                 counts_known: bool = True) -> None:
+    def __init__(
+        self,
+        path: Path,
+        description: str,
+        encoding: str,
+        readers: Sequence[Any],
+        stack: contextlib.ExitStack,
+        *,
+        notes: Sequence[str] = (),
+        damage: str | None = None,
+        counts_known: bool = True,
+    ) -> None:
         self.path = path
         self.description = description
         self.encoding = encoding
@@ -119,11 +128,16 @@ def open_input_bag(path: str | os.PathLike[str]) -> InputBag:
         if path.is_dir():
             return _open_rosbag2_directory(path, stack)
         magic = _magic(path)
-        for known, kind in ((ROS1_MAGIC, 'a ROS 1 bag'), (MCAP_MAGIC, 'an MCAP file'),
-                            (SQLITE_MAGIC, 'an sqlite3 database')):
+        for known, kind in (
+            (ROS1_MAGIC, 'a ROS 1 bag'),
+            (MCAP_MAGIC, 'an MCAP file'),
+            (SQLITE_MAGIC, 'an sqlite3 database'),
+        ):
             if magic and len(magic) < len(known) and known.startswith(magic):
-                raise BagError(f'{path} is damaged: it is cut to {len(magic)} byte{"s" * (len(magic) != 1)}, '
-                               f'inside the file signature of {kind}; nothing to read')
+                raise BagError(
+                    f'{path} is damaged: it is cut to {len(magic)} byte{"s" * (len(magic) != 1)}, '
+                    f'inside the file signature of {kind}; nothing to read'
+                )
         if not magic:
             raise BagError(f'{path} is empty (0 bytes); nothing to read')
         if magic.startswith(ROS1_MAGIC):
@@ -131,8 +145,10 @@ def open_input_bag(path: str | os.PathLike[str]) -> InputBag:
         if magic.startswith(MCAP_MAGIC) or magic.startswith(SQLITE_MAGIC):
             expected = '.mcap' if magic.startswith(MCAP_MAGIC) else '.db3'
             if path.suffix != expected:
-                raise BagError(f'{path} looks like a rosbag2 {expected} storage file but is named {path.name!r}; '
-                               f'rename it to end in {expected}')
+                raise BagError(
+                    f'{path} looks like a rosbag2 {expected} storage file but is named {path.name!r}; '
+                    f'rename it to end in {expected}'
+                )
             return _open_rosbag2_files([path], path, stack, notes=[])
         raise BagError(
             f'{path} is not a bag: expected a rosbag2 directory (with metadata.yaml), an .mcap or .db3 '
@@ -162,8 +178,11 @@ def _open_rosbag2_directory(path: Path, stack: contextlib.ExitStack) -> InputBag
                 files, damage = decompress_as_far_as_possible(compressed, stack)
                 return _open_rosbag2_files(files, path, stack, notes=[], damage=damage)
             # a damaged metadata.yaml or storage file: the storage files tell (and an MCAP is salvaged)
-            notes = [] if _is_unfinished_mcap(exc) else [
-                f'cannot use {path}: {describe_read_error(exc)}; reading its storage files directly']
+            notes = (
+                []
+                if _is_unfinished_mcap(exc)
+                else [f'cannot use {path}: {describe_read_error(exc)}; reading its storage files directly']
+            )
             return _open_rosbag2_files(files, path, stack, notes=notes)
         storage = 'mcap' if any(f.name.endswith(('.mcap', '.mcap.zstd')) for f in files or compressed) else 'sqlite3'
         return InputBag(path, f'rosbag2 ({storage})', 'cdr', [reader], stack)
@@ -172,10 +191,13 @@ def _open_rosbag2_directory(path: Path, stack: contextlib.ExitStack) -> InputBag
         note = f'{path} has no metadata.yaml (was the recording interrupted?): reading its storage files directly'
         return _open_rosbag2_files(files, path, stack, notes=[note], damage=damage)
     if not files:
-        raise BagError(f'{path} is a directory but not a rosbag2 bag: it has no metadata.yaml and no .mcap or '
-                       '.db3 file')
-    note = (f'{path} has no metadata.yaml (was the recording interrupted?): reading its storage '
-            f'file{"s" if len(files) > 1 else ""} {", ".join(f.name for f in files)} directly')
+        raise BagError(
+            f'{path} is a directory but not a rosbag2 bag: it has no metadata.yaml and no .mcap or .db3 file'
+        )
+    note = (
+        f'{path} has no metadata.yaml (was the recording interrupted?): reading its storage '
+        f'file{"s" if len(files) > 1 else ""} {", ".join(f.name for f in files)} directly'
+    )
     return _open_rosbag2_files(files, path, stack, notes=[note])
 
 
@@ -185,8 +207,9 @@ def _is_unfinished_mcap(exc: BaseException) -> bool:
     return any(words in text for words in ('end magic', 'MCAP footer', 'summary offset', 'Truncated record'))
 
 
-def _open_rosbag2_files(files: Sequence[Path], path: Path, stack: contextlib.ExitStack, *,
-                        notes: list[str], damage: Sequence[str] = ()) -> InputBag:
+def _open_rosbag2_files(
+    files: Sequence[Path], path: Path, stack: contextlib.ExitStack, *, notes: list[str], damage: Sequence[str] = ()
+) -> InputBag:
     """Storage files read directly (no or unusable metadata.yaml); an unfinished MCAP is salvaged."""
     readers = []
     damage = list(damage)
@@ -200,10 +223,12 @@ def _open_rosbag2_files(files: Sequence[Path], path: Path, stack: contextlib.Exi
                 try:
                     reader = _open_reader(SalvageSqliteReader(file), stack)
                 except Ros2ReaderError as salvage_error:
-                    raise BagError(f'cannot read {file}: {describe_read_error(exc)}; {salvage_error}; '
-                                   'nothing readable') from None
-                damage.append(f'{file.name} cannot be opened as a database ({describe_read_error(exc)})'
-                              f'{reader.describe_damage()}')
+                    raise BagError(
+                        f'cannot read {file}: {describe_read_error(exc)}; {salvage_error}; nothing readable'
+                    ) from None
+                damage.append(
+                    f'{file.name} cannot be opened as a database ({describe_read_error(exc)}){reader.describe_damage()}'
+                )
             elif file.suffix != '.mcap':
                 raise BagError(f'cannot read {file}: {describe_read_error(exc)}') from None
         if reader is None:  # an MCAP without footer: scan it record by record
@@ -221,8 +246,16 @@ def _open_rosbag2_files(files: Sequence[Path], path: Path, stack: contextlib.Exi
     if damage:
         notes = [*notes, f'{"; ".join(damage)}: reading it record by record up to the damage']
     complete_scans = all(counts_exact(reader) for reader in readers)
-    return InputBag(path, f'rosbag2 ({storage})', 'cdr', readers, stack, notes=notes,
-                    damage='; '.join(damage) or None, counts_known=complete_scans)
+    return InputBag(
+        path,
+        f'rosbag2 ({storage})',
+        'cdr',
+        readers,
+        stack,
+        notes=notes,
+        damage='; '.join(damage) or None,
+        counts_known=complete_scans,
+    )
 
 
 def _open_ros1(path: Path, stack: contextlib.ExitStack) -> InputBag:
@@ -235,12 +268,21 @@ def _open_ros1(path: Path, stack: contextlib.ExitStack) -> InputBag:
     try:
         _open_reader(salvage, stack)
     except Exception as exc:
-        raise BagError(f'cannot read ROS 1 bag {path} (damaged or cut short before its first record?): {problem}; '
-                       f'{describe_read_error(exc)}') from None
+        raise BagError(
+            f'cannot read ROS 1 bag {path} (damaged or cut short before its first record?): {problem}; '
+            f'{describe_read_error(exc)}'
+        ) from None
     where = f'; the scan stops at: {salvage.scan_error}' if salvage.scan_error else ''
     damage = f'the ROS 1 bag has no usable index ({problem}){where}'
-    return InputBag(path, 'ROS 1 bag', 'ros1', [salvage], stack, damage=damage,
-                    notes=[f'{damage}: reading its chunks in file order up to the damage'])
+    return InputBag(
+        path,
+        'ROS 1 bag',
+        'ros1',
+        [salvage],
+        stack,
+        damage=damage,
+        notes=[f'{damage}: reading its chunks in file order up to the damage'],
+    )
 
 
 def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
@@ -253,8 +295,10 @@ def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
     listing = ', '.join(f'{name} ({topic.msgtype})' for name, topic in bag.topics.items()) or 'none'
     if not requested:
         if not clouds and bag.damage:
-            raise BagError(f'{bag.path} is damaged before its first complete {POINTCLOUD2} message '
-                           f'({bag.damage}); nothing to process')
+            raise BagError(
+                f'{bag.path} is damaged before its first complete {POINTCLOUD2} message '
+                f'({bag.damage}); nothing to process'
+            )
         if not clouds:
             raise BagError(f'{bag.path} has no {POINTCLOUD2} topic; its topics: {listing}')
         return clouds

@@ -93,8 +93,12 @@ def overlaps(input_path: Path, output_path: Path) -> bool:
     """Whether writing ``output_path`` could touch the input: it is, holds or lies inside it, or shares a file."""
     source = input_path.resolve()
     target = output_path.resolve()
-    return (target == source or source.is_relative_to(target) or target.is_relative_to(source)
-            or _shares_a_file(input_path, output_path))
+    return (
+        target == source
+        or source.is_relative_to(target)
+        or target.is_relative_to(source)
+        or _shares_a_file(input_path, output_path)
+    )
 
 
 def check_paths(input_path: Path, output_path: Path, force: bool) -> None:

@@ -76,8 +76,10 @@ def check_reachable(address: str) -> None:
     try:
         socket.create_connection((host.strip('[]'), int(port)), timeout=CONNECT_TIMEOUT_S).close()
     except OSError as exc:
-        raise BagError(f'cannot connect to the Ray cluster at {address}: {exc.strerror or exc} (is Ray running '
-                       'there? `ray start --head` starts one)') from None
+        raise BagError(
+            f'cannot connect to the Ray cluster at {address}: {exc.strerror or exc} (is Ray running '
+            'there? `ray start --head` starts one)'
+        ) from None
 
 
 def start_ray(address: str | None, local_cpus: int) -> bool:
@@ -100,8 +102,13 @@ def start_ray(address: str | None, local_cpus: int) -> bool:
     try:
         if address is None:
             os.environ.setdefault('RAY_USAGE_STATS_ENABLED', '0')
-            ray.init(num_cpus=local_cpus, include_dashboard=False, _node_ip_address='127.0.0.1',
-                     log_to_driver=False, configure_logging=False)
+            ray.init(
+                num_cpus=local_cpus,
+                include_dashboard=False,
+                _node_ip_address='127.0.0.1',
+                log_to_driver=False,
+                configure_logging=False,
+            )
         else:
             ray.init(address=address, log_to_driver=False, configure_logging=False)
     except Exception as exc:  # connection refused, bad address, ...
@@ -126,9 +133,17 @@ class RayExecutor:
         task_function: the task body (:func:`process_frames`; tests wrap it to kill a worker).
     """
 
-    def __init__(self, params: ExtractorParams, *, numba_threads: int = 1, address: str | None = None,
-                 local_cpus: int = 1, task_frames: int = DEFAULT_TASK_FRAMES, retries: int = DEFAULT_TASK_RETRIES,
-                 task_function: Callable[..., Any] = process_frames) -> None:
+    def __init__(
+        self,
+        params: ExtractorParams,
+        *,
+        numba_threads: int = 1,
+        address: str | None = None,
+        local_cpus: int = 1,
+        task_frames: int = DEFAULT_TASK_FRAMES,
+        retries: int = DEFAULT_TASK_RETRIES,
+        task_function: Callable[..., Any] = process_frames,
+    ) -> None:
         if task_frames < 1:
             raise BagError(f'--task-frames must be >= 1; got {task_frames}')
         if retries < 0:
@@ -162,8 +177,9 @@ class RayExecutor:
             return
         batch, self._batch = self._batch, []
         self._tasks += 1
-        refs = self._task.options(num_returns=len(batch)).remote(self._body, self._params, self._numba_threads,
-                                                                  [frame for frame, _ in batch])
+        refs = self._task.options(num_returns=len(batch)).remote(
+            self._body, self._params, self._numba_threads, [frame for frame, _ in batch]
+        )
         refs = list(refs) if len(batch) > 1 else [refs]
         self._in_flight = [(ref, future) for ref, future in self._in_flight if not future.done()]
         self._in_flight += [(ref, future) for ref, (_, future) in zip(refs, batch, strict=True)]
@@ -182,8 +198,11 @@ class RayExecutor:
                 what += f' after {self._retries} retr{"ies" if self._retries != 1 else "y"}'
             outcome: Any = TaskFailed(f'{what}: {type(exc).__name__}: {reason}')
         else:
-            outcome = result if isinstance(result, FrameResult) else TaskFailed(
-                f'Ray task {task} returned {type(result).__name__}, not a FrameResult')
+            outcome = (
+                result
+                if isinstance(result, FrameResult)
+                else TaskFailed(f'Ray task {task} returned {type(result).__name__}, not a FrameResult')
+            )
         with contextlib.suppress(InvalidStateError):  # dropped meanwhile (abandon)
             if isinstance(outcome, TaskFailed):
                 future.set_exception(outcome)

@@ -142,8 +142,9 @@ def format_report(report: BagReport) -> str:
             seconds = f'{_mean(entry.seconds):.3f} ({max(entry.seconds):.3f})'
         else:
             planes = seconds = '-'
-        lines.append(f'| {entry.input_topic} | {entry.read} | {entry.processed} | {entry.skipped_total} | '
-                     f'{planes} | {seconds} |')
+        lines.append(
+            f'| {entry.input_topic} | {entry.read} | {entry.processed} | {entry.skipped_total} | {planes} | {seconds} |'
+        )
     for entry in report.topics.values():
         for kind, count in entry.skipped.most_common():
             lines.append(f'skipped on {entry.input_topic}: {count} x {kind}, e.g. {entry.reasons[kind]}')
@@ -152,8 +153,10 @@ def format_report(report: BagReport) -> str:
     where = report.executor_description or f'{jobs} job{"s" * (jobs != 1)}'
     rate = f'{report.frames_per_second:.2f} frames/s with {where}'
     if report.output_path is not None:
-        lines.append(f'wrote {report.output_path} ({report.options.storage}): {report.messages_written} messages; '
-                     f'{done} frames in {report.wall_seconds:.1f} s ({rate})')
+        lines.append(
+            f'wrote {report.output_path} ({report.options.storage}): {report.messages_written} messages; '
+            f'{done} frames in {report.wall_seconds:.1f} s ({rate})'
+        )
     return '\n'.join(lines)
 
 
@@ -162,8 +165,11 @@ def report_problems(report: BagReport) -> list[str]:
     problems = []
     if report.interrupted_by is not None:
         name = signal.Signals(report.interrupted_by).name
-        dropped = (f'; {report.dropped_in_flight} frame{"s" * (report.dropped_in_flight != 1)} in flight dropped'
-                   if report.dropped_in_flight else '')
+        dropped = (
+            f'; {report.dropped_in_flight} frame{"s" * (report.dropped_in_flight != 1)} in flight dropped'
+            if report.dropped_in_flight
+            else ''
+        )
         problems.append(f'interrupted ({name}) after {report.frames_read} frames{dropped}')
     for problem in (report.error, report.input_error, report.worker_error, report.output_error):
         if problem:
@@ -205,25 +211,35 @@ def _outcome(report: BagReport) -> str:
 
 def format_summary(bags: BagsReport) -> str:
     """The table over all inputs: frames, rate and outcome of each, and the totals."""
-    lines = ['| input | output | frames | processed | skipped | s | frames/s | outcome |',
-             '|---|---|---:|---:|---:|---:|---:|---|']
+    lines = [
+        '| input | output | frames | processed | skipped | s | frames/s | outcome |',
+        '|---|---|---:|---:|---:|---:|---:|---|',
+    ]
     for report in bags.reports:
         output = report.output_path if report.output_path is not None else '-'
-        lines.append(f'| {report.options.input} | {output} | {report.frames_read} | {report.frames_processed} | '
-                     f'{report.frames_skipped} | {report.wall_seconds:.1f} | {report.frames_per_second:.2f} | '
-                     f'{_outcome(report)} |')
+        lines.append(
+            f'| {report.options.input} | {output} | {report.frames_read} | {report.frames_processed} | '
+            f'{report.frames_skipped} | {report.wall_seconds:.1f} | {report.frames_per_second:.2f} | '
+            f'{_outcome(report)} |'
+        )
     done = sum(r.frames_processed + r.frames_skipped for r in bags.reports)
     rate = done / bags.wall_seconds if bags.wall_seconds > 0 else 0.0
     complete = sum(report.complete for report in bags.reports)
-    lines.append(f'{len(bags.reports)} inputs, {complete} complete: {done} frames in {bags.wall_seconds:.1f} s '
-                 f'({rate:.2f} frames/s)')
+    lines.append(
+        f'{len(bags.reports)} inputs, {complete} complete: {done} frames in {bags.wall_seconds:.1f} s '
+        f'({rate:.2f} frames/s)'
+    )
     return '\n'.join(lines)
 
 
 def describe_completion(bags: BagsReport) -> str:
     """Which inputs are complete, which incomplete (a valid bag of the frames done) and which not started."""
-    groups: dict[str, list[str]] = {'complete': [], 'incomplete (a valid bag of the frames done)': [],
-                                    'not usable': [], 'not started': []}
+    groups: dict[str, list[str]] = {
+        'complete': [],
+        'incomplete (a valid bag of the frames done)': [],
+        'not usable': [],
+        'not started': [],
+    }
     for report in bags.reports:
         if report.error:
             key = 'not usable'

@@ -51,8 +51,13 @@ def _print(text: str, *, file: Any = None) -> None:
     tqdm.write(text, file=file or sys.stdout)
 
 
-def process_bag(options: BagOptions, *, log: Callable[[str], None] | None = None,
-                warn: Callable[[str], None] | None = None, executor: FrameExecutor | None = None) -> BagReport:
+def process_bag(
+    options: BagOptions,
+    *,
+    log: Callable[[str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+    executor: FrameExecutor | None = None,
+) -> BagReport:
     """Turn the PointCloud2 topics of a bag into the extractor's outputs in a new rosbag2.
 
     Args:
@@ -72,9 +77,15 @@ def process_bag(options: BagOptions, *, log: Callable[[str], None] | None = None
     return process_bags([options], log=log, warn=warn, executor=executor, keep_going=False).reports[0]
 
 
-def process_bags(runs: Sequence[BagOptions], *, log: Callable[[str], None] | None = None,
-                 warn: Callable[[str], None] | None = None, executor: FrameExecutor | None = None,
-                 output_directory: Path | None = None, keep_going: bool = True) -> BagsReport:
+def process_bags(
+    runs: Sequence[BagOptions],
+    *,
+    log: Callable[[str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+    executor: FrameExecutor | None = None,
+    output_directory: Path | None = None,
+    keep_going: bool = True,
+) -> BagsReport:
     """:func:`process_bag` for each of ``runs`` in turn, sharing one executor (worker pool or Ray).
 
     The executor, progress bar, ``jobs``, ``executor``, ``ray_address`` and ``progress`` come from
@@ -162,8 +173,9 @@ def _check_runs(runs: Sequence[BagOptions], output_directory: Path | None) -> No
 class _Executors:
     """The executor of a run over inputs, made when the first usable input needs it (not for a bad one)."""
 
-    def __init__(self, options: BagOptions, stops: StopRequests, *, given: FrameExecutor | None,
-                 log: Callable[[str], None]) -> None:
+    def __init__(
+        self, options: BagOptions, stops: StopRequests, *, given: FrameExecutor | None, log: Callable[[str], None]
+    ) -> None:
         self._options = options
         self._stops = stops
         self._log = log
@@ -191,13 +203,22 @@ class _Executors:
 
     def _start_ray(self) -> FrameExecutor:
         options = self._options
-        where = f'the Ray cluster at {options.ray_address}' if options.ray_address else (
-            f'a local Ray with {options.jobs} CPU{"s" * (options.jobs != 1)} on 127.0.0.1')
+        where = (
+            f'the Ray cluster at {options.ray_address}'
+            if options.ray_address
+            else (f'a local Ray with {options.jobs} CPU{"s" * (options.jobs != 1)} on 127.0.0.1')
+        )
         self._log(f'starting {where}' if options.ray_address is None else f'connecting to {where}')
         numba_threads = options.params.numba_threads if options.params.numba_threads > 0 else 1
         start = time.perf_counter()
-        ray = RayExecutor(options.params, numba_threads=numba_threads, address=options.ray_address,
-                          local_cpus=options.jobs, task_frames=options.task_frames, retries=options.task_retries)
+        ray = RayExecutor(
+            options.params,
+            numba_threads=numba_threads,
+            address=options.ray_address,
+            local_cpus=options.jobs,
+            task_frames=options.task_frames,
+            retries=options.task_retries,
+        )
         self._log(f'Ray ready in {time.perf_counter() - start:.1f} s: {ray.cpus} CPU{"s" * (ray.cpus != 1)}')
         self._shared = ray
         return ray
@@ -221,8 +242,15 @@ class _Progress:
         expected = [t.expected for t in report.topics.values()]
         frames = None if any(count is None for count in expected) else sum(expected)
         if self.bar is None:
-            self.bar = tqdm(total=frames, unit='frame', desc='process_bag', file=sys.stderr, dynamic_ncols=True,
-                            disable=self._disable, smoothing=0.1)
+            self.bar = tqdm(
+                total=frames,
+                unit='frame',
+                desc='process_bag',
+                file=sys.stderr,
+                dynamic_ncols=True,
+                disable=self._disable,
+                smoothing=0.1,
+            )
         elif self.bar.total is not None:
             self.bar.total = None if frames is None else self.bar.total + frames
         if self._inputs > 1:
@@ -235,8 +263,14 @@ class _Progress:
             self.bar.close()
 
 
-def _process_one(report: BagReport, executors: _Executors, stops: StopRequests, progress: _Progress,
-                 log: Callable[[str], None], warn: Callable[[str], None]) -> None:
+def _process_one(
+    report: BagReport,
+    executors: _Executors,
+    stops: StopRequests,
+    progress: _Progress,
+    log: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> None:
     """One input: open it, plan its topics, process it into its output (the report says how it went)."""
     start = time.perf_counter()
     options = report.options
@@ -278,13 +312,13 @@ def _plan(report: BagReport, bag: InputBag, log: Callable[[str], None], warn: Ca
     for topic in selected:
         report.topics[topic] = TopicReport(topic, names[topic], bag.topics[topic].count)
     if bag.damage and all(entry.expected == 0 for entry in report.topics.values()):
-        raise BagError(f'{options.input} is damaged before its first complete frame ({bag.damage}); '
-                       'nothing to process')
+        raise BagError(f'{options.input} is damaged before its first complete frame ({bag.damage}); nothing to process')
     _log_plan(report, bag, log, warn, requested=bool(options.topics))
 
 
-def _log_plan(report: BagReport, bag: InputBag, log: Callable[[str], None], warn: Callable[[str], None], *,
-              requested: bool) -> None:
+def _log_plan(
+    report: BagReport, bag: InputBag, log: Callable[[str], None], warn: Callable[[str], None], *, requested: bool
+) -> None:
     for note in report.notes:
         warn(f'warning: {note}')
     total = sum(t.count or 0 for t in bag.topics.values())
@@ -309,21 +343,36 @@ def _set_up_output(output: OutputBag, report: BagReport, options: BagOptions) ->
         for topic in report.topics:
             copy_connections[topic] = output.add_connection(topic, POINTCLOUD2, typestore)
     connections = {
-        topic: {kind: output.add_connection(name, OUTPUT_MSGTYPES[kind], typestore)
-                for kind, name in entry.outputs.items()}
+        topic: {
+            kind: output.add_connection(name, OUTPUT_MSGTYPES[kind], typestore) for kind, name in entry.outputs.items()
+        }
         for topic, entry in report.topics.items()
     }
-    output.writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps({
-        'input': str(options.input),
-        'topics': {topic: entry.outputs for topic, entry in report.topics.items()},
-        'params': options.params.as_dict(),
-        'params_source': options.params_source,
-    }, default=str))
+    output.writer.set_custom_data(
+        CUSTOM_DATA_KEY,
+        json.dumps(
+            {
+                'input': str(options.input),
+                'topics': {topic: entry.outputs for topic, entry in report.topics.items()},
+                'params': options.params.as_dict(),
+                'params_source': options.params_source,
+            },
+            default=str,
+        ),
+    )
     return copy_connections, connections
 
 
-def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOptions, warn: Callable[[str], None],
-         stops: StopRequests, executor: FrameExecutor, bar: Any) -> None:
+def _run(
+    bag: InputBag,
+    output: OutputBag,
+    report: BagReport,
+    options: BagOptions,
+    warn: Callable[[str], None],
+    stops: StopRequests,
+    executor: FrameExecutor,
+    bar: Any,
+) -> None:
     """Read, process (inline, in workers or on Ray) and write in input order until done, damaged or stopped."""
     copy_connections, connections = _set_up_output(output, report, options)
     convert_copy = options.copy_input and bag.encoding == 'ros1'
@@ -343,8 +392,9 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
                     break
                 except Exception as exc:  # damage in the input: keep what was read before it
                     read = report.frames_read
-                    report.input_error = (f'{bag.path} is damaged after {read} frame{"s" * (read != 1)}: '
-                                          f'{describe_read_error(exc)}')
+                    report.input_error = (
+                        f'{bag.path} is damaged after {read} frame{"s" * (read != 1)}: {describe_read_error(exc)}'
+                    )
                     reading = False
                     break
                 report.topics[topic].read += 1
@@ -356,9 +406,11 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
                 announced = True
                 reading = False
                 busy = sum(1 for *_, future in pending if not future.done())
-                extra = (f'finishing the {busy} frame{"s" * (busy != 1)} in flight, ' if busy else '')
-                warn(f'interrupted: {extra}closing {options.output} with the frames done so far '
-                     f'({"press Ctrl-C again to drop the frames in flight" if busy else "please wait"})')
+                extra = f'finishing the {busy} frame{"s" * (busy != 1)} in flight, ' if busy else ''
+                warn(
+                    f'interrupted: {extra}closing {options.output} with the frames done so far '
+                    f'({"press Ctrl-C again to drop the frames in flight" if busy else "please wait"})'
+                )
             if not pending:
                 break
             topic, timestamp, raw, future = pending[0]
@@ -382,8 +434,9 @@ def _run(bag: InputBag, output: OutputBag, report: BagReport, options: BagOption
             executor.abandon()
 
 
-def _log_skip(result: FrameResult, topic: str, timestamp: int, logged: Counter[tuple[str, str]],
-              warn: Callable[[str], None]) -> None:
+def _log_skip(
+    result: FrameResult, topic: str, timestamp: int, logged: Counter[tuple[str, str]], warn: Callable[[str], None]
+) -> None:
     if not result.skip_kind:
         return
     logged[(topic, result.skip_kind)] += 1
@@ -404,16 +457,25 @@ def _wait(future: Future, stops: StopRequests, report: BagReport) -> FrameResult
         except CancelledError:
             return None
         except BrokenProcessPool as exc:
-            report.worker_error = (f'a worker process died ({exc}); was it killed, e.g. for lack of memory? '
-                                   'Try fewer --jobs')
+            report.worker_error = (
+                f'a worker process died ({exc}); was it killed, e.g. for lack of memory? Try fewer --jobs'
+            )
             return None
         except TaskFailed as exc:
             report.worker_error = f'{exc}; the frames from there on are not written'
             return None
 
 
-def _write_frame(output: OutputBag, report: BagReport, topic: str, timestamp: int, raw: bytes | None,
-                 result: FrameResult, copy_connections: dict[str, Any], connections: dict[str, Any]) -> None:
+def _write_frame(
+    output: OutputBag,
+    report: BagReport,
+    topic: str,
+    timestamp: int,
+    raw: bytes | None,
+    result: FrameResult,
+    copy_connections: dict[str, Any],
+    connections: dict[str, Any],
+) -> None:
     entry = report.topics[topic]
     copy = raw if raw is not None else result.copy
     if topic in copy_connections and copy is not None:
@@ -437,8 +499,9 @@ def _finish_output(output: OutputBag, report: BagReport, options: BagOptions) ->
     try:
         output.close()
     except Exception as exc:
-        problems.append(f'could not finish the output bag: {type(exc).__name__}: {exc}; the partial files are in '
-                        f'{output.staging}')
+        problems.append(
+            f'could not finish the output bag: {type(exc).__name__}: {exc}; the partial files are in {output.staging}'
+        )
     else:
         try:
             report.output_path = output.publish()

@@ -23,8 +23,9 @@ OUTPUT_MSGTYPES: dict[str, str] = {
 }
 
 
-def output_topics(input_topics: Sequence[str], *, kinds: Sequence[str] = tuple(OUTPUT_SUFFIXES),
-                  reserved: Sequence[str] = ()) -> dict[str, dict[str, str]]:
+def output_topics(
+    input_topics: Sequence[str], *, kinds: Sequence[str] = tuple(OUTPUT_SUFFIXES), reserved: Sequence[str] = ()
+) -> dict[str, dict[str, str]]:
     """Output topic of each output kind for each input topic.
 
     ``/ns/points`` -> ``/ns/planes/labeled_points``, ``/ns/planes/markers``, ``/ns/planes`` (the
@@ -35,6 +36,7 @@ def output_topics(input_topics: Sequence[str], *, kinds: Sequence[str] = tuple(O
     Raises:
         BagError: two outputs still coincide (only with contrived topic names).
     """
+
     def beside(topic: str) -> dict[str, str]:
         namespace = topic.rsplit('/', 1)[0]
         return {kind: f'{namespace}/{OUTPUT_SUFFIXES[kind]}' for kind in kinds}

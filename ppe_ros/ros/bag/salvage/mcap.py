@@ -44,7 +44,7 @@ class _SalvagedMcapStream:
             self._handle.seek(self._position)
             parts.append(self._handle.read(min(end, self._cut) - self._position))
         if end > self._cut:
-            parts.append(self._tail[max(self._position, self._cut) - self._cut:end - self._cut])
+            parts.append(self._tail[max(self._position, self._cut) - self._cut : end - self._cut])
         self._position = end
         return b''.join(parts)
 
@@ -56,7 +56,7 @@ def _complete_records(data: bytes) -> bytes:
     """The leading complete MCAP records (opcode, uint64 length, body) of ``data``."""
     position = 0
     while position + 9 <= len(data):
-        length = int.from_bytes(data[position + 1:position + 9], 'little')
+        length = int.from_bytes(data[position + 1 : position + 9], 'little')
         if data[position] == 0 or position + 9 + length > len(data):
             break
         position += 9 + length
@@ -84,7 +84,7 @@ def _mcap_cut(handle: Any, start: int, size: int) -> tuple[int, bytes]:
                 name_length = int.from_bytes(body[28:32], 'little')
                 data_start = 32 + name_length + 8
                 if data_start <= len(body):
-                    compression = body[32:32 + name_length].decode(errors='replace')
+                    compression = body[32 : 32 + name_length].decode(errors='replace')
                     return position, _complete_records(partial_decompress(body[data_start:], compression))
         return position, b''
     return position, b''
@@ -123,8 +123,9 @@ class SalvageMcapReader(McapReader):
             self.counts_exact = False
             self.statistics = Statistics(0, len(self.schemas), len(self.channels), 0, 0, 0, 2**63 - 1, 0, {})
         if cut < size and self.scan_error is None:
-            self.scan_error = (f'the record at byte {cut} of {size} is cut short'
-                               + (' (a chunk: the records complete in it are read)' if tail else ''))
+            self.scan_error = f'the record at byte {cut} of {size} is cut short' + (
+                ' (a chunk: the records complete in it are read)' if tail else ''
+            )
         counts = self.statistics.channel_message_counts
         self.connections = [conn._replace(msgcount=counts.get(conn.id, 0)) for conn in self.connections]
         self.metadata = self.metadata._replace(message_count=self.statistics.message_count)

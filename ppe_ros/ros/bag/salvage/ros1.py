@@ -68,8 +68,10 @@ class SalvageRos1Reader:
                     counts[conn_id] += 1
         except Exception as exc:
             self.scan_error = describe_read_error(exc)
-        self.connections = [SalvagedConnection(conn_id, topic, msgtype, counts[conn_id])
-                            for conn_id, (topic, msgtype) in sorted(topics.items())]
+        self.connections = [
+            SalvagedConnection(conn_id, topic, msgtype, counts[conn_id])
+            for conn_id, (topic, msgtype) in sorted(topics.items())
+        ]
 
     def close(self) -> None:
         if self._bio is not None:
@@ -98,8 +100,10 @@ class SalvageRos1Reader:
                 data = bio.read(size)
                 if len(data) < size:  # a chunk cut short: the records complete in it
                     yield from self._chunk_records(partial_decompress(data, compression), partial=True)
-                    raise Ros1ReaderError(f'the chunk at byte {start} is cut short ({len(data)} of {size} bytes); '
-                                          'the records complete in it are read')
+                    raise Ros1ReaderError(
+                        f'the chunk at byte {start} is cut short ({len(data)} of {size} bytes); '
+                        'the records complete in it are read'
+                    )
                 yield from self._chunk_records(ros1_decompressors[compression](data), partial=False)
             else:
                 yield from self._record(header, ros1_read_bytes(bio, size))
@@ -121,7 +125,10 @@ class SalvageRos1Reader:
         op = header.get_uint8('op')
         if op == Ros1RecordType.CONNECTION:
             info = Ros1Header.read(BytesIO(struct.pack('<I', len(data)) + data))
-            yield ('connection', header.get_uint32('conn'),
-                   (normalize_ros1_topic(header.get_string('topic')), normalize_msgtype(info.get_string('type'))))
+            yield (
+                'connection',
+                header.get_uint32('conn'),
+                (normalize_ros1_topic(header.get_string('topic')), normalize_msgtype(info.get_string('type'))),
+            )
         elif op == Ros1RecordType.MSGDATA:
             yield 'message', header.get_uint32('conn'), (header.get_time('time'), data)

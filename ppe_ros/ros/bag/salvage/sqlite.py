@@ -66,15 +66,15 @@ class _SqliteFile:
         kind = data[start]
         if kind not in (0x02, 0x05, 0x0A, 0x0D):
             return kind, [], 0
-        count = int.from_bytes(data[start + 3:start + 5], 'big')
+        count = int.from_bytes(data[start + 3 : start + 5], 'big')
         interior = kind in (0x02, 0x05)
         array = start + (12 if interior else 8)
         if array + 2 * count > self.usable:
             raise ValueError(f'page {number} claims {count} cells, more than fit')
-        offsets = [int.from_bytes(data[array + 2 * i:array + 2 * i + 2], 'big') for i in range(count)]
+        offsets = [int.from_bytes(data[array + 2 * i : array + 2 * i + 2], 'big') for i in range(count)]
         if any(not array + 2 * count <= offset < self.usable for offset in offsets):
             raise ValueError(f'page {number} has a cell pointer outside the page')
-        right = int.from_bytes(data[start + 8:start + 12], 'big') if interior else 0
+        right = int.from_bytes(data[start + 8 : start + 12], 'big') if interior else 0
         return kind, offsets, right
 
     def leaf_cell(self, data: bytes, offset: int) -> tuple[int, int, bytes, int]:
@@ -92,10 +92,10 @@ class _SqliteFile:
                 local = least
             if offset + local + 4 > usable:
                 raise ValueError('a cell runs past the end of its page')
-            overflow = int.from_bytes(data[offset + local:offset + local + 4], 'big')
+            overflow = int.from_bytes(data[offset + local : offset + local + 4], 'big')
         if offset + local > usable:
             raise ValueError('a cell runs past the end of its page')
-        return rowid, payload_size, data[offset:offset + local], overflow
+        return rowid, payload_size, data[offset : offset + local], overflow
 
     def overflow_pages(self, first: int, missing: int) -> list[int]:
         """The overflow chain from ``first`` holding ``missing`` more payload bytes (ValueError if broken)."""
@@ -143,7 +143,7 @@ class _SqliteFile:
             size = (0, 1, 2, 3, 4, 6, 8, 8)[serial] if serial < 8 else (serial - 12 - (serial & 1)) // 2
             if position + size > len(payload):
                 raise ValueError('a record is longer than its payload')
-            raw = payload[position:position + size]
+            raw = payload[position : position + size]
             position += size
             if serial == 7:
                 values.append(struct.unpack('>d', raw)[0])
@@ -167,14 +167,20 @@ class _SqliteFile:
             except ValueError:
                 continue
             if kind == 0x05:
-                children = [int.from_bytes(data[o:o + 4], 'big') for o in offsets] + [right]
+                children = [int.from_bytes(data[o : o + 4], 'big') for o in offsets] + [right]
                 stack.extend(reversed(children))
             elif kind == 0x0D:
                 for offset in offsets:
                     with contextlib.suppress(ValueError, IndexError):
                         rowid, size, local, first = self.leaf_cell(data, offset)
-                        yield rowid, self.record(self.payload(local, size, self.overflow_pages(
-                            first, size - len(local)) if first else []))
+                        yield (
+                            rowid,
+                            self.record(
+                                self.payload(
+                                    local, size, self.overflow_pages(first, size - len(local)) if first else []
+                                )
+                            ),
+                        )
 
 
 class SalvageSqliteReader:
@@ -222,8 +228,10 @@ class SalvageSqliteReader:
             self.close()
             raise Ros2ReaderError(f'cannot read {self.path.name}: {exc.strerror or exc}') from None
         counts = Counter(topic for _, _, topic, _, _ in self._rows)
-        self.connections = [SalvagedConnection(topic_id, name, msgtype, counts[topic_id])
-                            for topic_id, (name, msgtype) in sorted(topics.items())]
+        self.connections = [
+            SalvagedConnection(topic_id, name, msgtype, counts[topic_id])
+            for topic_id, (name, msgtype) in sorted(topics.items())
+        ]
 
     def _scan(self, topics: set[int], skip: set[int]) -> None:
         """Index the complete messages of every leaf page of the file (no payloads kept)."""
@@ -282,7 +290,7 @@ class SalvageSqliteReader:
         fields = []
         for serial in types[1:3]:
             size = (0, 1, 2, 3, 4, 6, 8, 8)[serial] if serial < 8 else 0
-            raw = local[position:position + size]
+            raw = local[position : position + size]
             if len(raw) != size:
                 raise ValueError('a message row is cut short')
             fields.append(serial - 8 if serial >= 8 else int.from_bytes(raw, 'big', signed=True))
