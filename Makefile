@@ -14,7 +14,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
 	$(PY) -m pip install --quiet -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation --config-settings editable_mode=compat -e .
-	# compile the numba kernels into their cache once (minutes with a cold cache; NOTES: warmup)
+	# compile the numba kernels into their cache once (minutes with a cold cache; docs/node.md, first start)
 	$(VENV)/bin/ppe warmup
 	touch $(STAMP)
 

@@ -312,7 +312,7 @@ def test_read_params_yaml_reads_the_node_config_and_rejects_junk(tmp_path):
 
     config = Path(__file__).resolve().parents[1] / 'config' / 'extractor.yaml'
     params = read_params_yaml(config)
-    assert params['max_neighbor_distance'] > 0 and params['max_error_increment'] >= 0
+    assert params == {'max_neighbor_distance': math.inf, 'max_error_increment': 0.01}  # 0: sensor none's
     bad = tmp_path / 'bad.yaml'
     bad.write_text('extractor:\n  ros__parameters:\n    max_error_increment: lots\n')
     with pytest.raises(ValueError, match='must be a number'):

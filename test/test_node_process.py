@@ -85,7 +85,7 @@ class ExtractorProcess:
                 self.process.send_signal(self._interrupt_signal)
                 self._interrupt_on = None
             self.lines.append(line)
-            if 'ready: waiting for organized PointCloud2' in line:
+            if 'ready: waiting for PointCloud2' in line:
                 self.ready.set()
 
     @property

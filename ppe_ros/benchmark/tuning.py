@@ -142,10 +142,21 @@ def write_params_yaml(
     return out
 
 
+def _profile_value(params: dict, name: str, path) -> float:
+    """A node parameter given as 0: the value of the file's sensor profile (``sensor``, default none)."""
+    from ppe_ros.core.sensor import sensor_profile
+
+    try:
+        return float(getattr(sensor_profile(str(params.get('sensor', 'none'))), name))
+    except ValueError as exc:
+        raise ValueError(f'{path}: {exc}') from None
+
+
 def read_params_yaml(path: str | os.PathLike[str]) -> dict[str, float]:
     """``{'max_neighbor_distance': ..., 'max_error_increment': ...}`` (those present) from a params file.
 
     Accepts the node's format (``extractor: ros__parameters: ...``, also under ``/**``) or a flat mapping.
+    A value of 0 is the file's sensor profile's (the node's convention).
 
     Raises:
         ValueError: not a mapping, or no PPE parameter in it, or a value that is not a number.
@@ -170,7 +181,7 @@ def read_params_yaml(path: str | os.PathLike[str]) -> dict[str, float]:
             value = params[name]
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f'{path}: {name} must be a number; got {value!r}')
-            out[name] = float(value)
+            out[name] = float(value) if value else _profile_value(params, name, path)
     if not out:
         raise ValueError(f'{path}: no max_neighbor_distance or max_error_increment found')
     return out

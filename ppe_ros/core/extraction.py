@@ -2409,6 +2409,51 @@ def _work_buffers(n_f: int, n_i: int, n_i32: int) -> tuple[np.ndarray, np.ndarra
     )
 
 
+def _seed_stage(scan: RayScan, ok_right: np.ndarray, ok_down: np.ndarray, cutoff: float):
+    """Every anchor's tetromino seed errors, its best config and key (reused work memory); seeds above
+    ``cutoff`` (the greedy's, :func:`_run_cutoff`) are never created."""
+    seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
+    seed_best = _reusable('seed_best', scan.size, np.int32)
+    seed_key = _reusable('seed_key', scan.size, np.float64)
+    columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
+    _ray_columns(scan.endpoints, scan.directions, columns[:3], columns[3:])
+    _seed_errors(
+        scan.endpoints,
+        scan.directions,
+        columns[:3],
+        columns[3:],
+        ok_right,
+        ok_down,
+        scan.height,
+        scan.width,
+        TETROMINO_OFFSETS,
+        seed_sse,
+        seed_best,
+        seed_key,
+        cutoff,
+    )
+    return seed_sse, seed_best, seed_key
+
+
+def _action_log(kinds: np.ndarray, a_ids: np.ndarray, b_ids: np.ndarray, increments: np.ndarray) -> np.ndarray:
+    """The greedy's actions as an ACTION_DTYPE array."""
+    actions = np.empty(len(kinds), ACTION_DTYPE)
+    actions['kind'] = kinds
+    actions['a'] = a_ids
+    actions['b'] = b_ids
+    actions['increment'] = increments
+    return actions
+
+
+def _stops(max_error_increment: float | None, max_planes: int | None) -> tuple[float, int]:
+    """The greedy's stop increment and plane count (inf and -1: run the whole hierarchy)."""
+    if max_error_increment is None and max_planes is None:
+        return np.inf, -1
+    stop_increment = -np.inf if max_error_increment is None else float(max_error_increment)
+    stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
+    return stop_increment, stop_count
+
+
 def _check_hierarchy_options(
     scan: RayScan, lmax: float, pool_capacity, exact_plane_size, refined_merge_growth, merge_loop_growth
 ) -> None:
@@ -2495,14 +2540,7 @@ def extract_plane_hierarchy(
         scan, sigmas = _noise_scaled(scan, noise)
     lmax = float(max_neighbor_distance)
     _check_hierarchy_options(scan, lmax, pool_capacity, exact_plane_size, refined_merge_growth, merge_loop_growth)
-    stop_increment = (
-        np.inf
-        if (max_error_increment is None and max_planes is None)
-        else (-np.inf if max_error_increment is None else float(max_error_increment))
-    )
-    stop_count = np.iinfo(np.int64).max if max_planes is None else min(int(max_planes), np.iinfo(np.int64).max)
-    if max_planes is None and max_error_increment is None:
-        stop_count = -1
+    stop_increment, stop_count = _stops(max_error_increment, max_planes)
     tile_columns = _tile_bounds(scan.width, tiles, scan.height)
     if threads is not None and (isinstance(threads, bool) or int(threads) != threads or int(threads) < 1):
         raise ValueError(f"threads must be a count >= 1 or None (numba's thread count); got {threads!r}")
@@ -2522,26 +2560,8 @@ def extract_plane_hierarchy(
     tile_columns = _placed_borders(tile_columns, ok_right, scan.height, scan.width)
     for column in tile_columns[1:-1]:  # no seed or join crosses a tile border
         ok_right[column - 1 :: scan.width] = False
-    seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
-    seed_best = _reusable('seed_best', scan.size, np.int32)
-    seed_key = _reusable('seed_key', scan.size, np.float64)
-    columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
-    _ray_columns(scan.endpoints, scan.directions, columns[:3], columns[3:])
-    # seeds above the greedy's cutoff are never created
-    _seed_errors(
-        scan.endpoints,
-        scan.directions,
-        columns[:3],
-        columns[3:],
-        ok_right,
-        ok_down,
-        scan.height,
-        scan.width,
-        TETROMINO_OFFSETS,
-        seed_sse,
-        seed_best,
-        seed_key,
-        _run_cutoff(stop_increment, stop_count, scan.size),
+    seed_sse, seed_best, seed_key = _seed_stage(
+        scan, ok_right, ok_down, _run_cutoff(stop_increment, stop_count, scan.size)
     )
     inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, seed_sse, seed_best, seed_key)
     if len(tile_columns) == 2:
@@ -2551,11 +2571,7 @@ def extract_plane_hierarchy(
             inputs, scan.height, scan.width, tile_columns, knobs, stop_increment, stop_count, threads
         )
     seconds = time.perf_counter() - start
-    actions = np.empty(len(kinds), ACTION_DTYPE)
-    actions['kind'] = kinds
-    actions['a'] = a_ids
-    actions['b'] = b_ids
-    actions['increment'] = incs
+    actions = _action_log(kinds, a_ids, b_ids, incs)
     reduction = np.where(kinds == KIND_CREATE, 3, 1)
     n_valid = int(scan.valid.sum())
     plane_counts = n_valid - np.cumsum(reduction)
@@ -2786,6 +2802,43 @@ PROFILE_DEFAULT = _ProfileDefault()
 _NO_PROFILE_DEFAULTS = PROFILES['none']
 
 
+def _final_planes(hierarchy: PlaneHierarchy, min_plane_points: int) -> PlaneSet:
+    """The planes after every action of the hierarchy (no threshold given)."""
+    steps = len(hierarchy.actions)
+    planes, _ = fit_pixel_groups(
+        hierarchy.scan,
+        hierarchy.plane_ids(steps),
+        sigmas=hierarchy.sigmas,
+        min_plane_points=min_plane_points,
+        residuals=False,
+        actions=steps,
+    )
+    return planes
+
+
+def _profile_setting(profile: SensorProfile | None, name: str, value):
+    """An extract_planes argument: as given, else the profile's (sensor=None: the 'none' profile's)."""
+    if value is not PROFILE_DEFAULT:
+        return value
+    return getattr(_NO_PROFILE_DEFAULTS if profile is None else profile, name, None)
+
+
+def _extract_transposed_sweep(points, origins, **options) -> PlaneSet | list[PlaneSet]:
+    """extract_planes of a transposed sweep (one column per beam, at least 4 times as tall as wide):
+    its strips are azimuth sectors across the rows, so it is extracted as the sweep it is and its
+    labels are transposed back (the 4-neighbourhood and the tetrominoes are symmetric: the same planes)."""
+
+    def transposed(array):
+        return np.ascontiguousarray(np.swapaxes(np.asarray(array), 0, 1))
+
+    result = extract_planes(
+        transposed(points), origins=origins if np.ndim(origins) != 3 else transposed(origins), **options
+    )
+    if isinstance(result, list):
+        return [replace(cut, labels=np.ascontiguousarray(cut.labels.T)) for cut in result]
+    return replace(result, labels=np.ascontiguousarray(result.labels.T))
+
+
 def extract_planes(
     points: np.ndarray,
     *,
@@ -2836,37 +2889,35 @@ def extract_planes(
         A PlaneSet when both thresholds are single values (or None), else a list of PlaneSets:
         one per e (in the given order), then one per n.
     """
+    options = {
+        'sensor': sensor,
+        'max_error_increment': max_error_increment,
+        'max_planes': max_planes,
+        'max_neighbor_distance': max_neighbor_distance,
+        'min_plane_points': min_plane_points,
+        'surface_tolerance': surface_tolerance,
+        'connected_only': connected_only,
+        'threads': threads,
+    }
     if rings is not None or (np.ndim(points) == 2 and np.shape(points)[1] == 3):  # unorganized: project first
         from ppe_ros.core.projection import extract_planes_unorganized
 
-        return extract_planes_unorganized(
-            points,
-            rings,
-            origins=origins,
-            sensor=sensor,
-            max_error_increment=max_error_increment,
-            max_planes=max_planes,
-            max_neighbor_distance=max_neighbor_distance,
-            min_plane_points=min_plane_points,
-            surface_tolerance=surface_tolerance,
-            connected_only=connected_only,
-        )
+        return extract_planes_unorganized(points, rings, origins=origins, tiles=tiles, **options)
     profile = None if sensor is None else sensor_profile(sensor)
     if profile == _NO_PROFILE_DEFAULTS:  # 'none': the paper's model, as sensor=None
         profile = None
 
-    def setting(name, value):
-        if value is not PROFILE_DEFAULT:
-            return value
-        if profile is None:
-            return getattr(_NO_PROFILE_DEFAULTS, name, None)
-        return getattr(profile, name)
-
-    max_error_increment = setting('max_error_increment', max_error_increment)
-    max_neighbor_distance = setting('max_neighbor_distance', max_neighbor_distance)
-    min_plane_points = setting('min_plane_points', min_plane_points)
-    surface_tolerance = setting('surface_tolerance', surface_tolerance)
-    connected_only = bool(setting('connected_only', connected_only))
+    max_error_increment, max_neighbor_distance, min_plane_points, surface_tolerance, connected_only = (
+        _profile_setting(profile, name, options[name])
+        for name in (
+            'max_error_increment',
+            'max_neighbor_distance',
+            'min_plane_points',
+            'surface_tolerance',
+            'connected_only',
+        )
+    )
+    connected_only = bool(connected_only)
     e_list = _as_threshold_list(max_error_increment, 'max_error_increment', float)
     n_list = _as_threshold_list(max_planes, 'max_planes', int)
     if int(min_plane_points) < 1:
@@ -2876,6 +2927,8 @@ def extract_planes(
     noise = None if profile is None else profile.noise_for(points, origins)
     if tiles is PROFILE_DEFAULT:
         tiles = 'auto' if surface_tolerance is not None and e_list and not n_list else 1
+    if tiles == 'auto' and np.ndim(points) == 3 and np.shape(points)[0] >= 4 * np.shape(points)[1]:
+        return _extract_transposed_sweep(points, origins, tiles=tiles, **options)
     hierarchy = extract_plane_hierarchy(
         points,
         origins=origins,
@@ -2894,17 +2947,7 @@ def extract_planes(
             whole_surfaces(hierarchy, kw, profile, min_plane_points, surface_tolerance, connected_only)
             for kw in cut_kwargs
         ]
-    if not cuts:
-        steps = len(hierarchy.actions)
-        planes, _ = fit_pixel_groups(
-            hierarchy.scan,
-            hierarchy.plane_ids(steps),
-            sigmas=hierarchy.sigmas,
-            min_plane_points=min_plane_points,
-            residuals=False,
-            actions=steps,
-        )
-        cuts = [planes]
+    cuts = cuts or [_final_planes(hierarchy, min_plane_points)]
     scalar = not isinstance(max_error_increment, Sequence | np.ndarray) and not isinstance(
         max_planes, Sequence | np.ndarray
     )

@@ -12,7 +12,7 @@ publishing diagnostics while the workers extract (``test/test_threads.py``).
 
 Topics (relative names, remappable):
 
-* in ``points`` (``sensor_msgs/PointCloud2``, organized), QoS depth 1, reliability from the
+* in ``points`` (``sensor_msgs/PointCloud2``, organized, transposed or height 1), QoS depth 1, reliability from the
   ``input_reliability`` parameter. No return: a point with a NaN or infinite coordinate, or exactly
   at (0, 0, 0) (what many drivers publish for a pixel without a return; the file loaders read it so
   too); such points get label 0 and NaN coordinates in ``planes/labeled_points``;
@@ -334,7 +334,7 @@ class ExtractorNode(Node):
             self.ready.set()
             if not self._stop_requested.is_set():
                 self.get_logger().info(
-                    f'ready: waiting for organized PointCloud2 on {self.input_topic} '
+                    f'ready: waiting for PointCloud2 on {self.input_topic} '
                     f'({self._params.input_reliability}, {self._params.workers} worker(s))'
                 )
         while not self._stop_requested.is_set():
@@ -497,9 +497,9 @@ def usage() -> str:
         'usage: ros2 run ppe_ros extractor [--ros-args [--params-file FILE.yaml] [-p NAME:=VALUE ...] '
         '[-r points:=TOPIC ...]]',
         '',
-        'Plane extraction (PPE) on organized sensor_msgs/PointCloud2 clouds.',
+        'Plane extraction (PPE) on sensor_msgs/PointCloud2 clouds (organized, transposed or unorganized).',
         '',
-        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, organized; QoS depth 1, input_reliability;',
+        f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, any layout; QoS depth 1, input_reliability;',
         '       NaN, infinite or exactly (0, 0, 0) points are no return)',
         f"       {METADATA_TOPIC} (std_msgs/String, transient local: the Ouster driver's metadata JSON; per-beam",
         '       ray starts while ray_origin is [0, 0, 0])',
