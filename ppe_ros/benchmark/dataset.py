@@ -390,6 +390,59 @@ def _ouster_metadata(model: str, cols: int, errors) -> dict:
     }
 
 
+def _check_sensor_counts(*, seed: int, n_train: int, n_test: int, n_objects: int) -> None:
+    """Refuse scan and object counts that are not non-negative integers, or a split out of its seed range."""
+    for count, what in ((n_train, 'n_train'), (n_test, 'n_test')):
+        if isinstance(count, bool) or int(count) != count or count < 0:
+            raise ValueError(f'{what} must be a non-negative integer; got {count!r}')
+    if n_train + n_test == 0:
+        raise ValueError('the data set needs at least one scan (n_train + n_test >= 1)')
+    if isinstance(n_objects, bool) or int(n_objects) != n_objects or n_objects < 0:
+        raise ValueError(f'n_objects must be a non-negative integer; got {n_objects!r}')
+    for split, count in (('train', n_train), ('test', n_test)):
+        if count:
+            sensor_scene_seed(split, int(count) - 1, seed=seed)  # the whole split stays in its range
+
+
+def _sensor_levels(*, kind: str, rows: int | None, cols: int | None, lidar_models: Sequence[str]) -> tuple:
+    """The checked ``(rows, cols, errors, levels, error_params, shape_note)`` of a lidar or depth-camera data set."""
+    from ppe_ros.core.synthetic_real import LIDAR_MODELS, DepthErrorModel, LidarErrorModel
+
+    if kind == 'lidar':
+        models = list(dict.fromkeys(lidar_models))
+        unknown = [m for m in models if m not in LIDAR_MODELS]
+        if not models or unknown:
+            raise ValueError(f'lidar models must be some of {", ".join(LIDAR_MODELS)}; got {list(lidar_models)}')
+        if rows is not None:
+            raise ValueError('a lidar data set takes its rows from the lidar model; give cols only')
+        cols = 1024 if cols is None else cols
+        if isinstance(cols, bool) or int(cols) != cols or cols < 8:
+            raise ValueError(f'cols must be an integer >= 8; got {cols!r}')
+        errors = LidarErrorModel()
+        levels = [
+            {'name': m, 'radial_sigma': errors.range_sigma, 'model': m, 'rows': len(LIDAR_MODELS[m])} for m in models
+        ]
+        error_params = errors.to_dict()
+        shape_note = f'{cols} columns'
+    else:
+        rows = 480 if rows is None else rows
+        cols = 640 if cols is None else cols
+        for value, what in ((rows, 'rows'), (cols, 'cols')):
+            if isinstance(value, bool) or int(value) != value or value < 8:
+                raise ValueError(f'{what} must be an integer >= 8; got {value!r}')
+        errors = DepthErrorModel()
+        levels = [
+            {
+                'name': DEPTH_CAMERA_LEVEL,
+                'radial_sigma': errors.axial_noise_coefficient * 2.0**2,
+                'rows': int(rows),
+            }
+        ]
+        error_params = errors.to_dict()
+        shape_note = f'{rows} x {cols}'
+    return rows, cols, errors, levels, error_params, shape_note
+
+
 def _make_sensor_dataset(
     directory,
     *,
@@ -403,58 +456,12 @@ def _make_sensor_dataset(
     lidar_models: Sequence[str],
     progress,
 ) -> dict:
-    from ppe_ros.core.synthetic_real import (
-        LIDAR_MODELS,
-        DepthErrorModel,
-        LidarErrorModel,
-        generate_depth_scan,
-        generate_lidar_scan,
-        make_indoor_scene,
-    )
+    from ppe_ros.core.synthetic_real import generate_depth_scan, generate_lidar_scan, make_indoor_scene
 
-    for count, what in ((n_train, 'n_train'), (n_test, 'n_test')):
-        if isinstance(count, bool) or int(count) != count or count < 0:
-            raise ValueError(f'{what} must be a non-negative integer; got {count!r}')
-    if n_train + n_test == 0:
-        raise ValueError('the data set needs at least one scan (n_train + n_test >= 1)')
-    if isinstance(n_objects, bool) or int(n_objects) != n_objects or n_objects < 0:
-        raise ValueError(f'n_objects must be a non-negative integer; got {n_objects!r}')
-    for split, count in (('train', n_train), ('test', n_test)):
-        if count:
-            sensor_scene_seed(split, int(count) - 1, seed=seed)  # the whole split stays in its range
-    if kind == 'lidar':
-        models = list(dict.fromkeys(lidar_models))
-        unknown = [m for m in models if m not in LIDAR_MODELS]
-        if not models or unknown:
-            raise ValueError(f'lidar models must be some of {", ".join(LIDAR_MODELS)}; got {list(lidar_models)}')
-        if rows is not None:
-            raise ValueError('a lidar data set takes its rows from the lidar model; give cols only')
-        cols = 1024 if cols is None else cols
-        if isinstance(cols, bool) or int(cols) != cols or cols < 8:
-            raise ValueError(f'cols must be an integer >= 8; got {cols!r}')
-        lidar_errors = LidarErrorModel()
-        levels = [
-            {'name': m, 'radial_sigma': lidar_errors.range_sigma, 'model': m, 'rows': len(LIDAR_MODELS[m])}
-            for m in models
-        ]
-        error_params = lidar_errors.to_dict()
-        shape_note = f'{cols} columns'
-    else:
-        rows = 480 if rows is None else rows
-        cols = 640 if cols is None else cols
-        for value, what in ((rows, 'rows'), (cols, 'cols')):
-            if isinstance(value, bool) or int(value) != value or value < 8:
-                raise ValueError(f'{what} must be an integer >= 8; got {value!r}')
-        depth_errors = DepthErrorModel()
-        levels = [
-            {
-                'name': DEPTH_CAMERA_LEVEL,
-                'radial_sigma': depth_errors.axial_noise_coefficient * 2.0**2,
-                'rows': int(rows),
-            }
-        ]
-        error_params = depth_errors.to_dict()
-        shape_note = f'{rows} x {cols}'
+    _check_sensor_counts(seed=seed, n_train=n_train, n_test=n_test, n_objects=n_objects)
+    rows, cols, errors, levels, error_params, shape_note = _sensor_levels(
+        kind=kind, rows=rows, cols=cols, lidar_models=lidar_models
+    )
     root = Path(directory)
     if (root / MANIFEST_NAME).exists() or any((root / split).exists() for split in SPLITS):
         raise FileExistsError(f'{root} already holds a data set; choose a new directory')
@@ -468,19 +475,17 @@ def _make_sensor_dataset(
             folder = root / split / level['name']
             folder.mkdir(parents=True, exist_ok=True)
             if kind == 'lidar':
-                metadata = _ouster_metadata(level['model'], int(cols), lidar_errors)
+                metadata = _ouster_metadata(level['model'], int(cols), errors)
                 (folder / f'{level["name"]}.json').write_text(json.dumps(metadata, indent=1) + '\n')
             for index in range(count):
                 scene_seed = sensor_scene_seed(split, index, seed=seed)
                 if kind == 'lidar':
-                    scan = generate_lidar_scan(
-                        seed=scene_seed, model=level['model'], cols=int(cols), errors=lidar_errors
-                    )
+                    scan = generate_lidar_scan(seed=scene_seed, model=level['model'], cols=int(cols), errors=errors)
                 else:
                     pose = sensor_pose_for(scene_seed)
                     scene = make_indoor_scene(scene_seed, sensor_pose=pose, n_objects=int(n_objects))
                     scan = generate_depth_scan(
-                        scene, seed=scene_seed, width=int(cols), height=int(rows), sensor_pose=pose, errors=depth_errors
+                        scene, seed=scene_seed, width=int(cols), height=int(rows), sensor_pose=pose, errors=errors
                     )
                 path = folder / f'{level["name"]}_{index + 1:02d}.npy'
                 np.save(path, scan.points.astype(np.float32))

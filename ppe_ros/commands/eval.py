@@ -257,16 +257,11 @@ def kept_after_report(path: Path) -> str:
     return tail if sep else ''
 
 
-def run(args: argparse.Namespace) -> int:
-    from ppe_ros.benchmark.report import format_table, markdown_report, plot_sweeps
-    from ppe_ros.benchmark.runner import (
-        available_methods,
-        dataset_scans,
-        evaluate,
-        load_labelled_scan,
-        load_previous_results,
-    )
+def _check_run_arguments(args: argparse.Namespace) -> tuple[Path, Path]:
+    """Refuse unknown methods, a bad ``--max-scans`` and outputs in a missing folder or overwriting inputs.
 
+    Returns the report path and the plot path.
+    """
     unknown = [m for m in args.methods if m not in method_names()]
     if unknown:
         raise ValueError(f'unknown method(s) {", ".join(unknown)}; known: {", ".join(method_names())}')
@@ -289,6 +284,51 @@ def run(args: argparse.Namespace) -> int:
     refuse_overwriting_inputs([out, plot, *raw], inputs)
     if args.reuse:  # --raw may be the --reuse file (an interrupted run resumes), the report may not
         refuse_overwriting_inputs([out, plot], [args.reuse])
+    return out, plot
+
+
+def _report_notes(args: argparse.Namespace, evaluation, previous, curves: dict) -> list[str]:
+    """The notes of the report: the results reused from ``--reuse``, the s/scan of ``ppe`` and its sweep."""
+    notes = []
+    if previous:
+        reused = sorted({r.method for r in evaluation.results if any(r is p for p in previous.values())})
+        if reused:
+            notes.append(
+                f'Results of {", ".join(reused)} were taken from the earlier run {args.reuse} (same data, '
+                f'same parameters; their s/scan were measured in that run).'
+            )
+    if curves:
+        best = []
+        for group, curve in curves.items():
+            e_best = max(curve, key=lambda e: (curve[e], -e))
+            best.append(f'{group}: best f {curve[e_best] * 100:.1f} % at sqrt(e) = {e_best**0.5:.2f} m')
+        single = (
+            ' `ppe-paper` runs a single extraction at its e without a sweep: its s/scan is the time of one extraction.'
+            if any(m.name == 'ppe-paper' for m in evaluation.methods)
+            else ''
+        )
+        notes.append(
+            "`ppe`'s s/scan include running its hierarchy on to the largest e of the sweep (1 m²) and "
+            'cutting it at every e.' + single
+        )
+        notes.append(
+            '`ppe` sweep over the e grid (lmax as in the table; best e chosen on the evaluated split, for '
+            'information only — parameters are tuned on the train split with `ppe tune`): ' + '; '.join(best) + '.'
+        )
+    return notes
+
+
+def run(args: argparse.Namespace) -> int:
+    from ppe_ros.benchmark.report import format_table, markdown_report, plot_sweeps
+    from ppe_ros.benchmark.runner import (
+        available_methods,
+        dataset_scans,
+        evaluate,
+        load_labelled_scan,
+        load_previous_results,
+    )
+
+    out, plot = _check_run_arguments(args)
     previous = load_previous_results(args.reuse) if args.reuse else None
     manifest = read_manifest(args.dataset)
     lmax, error, levels = ppe_parameters(args)
@@ -351,32 +391,7 @@ def run(args: argparse.Namespace) -> int:
         lmax_text = f'lmax = {lmax:g} m' if len(lmaxes) == 1 else 'lmax per level as in the tables'
         plot_sweeps(plot, curves, marks=marks, title=f'PPE on the {args.split} split: f over sqrt(e) ({lmax_text})')
         plot_name = plot.name if plot.parent.resolve() == out.parent.resolve() else str(plot)
-    notes = []
-    if previous:
-        reused = sorted({r.method for r in evaluation.results if any(r is p for p in previous.values())})
-        if reused:
-            notes.append(
-                f'Results of {", ".join(reused)} were taken from the earlier run {args.reuse} (same data, '
-                f'same parameters; their s/scan were measured in that run).'
-            )
-    if curves:
-        best = []
-        for group, curve in curves.items():
-            e_best = max(curve, key=lambda e: (curve[e], -e))
-            best.append(f'{group}: best f {curve[e_best] * 100:.1f} % at sqrt(e) = {e_best**0.5:.2f} m')
-        single = (
-            ' `ppe-paper` runs a single extraction at its e without a sweep: its s/scan is the time of one extraction.'
-            if any(m.name == 'ppe-paper' for m in evaluation.methods)
-            else ''
-        )
-        notes.append(
-            "`ppe`'s s/scan include running its hierarchy on to the largest e of the sweep (1 m²) and "
-            'cutting it at every e.' + single
-        )
-        notes.append(
-            '`ppe` sweep over the e grid (lmax as in the table; best e chosen on the evaluated split, for '
-            'information only — parameters are tuned on the train split with `ppe tune`): ' + '; '.join(best) + '.'
-        )
+    notes = _report_notes(args, evaluation, previous, curves)
     text = markdown_report(
         evaluation,
         command=canonical_command(args),

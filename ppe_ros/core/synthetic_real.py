@@ -1708,6 +1708,44 @@ def _cast_undulated(scene, world_starts, world_directions, errors, seed):
     return distances, hit, face_labels, normals, undulated
 
 
+def _lidar_scan_inputs(scene, seed, model, cols, grid, sensor_pose, errors):
+    """The checked ``(errors, grid, scene, pose)`` of :func:`generate_lidar_scan`, defaults filled in."""
+    errors = LidarErrorModel() if errors is None else errors
+    if not isinstance(errors, LidarErrorModel):
+        raise ValueError(f'errors must be a LidarErrorModel; got {type(errors).__name__}')
+    grid = lidar_grid(model, cols) if grid is None else grid
+    if not isinstance(grid, ScanGrid):
+        raise ValueError(f'grid must be a ScanGrid; got {type(grid).__name__}')
+    if scene is None:
+        scene = make_street_scene(seed)
+    elif not isinstance(scene, SurfaceScene):
+        raise ValueError(f'scene must be a SurfaceScene or None; got {type(scene).__name__}')
+    pose = street_sensor_pose(seed) if sensor_pose is None else sensor_pose
+    if not isinstance(pose, SensorPose):
+        raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
+    return errors, grid, scene, pose
+
+
+def _lidar_returns(errors, cos_inc, dropout_draw, hit, true_ranges, measured):
+    """Which beams return: hit within range, and not dropped (at random, more at grazing incidence).
+
+    ``cos_inc``, ``dropout_draw``, ``true_ranges`` and ``measured`` are ``(H, W)``; ``hit`` is flat.
+    """
+    incidence_deg = np.degrees(np.arccos(np.clip(cos_inc, 0.0, 1.0)))
+    if errors.grazing_dropout_width_deg > 0.0:
+        z = (incidence_deg - errors.grazing_dropout_deg) / errors.grazing_dropout_width_deg
+        grazing_probability = 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
+    else:
+        grazing_probability = (incidence_deg > errors.grazing_dropout_deg).astype(np.float64)
+    drop_probability = 1.0 - (1.0 - grazing_probability) * (1.0 - errors.dropout_rate)
+    return (
+        hit.reshape(true_ranges.shape)
+        & (dropout_draw >= drop_probability)
+        & (true_ranges <= errors.max_range)
+        & (measured >= errors.min_range)
+    )
+
+
 def generate_lidar_scan(
     scene: SurfaceScene | None = None,
     *,
@@ -1745,20 +1783,8 @@ def generate_lidar_scan(
     seed = _check_seed(seed)
     sensor_seed = seed if sensor_seed is None else _check_seed(sensor_seed)
     noise_seed = seed if noise_seed is None else _check_seed(noise_seed)
-    errors = LidarErrorModel() if errors is None else errors
-    if not isinstance(errors, LidarErrorModel):
-        raise ValueError(f'errors must be a LidarErrorModel; got {type(errors).__name__}')
     custom_grid = grid
-    grid = lidar_grid(model, cols) if grid is None else grid
-    if not isinstance(grid, ScanGrid):
-        raise ValueError(f'grid must be a ScanGrid; got {type(grid).__name__}')
-    if scene is None:
-        scene = make_street_scene(seed)
-    elif not isinstance(scene, SurfaceScene):
-        raise ValueError(f'scene must be a SurfaceScene or None; got {type(scene).__name__}')
-    pose = street_sensor_pose(seed) if sensor_pose is None else sensor_pose
-    if not isinstance(pose, SensorPose):
-        raise ValueError(f'sensor_pose must be a SensorPose; got {type(pose).__name__}')
+    errors, grid, scene, pose = _lidar_scan_inputs(scene, seed, model, cols, grid, sensor_pose, errors)
     height, width = grid.shape
     min_pixels = (
         default_min_surface_pixels(height, width)
@@ -1786,20 +1812,8 @@ def generate_lidar_scan(
     cos_inc = np.abs(np.einsum('ij,ij->i', normals, world_directions))
     sigma = errors.sigma(cos_inc).reshape(height, width)
     measured = undulated.reshape(height, width) + beam_bias[:, None] + sigma * range_noise
-    incidence_deg = np.degrees(np.arccos(np.clip(cos_inc, 0.0, 1.0))).reshape(height, width)
-    if errors.grazing_dropout_width_deg > 0.0:
-        z = (incidence_deg - errors.grazing_dropout_deg) / errors.grazing_dropout_width_deg
-        grazing_probability = 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
-    else:
-        grazing_probability = (incidence_deg > errors.grazing_dropout_deg).astype(np.float64)
-    drop_probability = 1.0 - (1.0 - grazing_probability) * (1.0 - errors.dropout_rate)
     true_ranges = distances.reshape(height, width)
-    returned = (
-        hit.reshape(height, width)
-        & (dropout_draw >= drop_probability)
-        & (true_ranges <= errors.max_range)
-        & (measured >= errors.min_range)
-    )
+    returned = _lidar_returns(errors, cos_inc.reshape(height, width), dropout_draw, hit, true_ranges, measured)
     measured = np.where(returned, measured, np.nan)
     points = starts + nominal * measured[..., None]
     face_image = face_labels.reshape(height, width).astype(np.int64)
