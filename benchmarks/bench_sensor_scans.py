@@ -1,0 +1,78 @@
+"""Generated scans with real sensor errors (ppe_ros.core.synthetic_real): f and k of the sensor profiles
+against PPE at the node's settings without a profile and Open3D's RANSAC loop, on held-out scene seeds.
+
+    .venv/bin/python benchmarks/bench_sensor_scans.py [--seeds 1000 1001 1002] [--kinds lidar depth_camera]
+                                                       [--no-ransac]
+
+Seeds 1000-1999 are the test split of `ppe dataset make --kind lidar|depth_camera` (SENSOR_SEED_SPLITS):
+the profiles' defaults were chosen on seeds below 1000. Prints one markdown table per sensor kind (f and k
+pooled over the seeds as in ppe eval: f = correct / GT regions, k = mean over scans) and the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_real
+
+from ppe_ros import extract_planes
+from ppe_ros.benchmark.report import machine_description
+from ppe_ros.core.evaluation import score_segmentation
+from ppe_ros.core.synthetic_real import generate_depth_scan, generate_lidar_scan
+
+GENERATORS = {'lidar': generate_lidar_scan, 'depth_camera': generate_depth_scan}
+
+
+def methods(kind: str, with_ransac: bool):
+    """(name, function points, origins -> labels) of the compared methods."""
+    out = [
+        (f'PPE sensor={kind}', lambda p, o: extract_planes(p, origins=o, sensor=kind).labels),
+        (
+            'PPE e 0.01, lmax inf, 20 points (no profile)',
+            lambda p, o: extract_planes(p, origins=o, max_error_increment=0.01, min_plane_points=20).labels,
+        ),
+    ]
+    o3d = bench_real.open3d_or_none() if with_ransac else None
+    if o3d is not None:
+        out.append(('Open3D RANSAC loop + connected parts', lambda p, o: bench_real.run_ransac(o3d, p, kind)[0]))
+    return out
+
+
+def run(kinds: list[str], seeds: list[int], with_ransac: bool) -> None:
+    print(f'machine: {machine_description()}; seeds {seeds}')
+    for kind in kinds:
+        scans = [GENERATORS[kind](seed=seed) for seed in seeds]
+        rows = []
+        for name, method in methods(kind, with_ransac):
+            scores, seconds = [], []
+            for scan in scans:
+                start = time.perf_counter()
+                labels = method(scan.points, getattr(scan, 'origins', None))
+                seconds.append(time.perf_counter() - start)
+                scores.append(score_segmentation(labels, scan.labels))
+            f = sum(s.n_correct for s in scores) / max(sum(s.n_gt for s in scores), 1)
+            k = float(np.mean([s.k for s in scores]))
+            rows.append(f'| {name} | {100 * f:.1f} % | {100 * k:.1f} % | {np.median(seconds):.2f} |')
+        print(f'\n### {kind} ({len(seeds)} scans)\n\n| method | f | k | median s per scan |\n|---|---|---|---|')
+        print('\n'.join(rows))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--seeds', type=int, nargs='+', default=[1000, 1001, 1002], help='scene seeds (test split)')
+    parser.add_argument('--kinds', nargs='+', choices=tuple(GENERATORS), default=list(GENERATORS))
+    parser.add_argument('--no-ransac', action='store_true', help='skip Open3D (also skipped when it is absent)')
+    args = parser.parse_args(argv)
+    run(args.kinds, args.seeds, not args.no_ransac)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
