@@ -9,7 +9,8 @@ Methods: ``ppe`` (this project: ``--sensor none`` = the node's defaults e 0.01, 
 ``--paper`` = e 0.0484, lmax 0.18; ``--sensor auto`` = the sensor profile of each scan, 'lidar' or
 'depth_camera', when extract_planes has the ``sensor`` argument), ``ransac`` (Open3D segment_plane in a loop,
 each plane split into 4-connected parts of >= 20 pixels; skipped when Open3D is absent) and ``peac`` (only when
-the environment variable PEAC_BIN names a driver that reads a scan and writes labels; see NOTES-bench-real.md).
+the environment variable PEAC_BIN names a driver that reads a scan and writes labels; docs/benchmarks.md,
+Real scans, Methods).
 Tables: per scan and method the plane counts, the share of valid points in planes of >= 1000 points, the
 time, the ground cover of the Ouster sweeps and ICL-NUIM's f and k; then the repeatability and covariance
 calibration over the consecutive sweeps OS-1-128 1795 -> 1796 -> 1797, and the registration they use.
@@ -201,7 +202,7 @@ def run_ransac(o3d, points, kind):
 
 
 def run_peac(binary, points, settings):
-    """PEAC through an external driver: ``$PEAC_BIN IN.bin OUT.bin key=value...`` (format: NOTES-bench-real.md)."""
+    """PEAC through an external driver: ``$PEAC_BIN IN.bin OUT.bin key=value...`` (docs/benchmarks.md: Methods)."""
     height, width = points.shape[:2]
     with tempfile.TemporaryDirectory() as tmp:
         inp, out = Path(tmp) / 'cloud.bin', Path(tmp) / 'labels.bin'
@@ -588,7 +589,7 @@ def available_methods(methods):
         elif name == 'peac':
             binary = os.environ.get('PEAC_BIN')
             if not binary:
-                notes.append('peac skipped: set PEAC_BIN to a PEAC driver (see NOTES-bench-real.md)')
+                notes.append('peac skipped: set PEAC_BIN to a PEAC driver (docs/benchmarks.md: Methods)')
             elif not os.access(binary, os.X_OK):
                 notes.append(f'peac skipped: PEAC_BIN={binary} is not an executable file')
             else:
