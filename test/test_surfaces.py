@@ -17,6 +17,7 @@ from ppe_ros.core.consolidation import (
     columns_wrap,
     consolidate_pieces,
     merge_cost,
+    rows_wrap,
 )
 from ppe_ros.core.extraction import extract_plane_hierarchy
 from ppe_ros.core.scan import make_ray_scan
@@ -100,6 +101,14 @@ def test_columns_wrap_on_a_full_revolution_only():
     assert not columns_wrap(make_ray_scan(points[:, :80]))  # 300 deg of it
     camera = _wall_behind_a_post(noise=0.0, seed=0)  # 70 deg field of view
     assert not columns_wrap(make_ray_scan(camera.points, camera.origins))
+
+
+def test_rows_wrap_on_a_transposed_revolution_only():
+    points = _floor_revolution()
+    transposed = make_ray_scan(np.ascontiguousarray(points.transpose(1, 0, 2)))
+    assert rows_wrap(transposed) and not columns_wrap(transposed)
+    assert not rows_wrap(make_ray_scan(points))
+    assert not rows_wrap(make_ray_scan(np.ascontiguousarray(points[:, :80].transpose(1, 0, 2))))  # 300 deg
 
 
 @pytest.mark.parametrize('seed', [0, 1])

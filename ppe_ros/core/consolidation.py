@@ -434,25 +434,34 @@ def _dense_pieces(scan: RayScan, ids: np.ndarray, sigmas: np.ndarray, min_points
 def columns_wrap(scan: RayScan) -> bool:
     """True if the scan's last column is next to its first: a full revolution of a spinning lidar.
 
-    The columns' mean ray directions are compared: the angle between the last and the first column
-    must be at most twice the median angle between consecutive columns (a camera's or a cropped
-    scan's first and last columns are its field of view apart).
+    Along each row, the angle between the rays of the last and the first column (the median over
+    the rows where both returned) must be at most twice the median angle between neighbouring
+    columns (a camera's or a cropped scan's first and last columns are its field of view apart;
+    so are the first and last beams of a transposed sweep).
     """
-    if scan.width < 8 or scan.height < 1:
+    grid = (scan.height, scan.width)
+    return _last_next_to_first(scan.valid.reshape(grid), scan.directions.reshape(*grid, 3))
+
+
+def rows_wrap(scan: RayScan) -> bool:
+    """True if the scan's last row is next to its first: a transposed revolution (one column per beam),
+    by the test of :func:`columns_wrap` on the rows."""
+    grid = (scan.height, scan.width)
+    return _last_next_to_first(scan.valid.reshape(grid).T, scan.directions.reshape(*grid, 3).transpose(1, 0, 2))
+
+
+def _last_next_to_first(valid: np.ndarray, directions: np.ndarray) -> bool:
+    """:func:`columns_wrap` on a ``(rows, columns)`` validity grid and its ``(rows, columns, 3)`` unit directions."""
+    if valid.shape[1] < 8 or valid.shape[0] < 1:
         return False
-    valid = scan.valid.reshape(scan.height, scan.width)
-    directions = np.where(valid[..., None], scan.directions.reshape(scan.height, scan.width, 3), 0.0)
-    mean = directions.sum(axis=0)
-    norm = np.linalg.norm(mean, axis=1)
-    if not (norm[0] > 0 and norm[-1] > 0):
+    both = valid[:, 1:] & valid[:, :-1]
+    seam_both = valid[:, -1] & valid[:, 0]
+    if np.count_nonzero(both) < 4 or not seam_both.any():
         return False
-    ok = norm > 0
-    unit = mean[ok] / norm[ok, None]
-    steps = np.arccos(np.clip(np.einsum('ij,ij->i', unit[1:], unit[:-1]), -1.0, 1.0))
-    if len(steps) < 4:
-        return False
-    seam = float(np.arccos(np.clip(unit[0] @ unit[-1], -1.0, 1.0)))
-    return seam <= 2.0 * float(np.median(steps))
+    steps = np.einsum('ijk,ijk->ij', directions[:, 1:], directions[:, :-1])[both]
+    seam = np.einsum('ik,ik->i', directions[:, -1], directions[:, 0])[seam_both]
+    step_angle = np.median(np.arccos(np.clip(steps, -1.0, 1.0)))
+    return float(np.median(np.arccos(np.clip(seam, -1.0, 1.0)))) <= 2.0 * float(step_angle)
 
 
 def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:

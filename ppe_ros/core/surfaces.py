@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces
+from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces, rows_wrap
 from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan
@@ -94,9 +94,9 @@ def _consolidate(
     transposed grid gives the same surfaces."""
     scan, order = unit_scan, None
     wrap = columns_wrap(unit_scan)
-    if not wrap:
+    if not wrap and rows_wrap(unit_scan):  # consolidate the transposed grid, whose columns wrap
         order = np.arange(unit_scan.size).reshape(unit_scan.height, unit_scan.width).T.reshape(-1)
-        transposed = replace(
+        scan = replace(
             unit_scan,
             height=unit_scan.width,
             width=unit_scan.height,
@@ -105,10 +105,7 @@ def _consolidate(
             ranges=unit_scan.ranges[order],
             valid=unit_scan.valid[order],
         )
-        if columns_wrap(transposed):
-            scan, ids, ray_sigmas, wrap = transposed, ids[order], ray_sigmas[order], True
-        else:
-            order = None
+        ids, ray_sigmas, wrap = ids[order], ray_sigmas[order], True
     ids = consolidate_pieces(
         scan, ids, ray_sigmas, tau, connected_only=connected_only, noise_factor=noise_factor, wrap_columns=wrap
     )
