@@ -122,8 +122,8 @@ def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: Sen
     greedy used, but at most the profile's unscaled model's. A scan measured noisier than the model
     (noise_scale_bounds) keeps the excess as systematic error: the second differences that measure
     the scale also see structured errors (lateral jitter on slanted surfaces, disparity steps)."""
-    if profile.noise is None:
-        return ray_sigmas
+    if profile.noise is None or profile.noise_scale_bounds is None:
+        return ray_sigmas  # the greedy's sigmas are the model's
     model = np.full(unit_scan.size, np.nan)
     valid = unit_scan.valid
     model[valid] = profile.noise.sigmas(unit_scan.ranges[valid], unit_scan.directions[valid])
