@@ -115,16 +115,18 @@ class FrameStats:
     def counts(self) -> dict[str, Any]:
         """Totals since start: received, processed, dropped, skipped, failed, idle, skipped_by_kind, last_error."""
         with self.lock:
-            return dict(
-                received=self.received,
-                processed=self.processed,
-                dropped=self.dropped,
-                skipped=self.skipped,
-                failed=self.failed,
-                idle=self.idle,
-                skipped_by_kind=dict(self.skipped_by_kind),
-                last_error=self.last_error,
-            )
+            return dict(**self._totals(), skipped_by_kind=dict(self.skipped_by_kind), last_error=self.last_error)
+
+    def _totals(self) -> dict[str, int]:
+        """The totals since start (call with the lock held)."""
+        return dict(
+            received=self.received,
+            processed=self.processed,
+            dropped=self.dropped,
+            skipped=self.skipped,
+            failed=self.failed,
+            idle=self.idle,
+        )
 
     def take_window(self) -> ReportWindow:
         """The counters of the report window since the previous call, and the totals; starts a new window."""
@@ -144,14 +146,7 @@ class FrameStats:
                 output_rate_hz=len(self.published_times) / rate_span,
                 to_extract_in_rate_window=len(self.received_times) - len(self.idle_times),
                 idle_in_rate_window=len(self.idle_times),
-                totals=dict(
-                    received=self.received,
-                    processed=self.processed,
-                    dropped=self.dropped,
-                    skipped=self.skipped,
-                    failed=self.failed,
-                    idle=self.idle,
-                ),
+                totals=self._totals(),
                 skipped_by_kind=dict(self.skipped_by_kind),
                 last_error=self.last_error,
                 last_error_age_s=now - self.last_error_time if self.last_error else math.nan,
