@@ -15,7 +15,28 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
-class StopRequests:
+class _SignalHandlers:
+    """Installs ``self._handle`` for SIGINT and SIGTERM (in the main thread only: signals reach no other;
+    elsewhere the caller's handling applies) and restores the previous handlers."""
+
+    def __init__(self) -> None:
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._handle)
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        raise NotImplementedError
+
+
+class StopRequests(_SignalHandlers):
     """SIGINT / SIGTERM during a run: the first stops reading, a second drops the frames in flight.
 
     The handlers only count (writing the output is never interrupted halfway); a second signal
@@ -25,22 +46,11 @@ class StopRequests:
     """
 
     def __init__(self) -> None:
+        super().__init__()
         self.count = 0
         self.first_signal: int | None = None
         self.abortable = False
         self.interruptible = False
-        self._previous: dict[int, Any] = {}
-
-    def install(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return  # signals only reach the main thread; elsewhere the caller's handling applies
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
-
-    def restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous.clear()
 
     def _handle(self, signum: int, frame: Any) -> None:
         self.count += 1
@@ -60,25 +70,15 @@ class StopRequests:
         return self.count > 1
 
 
-class CommandSignals:
+class CommandSignals(_SignalHandlers):
     """SIGINT / SIGTERM outside :func:`process_bag`'s own handling: before it (opening and scanning
     the input) they stop the command; after it (the bag is closed, the summary is printed) they
     are ignored, so that a repeated Ctrl-C never ends in a traceback."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.done = False
         self.signum: int | None = None
-        self._previous: dict[int, Any] = {}
-
-    def install(self) -> None:
-        if threading.current_thread() is threading.main_thread():
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                self._previous[signum] = signal.signal(signum, self._handle)
-
-    def restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous.clear()
 
     def _handle(self, signum: int, frame: Any) -> None:
         if self.signum is None:
