@@ -315,6 +315,32 @@ def test_match_planes_mahalanobis_uses_both_covariances():
         assert m.sigma_d_predicted == pytest.approx(math.sqrt(2e-4))
         # the registration adds (1 cm)^2 along n (its rotation part moves c across n only)
         assert m.mahalanobis2_with_registration == pytest.approx(0.01**2 / 3e-4)
+        # A's centroid is 1 cm off B's plane; B's points (A's, unmoved) lie on A's plane
+        assert m.gap_at_planes == pytest.approx(0.005)
+
+
+def test_gap_at_planes_is_not_the_offset_difference_of_a_plane_turned_about_its_centroid():
+    points, labels = _spherical_scene([0, 0, 0])
+    planes = _planes_of(points, labels)
+    projector = RangeImageProjector(points)
+    turn = math.radians(1.0)
+    normals_b, offsets_b = planes.normals.copy(), planes.offsets.copy()
+    for j in range(planes.num_planes):
+        centroid = points[planes.labels == j + 1].mean(axis=0)
+        n = planes.normals[j]
+        side = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side)
+        normals_b[j] = math.cos(turn) * n + math.sin(turn) * side
+        offsets_b[j] = normals_b[j] @ centroid  # B's plane passes through A's centroid
+    matches = match_planes(
+        planes.labels, points, planes.normals, planes.offsets, None,
+        planes.labels, projector, normals_b, offsets_b, None,
+        np.eye(3), np.zeros(3), min_points=100,
+    )  # fmt: skip
+    assert len(matches) == 2
+    for m in matches:
+        assert m.gap_at_planes < 1e-6 < m.offset_diff
+        assert m.angle_deg == pytest.approx(1.0)
 
 
 def test_summary_medians_count_unmatched_planes_as_iou_zero():

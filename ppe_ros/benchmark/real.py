@@ -505,7 +505,10 @@ class PlaneMatch:
         points_a: pixels of A's plane. projected: distinct B pixels with a point that A's plane projects to.
         iou: ``|P & B_k| / |P | B_k|`` of the projected pixels P and B's plane k (0 without a match).
         angle_deg: angle between A's normal moved into B's frame and B's normal.
-        offset_diff: ``|d'_A - d_B|`` (m) of A's moved plane and B's plane.
+        offset_diff: ``|d'_A - d_B|`` (m) of A's moved plane and B's plane: their gap at B's sensor,
+            which an angle between them times the distance to the planes dominates.
+        gap_at_planes: the planes' gap where they are (m): the mean of the distance of A's moved
+            centroid from B's plane and of B's centroid from A's moved plane (NaN without a match).
         mahalanobis2: Mahalanobis² of ``c'_A - c_B`` (closest points ``d n`` in B's frame) under
             ``J cov_A J^T + cov_B`` (J: :func:`closest_point_jacobian`); NaN without covariances.
         sigma_d_predicted: ``sqrt(n_B^T (J cov_A J^T + cov_B) n_B)`` (m), the predicted spread of the offset.
@@ -525,6 +528,7 @@ class PlaneMatch:
     sigma_d_predicted: float
     found: bool
     mahalanobis2_with_registration: float = math.nan
+    gap_at_planes: float = math.nan
 
 
 #: Thresholds of a plane "found again" in the next sweep.
@@ -590,6 +594,9 @@ def match_planes(
             n_a, d_a = -n_a, -d_a
         angle = math.degrees(math.acos(min(1.0, abs(float(n_a @ n_b)))))
         offset_diff = abs(d_a - d_b)
+        centroid_a = moved.mean(axis=0)
+        centroid_b = projector_b.points.reshape(-1, 3)[lab_b == best].mean(axis=0)
+        gap = 0.5 * (abs(float(centroid_a @ n_b) - d_b) + abs(float(centroid_b @ n_a) - d_a))
         md2 = sigma_d = md2_registered = math.nan
         if covariances_a is not None and covariances_b is not None:
             jac = closest_point_jacobian(
@@ -617,6 +624,7 @@ def match_planes(
                 sigma_d,
                 bool(found),
                 md2_registered,
+                gap,
             )
         )
     return matches
@@ -635,6 +643,7 @@ class RepeatabilitySummary:
             (m) over the pairs.
         median_angle_deg: median normal angle over the pairs.
         median_mahalanobis2_with_registration: the median with the registration error estimate added.
+        median_gap_at_planes: median :attr:`PlaneMatch.gap_at_planes` (m) over the pairs.
     """
 
     planes: int
@@ -647,6 +656,7 @@ class RepeatabilitySummary:
     median_offset_diff: float
     median_angle_deg: float
     median_mahalanobis2_with_registration: float = math.nan
+    median_gap_at_planes: float = math.nan
 
 
 def _median(values) -> float:
@@ -669,6 +679,7 @@ def summarize_matches(matches: list[PlaneMatch]) -> RepeatabilitySummary:
         median_offset_diff=_median([m.offset_diff for m in paired]),
         median_angle_deg=_median([m.angle_deg for m in paired]),
         median_mahalanobis2_with_registration=_median([m.mahalanobis2_with_registration for m in paired]),
+        median_gap_at_planes=_median([m.gap_at_planes for m in paired]),
     )
 
 

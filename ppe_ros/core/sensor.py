@@ -146,6 +146,9 @@ class SensorProfile:
         correlation_length: L (m) over which a surface's systematic errors are correlated: the
             covariances add their part, which does not shrink with the number of points
             (surfaces.systematic_covariances); None = the fit's covariance alone (the paper).
+        quadrant_jackknife: with correlation_length, also count the spread of each plane's fit over
+            its four quadrants (errors correlated over the whole plane: what moves the plane when
+            another part of the surface is seen; ppe_ros.core.quadrants).
         flatness_length: D0 (m): the planarity test's tolerance of a plane of size D is
             tau min(1, D / D0) (a small patch must be flat to the noise; surfaces.whole_surfaces);
             None = tau for every plane.
@@ -165,6 +168,7 @@ class SensorProfile:
     correlation_length: float | None = None
     noise_scale_bounds: tuple[float, float] | None = None
     flatness_length: float | None = None
+    quadrant_jackknife: bool = False
 
     def __post_init__(self) -> None:
         if self.noise_scale_bounds is not None:
@@ -227,8 +231,9 @@ PROFILES: dict[str, SensorProfile] = {
         surface_tolerance=0.05,
         min_plane_points=40,
         max_plane_rmse_factor=1.3,
-        correlation_length=1.3,
+        correlation_length=1.0,
         flatness_length=4.0,
+        quadrant_jackknife=True,
     ),
     'depth_camera': SensorProfile(
         name='depth_camera',
@@ -240,6 +245,7 @@ PROFILES: dict[str, SensorProfile] = {
         max_plane_rmse_factor=1.5,
         correlation_length=0.7,
         noise_scale_bounds=(0.1, 4.0),
+        quadrant_jackknife=True,
     ),
 }
 

@@ -16,6 +16,7 @@ import numpy as np
 from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces, rows_wrap
 from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.quadrants import quadrant_jackknife as quadrant_jackknife_covariances
 from ppe_ros.core.scan import RayScan
 from ppe_ros.core.sensor import SensorProfile
 
@@ -74,7 +75,11 @@ def whole_surfaces(
             planes,
             covariances=planes.covariances
             + systematic_covariances(
-                unit_scan, planes, _independent_sigmas(unit_scan, ray_sigmas, profile), profile.correlation_length
+                unit_scan,
+                planes,
+                _independent_sigmas(unit_scan, ray_sigmas, profile),
+                profile.correlation_length,
+                quadrant_jackknife=profile.quadrant_jackknife,
             ),
         )
     return planes
@@ -145,7 +150,11 @@ def _plane_scatter(points: np.ndarray, j: np.ndarray, count: np.ndarray, n_plane
 
 
 def systematic_covariances(
-    scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, correlation_length: float
+    scan: RayScan,
+    planes: PlaneSet,
+    ray_sigmas: np.ndarray,
+    correlation_length: float,
+    quadrant_jackknife: bool = False,
 ) -> np.ndarray:
     """``(J, 3, 3)`` covariance (m^2) of each plane's closest point d n from errors that do not average out.
 
@@ -157,7 +166,11 @@ def systematic_covariances(
     only over N_eff = clamp(A / L^2, 1, N) independent patches, so the plane's offset at its
     centroid has variance s_sys^2 / N_eff and its tilt about each in-plane axis e_i
     s_sys^2 / (N_eff lambda_i) (lambda_i: the points' variance along e_i; A = 12 sqrt(lambda_1 lambda_2),
-    a rectangle's). These three independent errors are mapped to d n to first order.
+    a rectangle's). With ``quadrant_jackknife`` the spread of the plane's fit over its four
+    quadrants (ppe_ros.core.quadrants: errors correlated over the whole plane, which move the plane
+    when a different part of the surface is seen) is used too: its covariance of offset and tilts,
+    with each variance raised to the independent-patch model's where that is larger. The result is
+    mapped to d n to first order.
     """
     labels = planes.labels.reshape(-1)
     on = np.flatnonzero(labels > 0)
@@ -176,18 +189,25 @@ def systematic_covariances(
     lam1, lam2 = np.maximum(values[:, 2], 1e-12), np.maximum(values[:, 1], 1e-12)
     area = 12.0 * np.sqrt(lam1 * lam2)
     n_eff = np.clip(area / float(correlation_length) ** 2, 1.0, count)
-    out = np.zeros((n_planes, 3, 3))
-    for variance, axis in (
-        (systematic2 / n_eff, None),
-        (systematic2 / (n_eff * lam1), 2),
-        (systematic2 / (n_eff * lam2), 1),
-    ):
-        if axis is None:
-            column = normals
-        else:
-            e = vectors[:, :, axis]
-            column = np.einsum('ij,ij->i', e, centroid)[:, None] * normals + offsets[:, None] * e
-        out += variance[:, None, None] * column[:, :, None] * column[:, None, :]
+    # local parameters: offset at the centroid, tilts about the long (u) and short (v) in-plane axes
+    model = np.stack([systematic2 / n_eff, systematic2 / (n_eff * lam1), systematic2 / (n_eff * lam2)], axis=1)
+    u_axis, v_axis = vectors[:, :, 2], vectors[:, :, 1]
+    local = np.zeros((n_planes, 3, 3))
+    if quadrant_jackknife:
+        axes = np.stack([u_axis, v_axis, normals], axis=1)
+        local = quadrant_jackknife_covariances(points, j, centroid, axes)
+    diagonal = np.arange(3)
+    local[:, diagonal, diagonal] = np.maximum(local[:, diagonal, diagonal], model)
+    # d n of the plane w = a + b u + c v (w along the normal from the centroid), to first order
+    jacobian = np.stack(
+        [
+            normals,
+            -np.einsum('ij,ij->i', u_axis, centroid)[:, None] * normals - offsets[:, None] * u_axis,
+            -np.einsum('ij,ij->i', v_axis, centroid)[:, None] * normals - offsets[:, None] * v_axis,
+        ],
+        axis=2,
+    )
+    out = np.einsum('jab,jbc,jdc->jad', jacobian, local, jacobian)
     return np.where(np.isfinite(out), out, 0.0)
 
 

@@ -1,0 +1,139 @@
+"""The spread of a plane's fit over its four quadrants: a delete-one-quadrant jackknife.
+
+A plane fitted to a surface that is not exactly flat, or to a sensor's errors that are correlated
+over metres, moves when a different part of the surface is seen: the next sweep's extent differs
+by a few metres, an occluder hides a corner. The fit's covariance (independent residuals) does not
+see that. The jackknife measures it from the plane's own points: split the plane at the median of
+its long in-plane axis u and each half at the median of the other axis v, refit the plane without
+each quadrant in turn, and take the spread of the four refits,
+Cov = (K - 1) / K sum_k (theta_-k - mean theta)(theta_-k - mean theta)^T with K = 4.
+theta = (a, b, c) of the local plane w = a + b u + c v, with u, v, w the coordinates of a point
+relative to the centroid along the two in-plane axes and the normal (metres, the scan's frame);
+a is the offset at the centroid (m), b and c the tilts about the two in-plane axes (rad, to first
+order). ppe_ros.core.surfaces.systematic_covariances maps them to the closest point d n.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+#: Quadrants of the jackknife (2 x 2 blocks in the plane).
+NUM_QUADRANTS = 4
+#: A quadrant needs this many points, else the plane's jackknife is 0 (a tiny plane's spread is noise).
+MIN_QUADRANT_POINTS = 3
+
+
+def quadrant_jackknife(
+    points: np.ndarray, plane_index: np.ndarray, centroids: np.ndarray, axes: np.ndarray
+) -> np.ndarray:
+    """``(J, 3, 3)`` jackknife covariance of each plane's local parameters (a m, b rad, c rad).
+
+    Args:
+        points: ``(N, 3)`` points (m) of all planes, in the scan's frame.
+        plane_index: ``(N,)`` plane index 0..J-1 of each point.
+        centroids: ``(J, 3)`` each plane's centroid (m).
+        axes: ``(J, 3, 3)``: ``axes[j, 0]`` the long in-plane axis u, ``axes[j, 1]`` the short
+            in-plane axis v, ``axes[j, 2]`` the normal (unit vectors).
+    Planes with a quadrant of fewer than MIN_QUADRANT_POINTS points get 0.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    plane_index = np.ascontiguousarray(plane_index, dtype=np.int64)
+    centroids = np.ascontiguousarray(centroids, dtype=np.float64)
+    axes = np.ascontiguousarray(axes, dtype=np.float64)
+    n_planes = len(centroids)
+    if points.ndim != 2 or points.shape[1] != 3 or plane_index.shape != (len(points),):
+        raise ValueError('points must be (N, 3) and plane_index (N,)')
+    if centroids.shape != (n_planes, 3) or axes.shape != (n_planes, 3, 3):
+        raise ValueError('centroids must be (J, 3) and axes (J, 3, 3)')
+    if len(plane_index) and (plane_index.min() < 0 or plane_index.max() >= n_planes):
+        raise ValueError(f'plane_index must be in 0..{n_planes - 1}')
+    order = np.argsort(plane_index, kind='stable')
+    starts = np.searchsorted(plane_index[order], np.arange(n_planes + 1))
+    return _jackknife_kernel(points, order, starts, centroids, axes)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _jackknife_kernel(points, order, starts, centroids, axes):
+    n_planes = len(centroids)
+    out = np.zeros((n_planes, 3, 3))
+    for j in range(n_planes):
+        members = order[starts[j] : starts[j + 1]]
+        if len(members) >= NUM_QUADRANTS * MIN_QUADRANT_POINTS:
+            local = _local_coordinates(points, members, centroids[j], axes[j])
+            out[j] = _plane_jackknife(local, _quadrants(local))
+    return out
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _local_coordinates(points, members, centroid, axes):
+    """(n, 3) coordinates u, v, w of the members relative to the centroid along axes."""
+    local = np.empty((len(members), 3))
+    for i in range(len(members)):
+        for a in range(3):
+            local[i, a] = (
+                (points[members[i], 0] - centroid[0]) * axes[a, 0]
+                + (points[members[i], 1] - centroid[1]) * axes[a, 1]
+                + (points[members[i], 2] - centroid[2]) * axes[a, 2]
+            )
+    return local
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _quadrants(local):
+    """Quadrant 0..3 of each point: 2 * (u > median u) + (v > median v of its half)."""
+    u_high = local[:, 0] > np.median(local[:, 0])
+    quadrant = np.empty(len(local), dtype=np.int64)
+    for half in range(2):
+        in_half = np.flatnonzero(u_high == (half == 1))
+        v_median = np.median(local[in_half, 1]) if len(in_half) else 0.0
+        for i in in_half:
+            quadrant[i] = 2 * half + (1 if local[i, 1] > v_median else 0)
+    return quadrant
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _plane_jackknife(local, quadrant):
+    """Jackknife covariance (3, 3) of the least-squares (a, b, c) of w = a + b u + c v."""
+    normal = np.zeros((NUM_QUADRANTS, 3, 3))  # per quadrant: sum of x x^T, x = (1, u, v)
+    rhs = np.zeros((NUM_QUADRANTS, 3))  # per quadrant: sum of x w
+    counts = np.zeros(NUM_QUADRANTS, dtype=np.int64)
+    x = np.empty(3)
+    for i in range(len(local)):
+        q = quadrant[i]
+        x[0], x[1], x[2] = 1.0, local[i, 0], local[i, 1]
+        counts[q] += 1
+        for a in range(3):
+            rhs[q, a] += x[a] * local[i, 2]
+            for b in range(3):
+                normal[q, a, b] += x[a] * x[b]
+    if counts.min() < MIN_QUADRANT_POINTS:
+        return np.zeros((3, 3))
+    total_normal, total_rhs = normal.sum(axis=0), rhs.sum(axis=0)
+    thetas = np.empty((NUM_QUADRANTS, 3))
+    for q in range(NUM_QUADRANTS):
+        thetas[q] = _solve3(total_normal - normal[q], total_rhs - rhs[q])
+    spread = thetas - thetas.sum(axis=0) / NUM_QUADRANTS
+    out = np.zeros((3, 3))
+    for q in range(NUM_QUADRANTS):
+        for a in range(3):
+            for b in range(3):
+                out[a, b] += spread[q, a] * spread[q, b]
+    return (NUM_QUADRANTS - 1) / NUM_QUADRANTS * out
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _solve3(m, r):
+    """x with m x = r for a symmetric positive definite 3 x 3 m (Cramer's rule)."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+    c11 = m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]
+    c12 = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+    c22 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    x = np.empty(3)
+    x[0] = (c00 * r[0] + c01 * r[1] + c02 * r[2]) / det
+    x[1] = (c01 * r[0] + c11 * r[1] + c12 * r[2]) / det
+    x[2] = (c02 * r[0] + c12 * r[1] + c22 * r[2]) / det
+    return x
