@@ -26,14 +26,17 @@ import time
 from pathlib import Path
 
 from ppe_ros.benchmark.report import machine_description
+from ppe_ros.core.sensor import PROFILES
 from ppe_ros.ros.processing import PARAM_SPEC_BY_NAME
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / 'shared' / 'data'
 E_SYNPEB = 0.0484
 LMAX_SYNPEB = 0.18
-NODE_LMAX = float(PARAM_SPEC_BY_NAME['max_neighbor_distance'].default)  # the extractor node's defaults
-NODE_E = float(PARAM_SPEC_BY_NAME['max_error_increment'].default)
+# the extractor node's defaults: its sensor parameter's profile (its e and lmax parameters default to 0 = the profile's)
+NODE_PROFILE = PROFILES[str(PARAM_SPEC_BY_NAME['sensor'].default)]
+NODE_LMAX = float(NODE_PROFILE.max_neighbor_distance)
+NODE_E = float(NODE_PROFILE.max_error_increment)
 
 WORKER = r"""
 import json, resource, sys, time

@@ -600,3 +600,21 @@ def test_eval_progress_bar_counts_only_the_methods_that_run(tiny_dataset, tmp_pa
     )
     err = capsys.readouterr().err
     assert 'skipped polylidar' in err and '2/2 ' in err and '100%' in err  # 2 scans x msac; polylidar never runs
+
+
+def test_bench_extraction_node_rows_use_the_settings_the_node_runs_with():
+    """The node's e / lmax parameters default to 0 (= its sensor profile's): the benchmark's node rows must
+    use the profile's values, not the literal 0 (which extract_plane_hierarchy rejects)."""
+    import importlib.util
+    from pathlib import Path
+
+    from ppe_ros.core.sensor import PROFILES
+    from ppe_ros.ros.processing import PARAM_SPEC_BY_NAME
+
+    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_extraction.py'
+    spec = importlib.util.spec_from_file_location('bench_extraction_under_test', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    profile = PROFILES[PARAM_SPEC_BY_NAME['sensor'].default]
+    assert module.NODE_E == profile.max_error_increment > 0
+    assert module.NODE_LMAX == profile.max_neighbor_distance > 0
