@@ -6,9 +6,16 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+# --------------------------------------------------------------------------------------------
+# adjacency segments: each plane's neighbour nodes are contiguous rows of one pool, so that the
+# loops over a plane's neighbours read memory in order (a linked list of nodes scattered over the
+# pool made them wait on a cache miss per neighbour). Segments have power-of-two sizes; freed ones
+# are kept on a free list per size.
+# --------------------------------------------------------------------------------------------
 from ppe_ros.core.ppe.layout import (
     _ADJ_MIN_ROWS,
     _AN_FIELDS,
+    _AN_FREE_LINK,
     _AN_KEY,
     _AN_KIND,
     _AN_PLANE,
@@ -20,13 +27,6 @@ from ppe_ros.core.ppe.layout import (
     _PDEFER,
 )
 from ppe_ros.core.ppe.queue import _q_push
-
-# --------------------------------------------------------------------------------------------
-# adjacency segments: each plane's neighbour nodes are contiguous rows of one pool, so that the
-# loops over a plane's neighbours read memory in order (a linked list of nodes scattered over the
-# pool made them wait on a cache miss per neighbour). Segments have power-of-two sizes; freed ones
-# are kept on a free list per size.
-# --------------------------------------------------------------------------------------------
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -52,7 +52,7 @@ def _adj_copy(anode, dst, src, n):
 def _adj_release(anode, afree, start, rows):
     """Put the segment of rows rows at start on its size's free list (linked through its first row)."""
     c, _ = _adj_class(rows)
-    anode[start, 0] = afree[c]
+    anode[start, _AN_FREE_LINK] = afree[c]
     afree[c] = start
 
 
@@ -62,7 +62,7 @@ def _adj_move(anode, afree, pi, x, rows, aused):
     c, size = _adj_class(rows)
     start = afree[c]
     if start >= 0:
-        afree[c] = anode[start, 0]
+        afree[c] = anode[start, _AN_FREE_LINK]
     else:
         start = aused
         if start + size > anode.shape[0]:

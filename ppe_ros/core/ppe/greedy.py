@@ -3,12 +3,16 @@ driver kernel that runs them, the Python driver that sizes its pools, and the re
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numba as nb
 import numpy as np
 
 from ppe_ros.core.fitting import fit_rays
 from ppe_ros.core.ppe.adjacency import _adj_append, _adj_concat, _release_deferred
 from ppe_ros.core.ppe.intrinsics import _prefetch
+
+# --------------------------------------------------------------------------------------------
 from ppe_ros.core.ppe.layout import (
     _ADJ_CLASSES,
     _AN_FIELDS,
@@ -17,16 +21,40 @@ from ppe_ros.core.ppe.layout import (
     _AN_PLANE,
     _AN_VA,
     _AN_VB,
+    _EC_RAY,
+    _EC_VER,
     _FIT_ITERATIONS,
     _FIT_TOLERANCE,
     _G_EXTEND,
     _G_MERGE_EXACT,
     _G_MERGE_MODEL,
     _G_SEED,
+    _GI_A,
+    _GI_B,
+    _GI_KIND,
+    _GI_VB,
+    _HF_BOUND,
+    _HF_VALUE,
+    _HI_LEFT,
+    _HI_RAY,
+    _HI_RIGHT,
+    _HI_VER,
+    _MC_PARTNER,
+    _MC_VA,
+    _MC_VB,
     _N_STATS,
+    _NEC,
+    _NFIT,
+    _NFN,
+    _NGI,
+    _NHF,
+    _NHI,
+    _NMC,
     _NPF,
     _NPI,
     _NQS,
+    _NRCF,
+    _NRCI,
     _PADJ,
     _PADJC,
     _PADJN,
@@ -51,6 +79,8 @@ from ppe_ros.core.ppe.layout import (
     _Q_CHUNK,
     _QCOUNT,
     _QCUR,
+    _RC_COUNT,
+    _RC_VER,
     _ST_HEAP_PEAK,
     _ST_MERGE_EVALS,
     _ST_MERGE_REFINES,
@@ -90,8 +120,6 @@ from ppe_ros.core.ppe.state import (
     _union_fit,
 )
 
-# --------------------------------------------------------------------------------------------
-
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _aligned(offset):
@@ -105,24 +133,25 @@ def _work_sizes(n_pixels, gcap, hcap, acap):
     a = _aligned
     far = _q_chunks(gcap) * _Q_CHUNK
     n_f = (
-        a(n_pixels * (_NPF + 10))
+        a(n_pixels * (_NPF + _NFIT))
         + a(gcap)
         + a(far)
-        + a(hcap * 2)
-        + a(n_pixels * 10)
-        + a(n_pixels * 13)
+        + a(hcap * _NHF)
+        + a(n_pixels * _NFIT)
+        + a(n_pixels * _NRCF)
         + a(n_pixels + 1)
     )
     n_i = 2 * a(n_pixels) + a(_Q_BUCKETS) + a(acap * _AN_FIELDS) + 2 * a(n_pixels + 1)
     n_i32 = (
         5 * a(n_pixels)
-        + a(hcap * 4)
+        + a(hcap * _NHI)
         + a(n_pixels * _NPI)
-        + a(gcap * 5)
-        + a(far * 5)
-        + a(far // _Q_CHUNK * 3)
-        + a(n_pixels * 3)
-        + 2 * a(n_pixels * 2)
+        + a(gcap * _NGI)
+        + a(far * _NGI)
+        + a(far // _Q_CHUNK * _NFN)
+        + a(n_pixels * _NMC)
+        + a(n_pixels * _NRCI)
+        + a(n_pixels * _NEC)
         + a(n_pixels + 1)
     )
     return n_f, n_i, n_i32
@@ -140,6 +169,907 @@ def _run_cutoff(max_increment, min_count, n_pixels):
 def _empty_log(stats, overflow):
     """The kernel's result when a pool ran out: an empty action log, its stats and overflow."""
     return (np.empty(0, np.int8), np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), stats, overflow)
+
+
+# --------------------------------------------------------------------------------------------
+# the greedy's state, bundled by concern (named tuples of arrays: numba passes them as structs)
+# --------------------------------------------------------------------------------------------
+
+#: The scan's grid: rays, admissible edges right/down of each pixel, tetromino offsets, grid size.
+Grid = namedtuple('Grid', ['endpoints', 'directions', 'ok_right', 'ok_down', 'offsets', 'height', 'width'])
+#: The run's settings (GreedyOptions, stops and the cutoffs derived from them) and the pools' capacities.
+Knobs = namedtuple(
+    'Knobs',
+    [
+        'exact_plane_size',
+        'exact_merge_size',
+        'drift_limit',
+        'max_increment',
+        'min_count',
+        'slack',
+        'model_key_factor',
+        'refined_growth',
+        'merge_loop_growth',
+        'defer_merges',
+        'cutoff',
+        'model_cutoff',
+        'gcap',
+        'hcap',
+        'acap',
+    ],
+)
+#: Per-pixel state (owner plane, pixel lists, union-find parents, merge-loop stamps, candidate owners)
+#: and scratch (ray-id buffers, a seed's cells, a pixel's neighbours).
+Pixels = namedtuple('Pixels', ['owner', 'nextpix', 'parent', 'seen', 'candidate_of', 'buf', 'buf2', 'cell', 'nb_pix'])
+#: Per-plane rows: float and int state (layout _P*), the caches of candidate fits, refined merges and
+#: refined hybrid merges (layouts _EC*, _MC*, _RC*).
+Planes = namedtuple('Planes', ['pf', 'pi', 'ecache_f', 'ecache_i', 'mcache_f', 'mcache_i', 'rcache_f', 'rcache_i'])
+#: The two-level global queue (queue.py): heap keys and entries, far-bucket pool, bucket heads, state.
+Queue = namedtuple('Queue', ['gkey', 'gint', 'fkey', 'fint', 'fnext', 'bhead', 'qstate'])
+#: Node pools: the candidate heaps' nodes (hf, hi) and the adjacency segments (anode, its float view
+#: akey, free lists afree).
+Pools = namedtuple('Pools', ['hf', 'hi', 'anode', 'akey', 'afree'])
+#: The initial seeds in (key, anchor) order: each anchor's seed table row, anchors, keys, best configs.
+Seeds = namedtuple('Seeds', ['sse', 'order', 'key', 'best'])
+#: The action log (kind, a, b, increment per action), statistics and the pools' overflow.
+Log = namedtuple('Log', ['kind', 'a', 'b', 'inc', 'stats', 'overflow'])
+
+#: Outcomes of _next_action.
+_NO_ACTION = 0
+_FOUND = 1
+_OVERFLOW = 2
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _push(q, gsize, key, kind, a, b, va, vb):
+    """_q_push of an entry into the queue q; returns the heap size."""
+    return _q_push(q.gkey, q.gint, gsize, q.fkey, q.fint, q.fnext, q.bhead, q.qstate, key, kind, a, b, va, vb)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _full(log):
+    """True when a pool ran out (the run stops and is repeated with the capacities in log.overflow)."""
+    return log.overflow[0] > 0 or log.overflow[1] > 0 or log.overflow[2] > 0
+
+
+# --------------------------------------------------------------------------------------------
+# phase 1: the next action with an exact key
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _pop_entry(q, sd, pl, pools, px, gsize, seed_ptr):
+    """The next entry: the sorted initial seeds' or the heap's, whichever comes first.
+
+    Returns (key, kind, a, b, va, vb, gsize, seed_ptr).
+    """
+    gkey, gint = q.gkey, q.gint
+    if seed_ptr < len(sd.order):
+        sa = sd.order[seed_ptr]
+        sk = sd.key[seed_ptr]
+        sb = sd.best[seed_ptr]
+        if gsize == 0 or (
+            sk < gkey[0]
+            or (
+                sk == gkey[0]
+                and (
+                    gint[0, _GI_KIND] > _G_SEED
+                    or (
+                        gint[0, _GI_KIND] == _G_SEED
+                        and (gint[0, _GI_A] > sa or (gint[0, _GI_A] == sa and gint[0, _GI_B] > sb))
+                    )
+                )
+            )
+        ):
+            return sk, _G_SEED, sa, sb, 0, 0, gsize, seed_ptr + 1
+    gsize = _g_pop(gkey, gint, gsize)
+    key, kind, ea, eb, eva, evb = _g_entry(gkey, gint, gsize)
+    if gsize > 0:  # the next entry's planes load while this one is handled
+        _prefetch(pl.pi, gint[0, _GI_A], 0)
+        _prefetch(pl.pf, gint[0, _GI_A], 0)
+        if gint[0, _GI_KIND] == _G_EXTEND:  # its candidate node (at the push) and ray
+            _prefetch(pools.hi, gint[0, _GI_VB], 0)
+            _prefetch(pools.hf, gint[0, _GI_VB], 0)
+            _prefetch(px.owner, gint[0, _GI_B], 0)
+        else:
+            _prefetch(pl.pi, gint[0, _GI_B], 0)
+    return key, kind, ea, eb, eva, evb, gsize, seed_ptr
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _seed_entry(g, kn, px, q, sd, key, anchor, c, gsize):
+    """A popped seed (anchor, config c): True when its cells are all free; else its anchor's next best
+    valid seed after (key, c) is queued. Returns (found, gsize)."""
+    owner, offsets, width, seed_sse = px.owner, g.offsets, g.width, sd.sse
+    i = anchor // width
+    j = anchor % width
+    ok = True
+    for t in range(4):
+        if owner[(i + offsets[c, t, 0]) * width + (j + offsets[c, t, 1])] >= 0:
+            ok = False
+            break
+    if ok:
+        return True, gsize
+    # none when the anchor's own ray is taken (every tetromino contains its anchor)
+    best = -1
+    for c2 in range(17 if owner[anchor] < 0 else 0):
+        e2 = seed_sse[anchor, c2]
+        if not np.isfinite(e2):
+            continue
+        if e2 < key or (e2 == key and c2 <= c):
+            continue
+        ok2 = True
+        for t in range(4):
+            if owner[(i + offsets[c2, t, 0]) * width + (j + offsets[c2, t, 1])] >= 0:
+                ok2 = False
+                break
+        if not ok2:
+            continue
+        if best < 0 or e2 < seed_sse[anchor, best]:
+            best = c2
+    if best >= 0 and seed_sse[anchor, best] <= kn.cutoff:
+        gsize = _push(q, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
+    return False, gsize
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _revalue_candidate(g, kn, px, pl, pools, p, root, hfree):
+    """Value the top candidate node root of plane p (a stale bound) exactly for p's current version and
+    put it back into p's heap (a candidate of infinite value is freed instead). Returns hfree."""
+    hf, hi, pf, pi = pools.hf, pools.hi, pl.pf, pl.pi
+    k = hi[root, _HI_RAY]
+    newroot = _h_meld(hf, hi, hi[root, _HI_LEFT], hi[root, _HI_RIGHT])
+    small = pi[p, _PCOUNT] + 1 <= kn.exact_plane_size
+    n = _gather(pi, px.nextpix, p, px.buf, g.endpoints, g.directions) if small else 0
+    inc = _candidate_increment(
+        g.endpoints, g.directions, pf, p, small, px.buf, n, k, pi[p, _PVER], pl.ecache_i, pl.ecache_f
+    )
+    if inc < 0.0:
+        inc = 0.0
+    value = pf[p, _PE] + inc
+    hf[root, _HF_BOUND] = value - kn.slack * abs(value)
+    hf[root, _HF_VALUE] = value
+    hi[root, _HI_VER] = pi[p, _PVER]
+    hi[root, _HI_LEFT] = -1
+    hi[root, _HI_RIGHT] = -1
+    if not np.isfinite(value):
+        hi[root, _HI_LEFT] = hfree  # the free list is linked through the left child
+        hfree = root
+        pi[p, _PROOT] = newroot
+        if px.candidate_of[k] >= 0 and _find(px.parent, px.candidate_of[k]) == p:
+            px.candidate_of[k] = -1  # p may hold no other node for k
+    else:
+        pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
+    return hfree
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _extend_entry(g, kn, px, pl, q, pools, log, key, p, ray, stamp, gsize, hfree):
+    """A popped extension proxy of plane p for its top candidate ray (at proxy stamp).
+
+    The action when the top is that ray, valued for p's version, and the proxy key is not below its
+    increment; else the top is re-valued if stale, p's proxy re-queued for its new top and the merges
+    deferred behind the old proxy that the new one no longer precedes released.
+    Returns (outcome, increment, ray, gsize, hfree); outcome _OVERFLOW when the queue ran out.
+    """
+    pf, pi, hf, hi = pl.pf, pl.pi, pools.hf, pools.hi
+    if pi[p, _PALIVE] == 0 or stamp != pi[p, _PSTAMP]:
+        return _NO_ACTION, key, ray, gsize, hfree
+    # candidate rays taken by another plane since: drop them
+    root, hfree = _h_drop_taken(hf, hi, px.owner, pi[p, _PROOT], hfree)
+    pi[p, _PROOT] = root
+    if root >= 0 and hi[root, _HI_RAY] == ray:  # else the proxy's candidate was dropped: re-queue
+        if hi[root, _HI_VER] == pi[p, _PVER]:
+            inc = hf[root, _HF_VALUE] - pf[p, _PE]
+            if key >= inc:
+                return _FOUND, inc, ray, gsize, hfree
+            # (the proxy key was a bound): re-push with the exact key
+        else:
+            log.stats[_ST_REEVALS] += 1
+            hfree = _revalue_candidate(g, kn, px, pl, pools, p, root, hfree)
+    gsize, proxy_key = _queue_proxy(
+        q.gkey, q.gint, gsize, q.fkey, q.fint, q.fnext, q.bhead, q.qstate, hf, hi, pf, pi, p, kn.cutoff
+    )
+    if gsize + q.qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= kn.gcap:
+        log.overflow[0] = 2 * (kn.gcap + pi[p, _PADJN])
+        return _OVERFLOW, key, ray, gsize, hfree
+    if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
+        gsize = _release_deferred(
+            q.gkey,
+            q.gint,
+            gsize,
+            q.fkey,
+            q.fint,
+            q.fnext,
+            q.bhead,
+            q.qstate,
+            pools.anode,
+            pools.akey,
+            pf,
+            p,
+            pi[p, _PADJ],
+            pi[p, _PADJN],
+            proxy_key,
+        )
+    return _NO_ACTION, key, ray, gsize, hfree
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _merge_is_current(pl, kind, a, b):
+    """An exact merge entry is current when neither plane changed since it was valued: the planes are at
+    their merge versions, or a refinement of them at their versions is the last kept one (else a large
+    plane grew since, without a full merge loop, and the merge is refined again at the current state)."""
+    pi, mcache_i = pl.pi, pl.mcache_i
+    return kind == _G_MERGE_EXACT and (
+        (pi[a, _PVER] == pi[a, _PMVER] and pi[b, _PVER] == pi[b, _PMVER])
+        or (
+            mcache_i[a, _MC_PARTNER] == b
+            and mcache_i[a, _MC_VA] == pi[a, _PVER]
+            and mcache_i[a, _MC_VB] == pi[b, _PVER]
+        )
+    )
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _refined_increment(g, kn, px, pl, log, a, b):
+    """Refine the merge of planes a < b: an exact union fit when small, else the larger plane's model plus
+    the smaller plane's exact residuals; the refinement is cached (mcache, rcache). Returns the increment."""
+    endpoints, directions, pf, pi, buf = g.endpoints, g.directions, pl.pf, pl.pi, px.buf
+    log.stats[_ST_MERGE_REFINES] += 1
+    if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= kn.exact_plane_size:
+        n1 = _gather(pi, px.nextpix, a, buf, endpoints, directions)
+        n2 = _gather(pi, px.nextpix, b, buf, endpoints, directions, n1)
+        sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
+        zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _cache_merge(pl.mcache_i, pl.mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], sse, u0, u1, u2, zero)
+        return sse - pf[a, _PE] - pf[b, _PE]
+    big = a
+    small = b
+    if pi[b, _PCOUNT] > pi[a, _PCOUNT]:
+        big = b
+        small = a
+    n = _gather(pi, px.nextpix, small, buf, endpoints, directions)
+    log.stats[_ST_REFINE_RAYS] += n
+    if n <= kn.exact_plane_size:
+        e_small = pf[small, _PE]  # a small plane's E is its exact fit's
+    else:
+        w0, w1, w2 = pf[small, _PW], pf[small, _PW + 1], pf[small, _PW + 2]
+        e_small, _, _, _ = fit_rays(endpoints, directions, buf, n, w0, w1, w2, _FIT_ITERATIONS, _FIT_TOLERANCE)
+    _, m0, m1, m2 = _model_merge(pf, a, b)
+    value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+    _cache_merge(pl.mcache_i, pl.mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], value, m0, m1, m2, info)
+    if kn.refined_growth > 0.0:
+        _keep_refined_merge(pl.rcache_i, pl.rcache_f, pf, pi, big, small, e_small, value, m0, m1, m2, info, grad)
+    return value - pf[big, _PE] - e_small
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _merge_entry(g, kn, px, pl, q, log, kind, a, b, va, vb, gsize):
+    """A popped merge of planes a < b valued at their merge versions (va, vb): True when it is current and
+    exact; a model merge (or an exact one of a grown plane) is refined and queued again with its exact
+    key. Returns (found, gsize)."""
+    pi = pl.pi
+    if pi[a, _PALIVE] == 0 or pi[b, _PALIVE] == 0:
+        return False, gsize
+    if pi[a, _PMVER] != va or pi[b, _PMVER] != vb:
+        return False, gsize
+    if _merge_is_current(pl, kind, a, b):
+        return True, gsize
+    inc = _refined_increment(g, kn, px, pl, log, a, b)
+    if inc < 0.0:
+        inc = 0.0
+    if inc <= kn.cutoff:
+        gsize = _push(q, gsize, inc, _G_MERGE_EXACT, a, b, va, vb)
+    return False, gsize
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _next_action(g, kn, px, pl, q, pools, sd, log, gsize, hused, hfree, seed_ptr):
+    """Pop entries until one is an action with an exact key (stale entries are dropped, bounds and model
+    merges valued again and re-queued). Returns (outcome, key, kind, a, b, gsize, hfree, seed_ptr);
+    outcome _NO_ACTION when the queue ran empty, _OVERFLOW when a pool ran out."""
+    qstate = q.qstate
+    while gsize > 0 or qstate[_QCOUNT] > 0 or seed_ptr < len(sd.order):
+        if gsize + qstate[_QCOUNT] + 8 >= kn.gcap:
+            log.overflow[0] = 2 * kn.gcap
+        if gsize == 0 and qstate[_QCOUNT] > 0:
+            gsize = _q_load(q.gkey, q.gint, q.fkey, q.fint, q.fnext, q.bhead, qstate, pl.pi)
+            if gsize == 0 and seed_ptr >= len(sd.order):
+                break
+        if hused + 8 >= kn.hcap:
+            log.overflow[1] = 2 * kn.hcap
+        if _full(log):
+            return _OVERFLOW, 0.0, 0, 0, 0, gsize, hfree, seed_ptr
+        key, kind, ea, eb, eva, evb, gsize, seed_ptr = _pop_entry(q, sd, pl, pools, px, gsize, seed_ptr)
+        log.stats[_ST_POPS] += 1
+        if kind == _G_SEED:
+            found, gsize = _seed_entry(g, kn, px, q, sd, key, ea, eb, gsize)
+        elif kind == _G_EXTEND:
+            outcome, key, eb, gsize, hfree = _extend_entry(g, kn, px, pl, q, pools, log, key, ea, eb, eva, gsize, hfree)
+            if outcome == _OVERFLOW:
+                return _OVERFLOW, 0.0, 0, 0, 0, gsize, hfree, seed_ptr
+            found = outcome == _FOUND
+        else:
+            found, gsize = _merge_entry(g, kn, px, pl, q, log, kind, ea, eb, eva, evb, gsize)
+        if found:
+            return _FOUND, key, kind, ea, eb, gsize, hfree, seed_ptr
+    return _NO_ACTION, 0.0, 0, 0, 0, gsize, hfree, seed_ptr
+
+
+# --------------------------------------------------------------------------------------------
+# phase 2: execute the action (create, extend, merge)
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _create(g, px, pl, p, c):
+    """Create plane p (its anchor's id) from the tetromino of config c at p; its cells go into px.buf2."""
+    pf, pi, cell, endpoints = pl.pf, pl.pi, px.cell, g.endpoints
+    i = p // g.width
+    j = p % g.width
+    for t in range(4):
+        cell[t] = (i + g.offsets[c, t, 0]) * g.width + (j + g.offsets[c, t, 1])
+    # a plane id is created once (its anchor is taken for good): its rows start here
+    px.parent[p] = p
+    px.seen[p] = -1
+    pi[p, _PSTAMP] = 0
+    for t in range(3):
+        pl.mcache_i[p, t] = -1
+    pf[p, _PRPARTNER] = -1.0
+    pl.ecache_i[p, _EC_RAY] = -1
+    pl.ecache_i[p, _EC_VER] = -1
+    pi[p, _PALIVE] = 1
+    pi[p, _PROOT] = -1
+    pi[p, _PADJ] = -1
+    pi[p, _PADJC] = 0
+    pi[p, _PADJN] = 0
+    pi[p, _PHEAD] = cell[0]
+    for t in range(4):
+        px.owner[cell[t]] = p
+        px.nextpix[cell[t]] = cell[t + 1] if t < 3 else -1
+    pi[p, _PTAIL] = cell[3]
+    pi[p, _PCOUNT] = 4
+    pf[p, _PCOUNTLIN] = 4
+    _set_exact_state(endpoints, g.directions, pf, cell, 4, p, np.nan, np.nan, np.nan)
+    rmax = 0.0
+    for t in range(4):
+        k = cell[t]
+        r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
+        rmax = max(rmax, r)
+    pf[p, _PRMAX] = rmax
+    for t in range(4):
+        px.buf2[t] = cell[t]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _extend(g, kn, px, pl, p, k, key):
+    """Extend plane p by ray k (increment key); ray k goes into px.buf2. Returns the count of p's rays left
+    gathered in px.buf (-1: none)."""
+    pf, pi, endpoints = pl.pf, pl.pi, g.endpoints
+    count = pi[p, _PCOUNT]
+    px.owner[k] = p
+    px.nextpix[k] = -1
+    px.nextpix[pi[p, _PTAIL]] = k
+    pi[p, _PTAIL] = k
+    pi[p, _PCOUNT] = count + 1
+    r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
+    pf[p, _PRMAX] = max(pf[p, _PRMAX], r)
+    px.buf2[0] = k
+    if count + 1 <= kn.exact_plane_size:
+        if pl.ecache_i[p, _EC_RAY] == k and pl.ecache_i[p, _EC_VER] == pi[p, _PVER]:
+            # the candidate's own fit (the least of this version's): no fit again
+            sse, w0, w1, w2, info = _get_fit(pl.ecache_f, p)
+            _store_state(pf, p, sse, w0, w1, w2, info)
+            pf[p, _PCOUNTLIN] = count + 1
+            return -1
+        n = _gather(pi, px.nextpix, p, px.buf, endpoints, g.directions)
+        _set_exact_state(endpoints, g.directions, pf, px.buf, n, p, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2])
+        pf[p, _PCOUNTLIN] = n
+        return n
+    # a large plane: rank-one update of its model
+    _, x0, x1, x2, f, g0, g1, g2 = _model_extension(endpoints, g.directions, pf, p, k)
+    denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
+    pf[p, _PW] -= x0 * f / denom
+    pf[p, _PW + 1] -= x1 * f / denom
+    pf[p, _PW + 2] -= x2 * f / denom
+    pf[p, _PH] += g0 * g0
+    pf[p, _PH + 1] += g0 * g1
+    pf[p, _PH + 2] += g0 * g2
+    pf[p, _PH + 3] += g1 * g1
+    pf[p, _PH + 4] += g1 * g2
+    pf[p, _PH + 5] += g2 * g2
+    pf[p, _PE] += key
+    return -1
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _merged_fit(g, kn, px, pl, a, b):
+    """The merged plane's (value, w0, w1, w2, information) of planes a and b (value and information only
+    meaningful for a union larger than exact_plane_size, whose state is not refitted)."""
+    endpoints, directions, pf, pi, buf = g.endpoints, g.directions, pl.pf, pl.pi, px.buf
+    na = pi[a, _PCOUNT]
+    nbn = pi[b, _PCOUNT]
+    mcache_i = pl.mcache_i
+    if mcache_i[a, _MC_PARTNER] == b and mcache_i[a, _MC_VA] == pi[a, _PVER] and mcache_i[a, _MC_VB] == pi[b, _PVER]:
+        # the refinement that queued this merge computed the same fit (same planes, versions)
+        return _get_fit(pl.mcache_f, a)
+    info = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if na + nbn <= kn.exact_plane_size:
+        # exact merged state from the best of the union's starting points
+        n1 = _gather(pi, px.nextpix, a, buf, endpoints, directions)
+        n2 = _gather(pi, px.nextpix, b, buf, endpoints, directions, n1)
+        _, w0, w1, w2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
+        return 0.0, w0, w1, w2, info
+    big = a if na >= nbn else b
+    small = b if big == a else a
+    n = _gather(pi, px.nextpix, small, buf, endpoints, directions)
+    _, m0, m1, m2 = _model_merge(pf, a, b)
+    value, w0, w1, w2, info, _ = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+    return value, w0, w1, w2, info
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _merge(g, kn, px, pl, pools, a, b, aused):
+    """Merge planes a and b into the smaller id s. Returns (s, s's adjacency nodes before the merge, aused);
+    aused -1 when the adjacency pool ran out."""
+    pf, pi = pl.pf, pl.pi
+    s = min(a, b)
+    o = max(a, b)
+    total = pi[a, _PCOUNT] + pi[b, _PCOUNT]
+    value, w0, w1, w2, info = _merged_fit(g, kn, px, pl, a, b)
+    # concatenate pixel lists into s
+    px.nextpix[pi[s, _PTAIL]] = pi[o, _PHEAD]
+    pi[s, _PTAIL] = pi[o, _PTAIL]
+    px.parent[o] = s
+    pi[s, _PCOUNT] = total
+    pi[s, _PROOT] = _h_meld(pools.hf, pools.hi, pi[s, _PROOT], pi[o, _PROOT])
+    adj_before = pi[s, _PADJN]
+    aused = _adj_concat(pools.anode, pools.afree, pi, s, o, aused)
+    if aused < 0:
+        return s, adj_before, -1
+    pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
+    lin = max(pf[a, _PCOUNTLIN], pf[b, _PCOUNTLIN])
+    if total <= kn.exact_plane_size:
+        n = _gather(pi, px.nextpix, s, px.buf, g.endpoints, g.directions)
+        _set_exact_state(g.endpoints, g.directions, pf, px.buf, n, s, w0, w1, w2)
+        pf[s, _PCOUNTLIN] = n
+    else:
+        pf[s, _PE] = value
+        pf[s, _PW] = w0
+        pf[s, _PW + 1] = w1
+        pf[s, _PW + 2] = w2
+        for t in range(6):
+            pf[s, _PH + t] = info[t]
+        pf[s, _PCOUNTLIN] = lin
+    pi[o, _PALIVE] = 0
+    pi[o, _PROOT] = -1
+    return s, adj_before, aused
+
+
+# --------------------------------------------------------------------------------------------
+# phase 3: bookkeeping of the changed plane, its new neighbours, its merges
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _refresh(g, kn, px, pl, log, p, created, version):
+    """After an action on plane p: re-linearise a large plane that doubled or drifted, and give p the new
+    version. Returns partial: p is large and grew by at most merge_loop_growth since its last full merge
+    loop (it values only its new neighbours' merges; its queued and deferred ones carry its merge version)."""
+    pf, pi = pl.pf, pl.pi
+    count = pi[p, _PCOUNT]
+    partial = not created and count > kn.exact_plane_size and count <= pf[p, _PCOUNTLOOP] * (1.0 + kn.merge_loop_growth)
+    if count > kn.exact_plane_size:
+        dw = np.sqrt(
+            (pf[p, _PW] - pf[p, _PWL]) ** 2
+            + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
+            + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2
+        )
+        if count >= 2 * pf[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > kn.drift_limit:
+            n = _gather(pi, px.nextpix, p, px.buf, g.endpoints, g.directions)
+            log.stats[_ST_RELINS] += 1
+            log.stats[_ST_RELIN_RAYS] += n
+            _relinearise(g.endpoints, g.directions, pf, px.buf, n, p)
+            pf[p, _PCOUNTLIN] = n
+            partial = False
+    # versions are unique across planes: the candidates a merged plane inherits from the absorbed
+    # plane can never pass for current ones
+    pi[p, _PVER] = version
+    return partial
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _neighbours(g, k, nb_pix):
+    """The pixels joined to pixel k by admissible edges into nb_pix; returns their count."""
+    i = k // g.width
+    j = k % g.width
+    n = 0
+    if j + 1 < g.width and g.ok_right[k]:
+        nb_pix[n] = k + 1
+        n += 1
+    if j > 0 and g.ok_right[k - 1]:
+        nb_pix[n] = k - 1
+        n += 1
+    if i + 1 < g.height and g.ok_down[k]:
+        nb_pix[n] = k + g.width
+        n += 1
+    if i > 0 and g.ok_down[k - g.width]:
+        nb_pix[n] = k - g.width
+        n += 1
+    return n
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _add_candidate(g, kn, px, pl, pools, log, p, q, n_gathered, hused, hfree):
+    """Queue ray q as an extension candidate of plane p, valued exactly for p's current version (unless p
+    already holds a node for q). Returns (n_gathered, hused, hfree): p's rays are gathered into px.buf
+    once, for its first exact candidate fit."""
+    pf, pi, hf, hi = pl.pf, pl.pi, pools.hf, pools.hi
+    if px.candidate_of[q] >= 0 and _find(px.parent, px.candidate_of[q]) == p:
+        # p's node for q was valued for an earlier version: its key is a lower bound, and it is valued
+        # again when it reaches the top of p's heap
+        return n_gathered, hused, hfree
+    log.stats[_ST_NEW_CANDIDATES] += 1
+    small = pi[p, _PCOUNT] + 1 <= kn.exact_plane_size
+    if small and n_gathered < 0:
+        n_gathered = _gather(pi, px.nextpix, p, px.buf, g.endpoints, g.directions)
+    inc = _candidate_increment(
+        g.endpoints, g.directions, pf, p, small, px.buf, n_gathered, q, pi[p, _PVER], pl.ecache_i, pl.ecache_f
+    )
+    if not np.isfinite(inc):
+        return n_gathered, hused, hfree
+    if inc < 0.0:
+        inc = 0.0
+    value = pf[p, _PE] + inc
+    if hfree >= 0:
+        node = hfree
+        hfree = hi[node, _HI_LEFT]
+    else:
+        node = hused
+        hused += 1
+    hf[node, _HF_BOUND] = value - kn.slack * abs(value)
+    hf[node, _HF_VALUE] = value
+    hi[node, _HI_RAY] = q
+    hi[node, _HI_VER] = pi[p, _PVER]
+    hi[node, _HI_LEFT] = -1
+    hi[node, _HI_RIGHT] = -1
+    pi[p, _PROOT] = _h_meld(hf, hi, pi[p, _PROOT], node)
+    px.candidate_of[q] = p
+    return n_gathered, hused, hfree
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _frontier(g, kn, px, pl, pools, log, p, new_pixels, in_buf, hused, hfree, aused):
+    """The new neighbours of plane p's added pixels px.buf2[:new_pixels]: free rays become extension
+    candidates, other planes neighbours (both adjacency lists). Returns (hused, hfree, aused); aused -1
+    when the adjacency pool ran out."""
+    n_gathered = in_buf
+    nb_pix = px.nb_pix
+    for t in range(new_pixels):
+        n_nb = _neighbours(g, px.buf2[t], nb_pix)
+        for u in range(n_nb):  # the neighbours' rows load together (a candidate's fit reads its ray)
+            _prefetch(g.endpoints, nb_pix[u], 0)
+            _prefetch(g.directions, nb_pix[u], 0)
+            _prefetch(px.owner, nb_pix[u], 0)
+            _prefetch(px.candidate_of, nb_pix[u], 0)
+        for u in range(n_nb):
+            q = nb_pix[u]
+            if px.owner[q] < 0:
+                n_gathered, hused, hfree = _add_candidate(g, kn, px, pl, pools, log, p, q, n_gathered, hused, hfree)
+                continue
+            other = _find(px.parent, px.owner[q])
+            if other != p:
+                aused = _adj_append(pools.anode, pools.akey, pools.afree, pl.pi, p, other, aused)
+                if aused >= 0:
+                    aused = _adj_append(pools.anode, pools.akey, pools.afree, pl.pi, other, p, aused)
+                if aused < 0:
+                    return hused, hfree, -1
+    return hused, hfree, aused
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _merge_key(g, kn, px, pl, p, q):
+    """Key, entry kind and reuse flag of the merge of planes p and q: an exact union fit for small unions, the kept
+    refinement's residual model while it stands, else the planes' models (queued below their value)."""
+    pf, pi = pl.pf, pl.pi
+    a = min(p, q)
+    b = max(p, q)
+    if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= kn.exact_merge_size:
+        n1 = _gather(pi, px.nextpix, a, px.buf, g.endpoints, g.directions)
+        n2 = _gather(pi, px.nextpix, b, px.buf, g.endpoints, g.directions, n1)
+        sse, _, _, _ = _union_fit(g.endpoints, g.directions, pf, px.buf, n1 + n2, a, b)
+        return sse - pf[a, _PE] - pf[b, _PE], _G_MERGE_EXACT, False
+    if (
+        pf[q, _PRPARTNER] == p
+        and pl.rcache_i[q, _RC_VER] == pi[q, _PVER]
+        and pi[p, _PCOUNT] <= pl.rcache_i[q, _RC_COUNT] * (1.0 + kn.refined_growth)
+    ):
+        # refined before, q unchanged since and p grown a little: q's residual model at the refined
+        # union's w stands for its exact residuals
+        return _refined_merge_increment(pf, p, pl.rcache_f, q), _G_MERGE_EXACT, True
+    # queued below its model value so that it is refined (exactly) before any action it could precede
+    # even where the model overestimates the increment
+    return _model_merge_increment(pf, a, b) * kn.model_key_factor, _G_MERGE_MODEL, False
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key, gsize, seen_stamp):
+    """Value the merges of plane p with its neighbouring planes (compacting p's adjacency segment; a
+    partial loop values only the nodes appended by this action). A merge whose key exceeds p's proxy key
+    is deferred on p's node instead of queued: p's proxy comes first, and p either changes (and values
+    its merges again) or re-queues its proxy, which releases the deferred merges its new key no longer
+    precedes. Returns gsize."""
+    pf, pi, anode, akey = pl.pf, pl.pi, pools.anode, pools.akey
+    first = pi[p, _PADJ]
+    end = first + pi[p, _PADJN]
+    n_adj = 0
+    least = np.inf
+    release = False
+    if partial:
+        n_adj = adj_before
+        least = pf[p, _PDEFER]
+        release = least <= proxy_key and least < np.inf
+    else:
+        pi[p, _PMVER] = pi[p, _PVER]
+        pf[p, _PCOUNTLOOP] = pi[p, _PCOUNT]
+    for r in range(first + n_adj, end):
+        if r + 1 < end:  # the next neighbour's rows load while this one is evaluated
+            nxt = anode[r + 1, _AN_PLANE]
+            _prefetch(px.parent, nxt, 0)
+            _prefetch(px.seen, nxt, 0)
+            _prefetch(pi, nxt, 0)
+            _prefetch(pf, nxt, 0)
+            _prefetch(pf, nxt, _PH + 5)
+        other = _find(px.parent, anode[r, _AN_PLANE])
+        if other == p or pi[other, _PALIVE] == 0 or px.seen[other] == seen_stamp:
+            continue
+        # kept: compacted to the front of the segment (x <= r, so no unread row is overwritten)
+        x = first + n_adj
+        px.seen[other] = seen_stamp
+        anode[x, _AN_PLANE] = other
+        n_adj += 1
+        log.stats[_ST_MERGE_EVALS] += 1
+        inc, gkind, reused = _merge_key(g, kn, px, pl, p, other)
+        if reused:
+            log.stats[_ST_REFINED_REUSES] += 1
+        if inc < 0.0:
+            inc = 0.0
+        akey[x, _AN_KEY] = np.inf
+        if not inc <= (kn.cutoff if gkind == _G_MERGE_EXACT else kn.model_cutoff):
+            continue  # (also NaN)
+        a = min(p, other)
+        b = max(p, other)
+        if inc <= proxy_key or not kn.defer_merges:
+            gsize = _push(q, gsize, inc, gkind, a, b, pi[a, _PMVER], pi[b, _PMVER])
+        else:
+            akey[x, _AN_KEY] = inc
+            least = min(least, inc)
+            anode[x, _AN_KIND] = gkind
+            anode[x, _AN_VA] = pi[a, _PMVER]
+            anode[x, _AN_VB] = pi[b, _PMVER]
+    pi[p, _PADJN] = n_adj
+    pf[p, _PDEFER] = least
+    if release:  # the kept deferred merges that p's new proxy key no longer precedes
+        gsize = _release_deferred(
+            q.gkey,
+            q.gint,
+            gsize,
+            q.fkey,
+            q.fint,
+            q.fnext,
+            q.bhead,
+            q.qstate,
+            anode,
+            akey,
+            pf,
+            p,
+            first,
+            n_adj,
+            proxy_key,
+        )
+    return gsize
+
+
+# --------------------------------------------------------------------------------------------
+# the driver
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _greedy_loop(g, kn, px, pl, q, pools, sd, log, n_valid):
+    """The greedy: until no action is left or the stop is reached, the next action, its execution and the
+    bookkeeping of the changed plane. Returns the number of actions (-1: a pool ran out)."""
+    gsize = hused = aused = seed_ptr = n_actions = version = seen_stamp = 0
+    hfree = -1
+    plane_count = n_valid
+    while True:
+        outcome, key, kind, a, b, gsize, hfree, seed_ptr = _next_action(
+            g, kn, px, pl, q, pools, sd, log, gsize, hused, hfree, seed_ptr
+        )
+        if outcome == _OVERFLOW:
+            return -1
+        if outcome == _NO_ACTION or not (key <= kn.max_increment or plane_count > kn.min_count):
+            return n_actions
+        if n_actions >= len(log.kind):
+            return n_actions
+        log.a[n_actions] = a
+        log.b[n_actions] = b
+        log.inc[n_actions] = key
+        adj_before = 0  # the changed plane's adjacency nodes before this action's appends
+        in_buf = -1  # the changed plane's rays when the execution left them in buf (-1: not)
+        if kind == _G_SEED:
+            log.kind[n_actions] = KIND_CREATE
+            _create(g, px, pl, a, b)
+            p, new_pixels, plane_count = a, 4, plane_count - 3
+        elif kind == _G_EXTEND:
+            log.kind[n_actions] = KIND_EXTEND
+            adj_before = pl.pi[a, _PADJN]
+            in_buf = _extend(g, kn, px, pl, a, b, key)
+            p, new_pixels, plane_count = a, 1, plane_count - 1
+        else:
+            log.kind[n_actions] = KIND_MERGE
+            p, adj_before, aused = _merge(g, kn, px, pl, pools, a, b, aused)
+            if aused < 0:
+                log.overflow[2] = 2 * kn.acap
+                return -1
+            new_pixels, plane_count = 0, plane_count - 1
+        n_actions += 1
+        version += 1
+        partial = _refresh(g, kn, px, pl, log, p, kind == _G_SEED, version)
+        # capacity for the candidate nodes this step pushes (adjacency segments check their own)
+        if hused + 4 * new_pixels + 8 >= kn.hcap:
+            log.overflow[1] = 2 * kn.hcap
+        if _full(log):
+            return -1
+        hused, hfree, aused = _frontier(g, kn, px, pl, pools, log, p, new_pixels, in_buf, hused, hfree, aused)
+        if aused < 0:
+            log.overflow[2] = 2 * kn.acap
+            return -1
+        # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
+        root, hfree = _h_drop_taken(pools.hf, pools.hi, px.owner, pl.pi[p, _PROOT], hfree)
+        pl.pi[p, _PROOT] = root
+        if gsize + q.qstate[_QCOUNT] + 2 + pl.pi[p, _PADJN] >= kn.gcap:
+            log.overflow[0] = 2 * (kn.gcap + pl.pi[p, _PADJN])
+        if _full(log):
+            return -1
+        gsize, proxy_key = _queue_proxy(
+            q.gkey,
+            q.gint,
+            gsize,
+            q.fkey,
+            q.fint,
+            q.fnext,
+            q.bhead,
+            q.qstate,
+            pools.hf,
+            pools.hi,
+            pl.pf,
+            pl.pi,
+            p,
+            kn.cutoff,
+        )
+        seen_stamp += 1
+        gsize = _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key, gsize, seen_stamp)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _pixel_and_plane_views(work_f, work_i, work_i32, n_pixels):
+    """The first views of the work buffers: per-pixel state and scratch, the planes' rows.
+
+    Returns (Pixels, pf, ecache_f, pi, of, oi, o32) with the buffers' next free offsets. Pixel, plane
+    and node ids, versions and stamps are 32-bit wherever they are stored (each is below 2^31 for the
+    scans extract_plane_hierarchy accepts, < MAX_RAYS): the greedy waits on memory, and narrower arrays
+    mean fewer cache misses.
+    """
+    o32 = 0
+    oi = 0
+    owner = work_i32[o32 : o32 + n_pixels]
+    o32 = _aligned(o32 + n_pixels)
+    nextpix = work_i32[o32 : o32 + n_pixels]
+    o32 = _aligned(o32 + n_pixels)
+    parent = work_i32[o32 : o32 + n_pixels]
+    o32 = _aligned(o32 + n_pixels)
+    buf = work_i[oi : oi + n_pixels]
+    oi = _aligned(oi + n_pixels)
+    buf2 = work_i[oi : oi + n_pixels]
+    oi = _aligned(oi + n_pixels)
+    seen = work_i32[o32 : o32 + n_pixels]
+    o32 = _aligned(o32 + n_pixels)
+    # the plane (an id that may have been merged since) that last queued an extension candidate
+    # for each ray: while it resolves to a live plane p, p's candidate heap holds a node for the ray
+    candidate_of = work_i32[o32 : o32 + n_pixels]
+    o32 = _aligned(o32 + n_pixels)
+    candidate_of[:] = -1
+    owner[:] = -1
+    # parent, seen and the plane rows are read only for plane ids (anchors of created planes) and
+    # written when a plane is created; pixel lists are written as they grow
+    px = Pixels(owner, nextpix, parent, seen, candidate_of, buf, buf2, np.empty(4, np.int64), np.empty(4, np.int64))
+    # a plane's float state and its candidate-fit slot (ecache_f) share a row: a plane's action reads
+    # and writes both
+    prow = work_f[0 : n_pixels * (_NPF + _NFIT)].reshape((n_pixels, _NPF + _NFIT))
+    of = _aligned(n_pixels * (_NPF + _NFIT))
+    # 32-bit fields (half the memory traffic of a plane's row): counts, versions and pixel ids are
+    # below H*W, stamps below the number of pops, node indices below the pools' sizes
+    pi = work_i32[o32 : o32 + n_pixels * _NPI].reshape((n_pixels, _NPI))
+    o32 = _aligned(o32 + n_pixels * _NPI)
+    return px, prow[:, :_NPF], prow[:, _NPF:], pi, of, oi, o32
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _queue_and_pool_views(work_f, work_i, work_i32, gcap, hcap, acap, of, oi, o32):
+    """The global queue (heap of gcap entries, far-bucket chunks for as many), the candidate node pool
+    (hcap nodes) and the adjacency pool (acap nodes) on the work buffers from the offsets on.
+
+    Returns (Queue, Pools, of, oi, o32). Queue entries' kind, ids and versions are all < 2^31. An
+    adjacency node is one row (one memory access): the neighbour and a merge deferred on the owner's
+    node (its kind, the two versions it was valued at, its key (inf: none) in the float view akey).
+    """
+    n_chunks = _q_chunks(gcap)
+    gkey = work_f[of : of + gcap]
+    of = _aligned(of + gcap)
+    fkey = work_f[of : of + n_chunks * _Q_CHUNK]
+    of = _aligned(of + n_chunks * _Q_CHUNK)
+    gint = work_i32[o32 : o32 + gcap * _NGI].reshape((gcap, _NGI))
+    o32 = _aligned(o32 + gcap * _NGI)
+    fint = work_i32[o32 : o32 + n_chunks * _Q_CHUNK * _NGI].reshape((n_chunks * _Q_CHUNK, _NGI))
+    o32 = _aligned(o32 + n_chunks * _Q_CHUNK * _NGI)
+    fnext = work_i32[o32 : o32 + n_chunks * _NFN].reshape((n_chunks, _NFN))
+    o32 = _aligned(o32 + n_chunks * _NFN)
+    bhead = work_i[oi : oi + _Q_BUCKETS]
+    oi = _aligned(oi + _Q_BUCKETS)
+    bhead[:] = -1
+    qstate = np.zeros(_NQS, np.int64)
+    qstate[_QCUR] = -1
+    hf = work_f[of : of + hcap * _NHF].reshape((hcap, _NHF))
+    of = _aligned(of + hcap * _NHF)
+    hi = work_i32[o32 : o32 + hcap * _NHI].reshape((hcap, _NHI))
+    o32 = _aligned(o32 + hcap * _NHI)
+    anode = work_i[oi : oi + acap * _AN_FIELDS].reshape((acap, _AN_FIELDS))
+    oi = _aligned(oi + acap * _AN_FIELDS)
+    pools = Pools(hf, hi, anode, anode.view(np.float64), np.full(_ADJ_CLASSES, -1, np.int64))
+    return Queue(gkey, gint, fkey, fint, fnext, bhead, qstate), pools, of, oi, o32
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _cache_and_log_views(work_f, work_i, work_i32, n_pixels, of, oi, o32):
+    """The planes' caches and the action log on the work buffers from the offsets on.
+
+    Returns (mcache_f, mcache_i, rcache_f, rcache_i, ecache_i, Log): the last merge refined per plane
+    (keyed by its smaller id: partner, both versions; value, w, information), the last hybrid merge
+    refined per plane on its smaller plane (_keep_refined_merge: own version, partner's count; the
+    plane's residual model at the union's w), the least candidate fit of each small plane's current
+    version (ray, version; its fit is ecache_f, in the plane's float row), the log of up to n_pixels + 1
+    actions with zeroed stats and overflow.
+    """
+    mcache_i = work_i32[o32 : o32 + n_pixels * _NMC].reshape((n_pixels, _NMC))
+    o32 = _aligned(o32 + n_pixels * _NMC)
+    mcache_f = work_f[of : of + n_pixels * _NFIT].reshape((n_pixels, _NFIT))
+    of = _aligned(of + n_pixels * _NFIT)
+    rcache_i = work_i32[o32 : o32 + n_pixels * _NRCI].reshape((n_pixels, _NRCI))
+    o32 = _aligned(o32 + n_pixels * _NRCI)
+    rcache_f = work_f[of : of + n_pixels * _NRCF].reshape((n_pixels, _NRCF))
+    of = _aligned(of + n_pixels * _NRCF)
+    ecache_i = work_i32[o32 : o32 + n_pixels * _NEC].reshape((n_pixels, _NEC))
+    o32 = _aligned(o32 + n_pixels * _NEC)
+    log_kind = work_i32[o32 : o32 + n_pixels + 1]
+    log_a = work_i[oi : oi + n_pixels + 1]
+    oi = _aligned(oi + n_pixels + 1)
+    log_b = work_i[oi : oi + n_pixels + 1]
+    log_inc = work_f[of : of + n_pixels + 1]
+    log = Log(log_kind, log_a, log_b, log_inc, np.zeros(_N_STATS, np.int64), np.zeros(3, np.int64))
+    return mcache_f, mcache_i, rcache_f, rcache_i, ecache_i, log
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _initial_seeds(seed_sse, seed_best, seed_key, cutoff):
+    """The best valid config of every anchor (seed_best, seed_key from _seed_errors) up to the cutoff, in
+    (key, anchor) order (next-best seeds of anchors whose best seed became invalid go through the queue);
+    the keys and configs in that order too (seed_key[order[i]] would be a random access)."""
+    order, keys = _sort_seed_keys(seed_key, cutoff)
+    best = np.empty(len(order), np.int32)
+    for t in range(len(order)):
+        best[t] = seed_best[order[t]]
+    return Seeds(seed_sse, order, keys, best)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -175,8 +1105,7 @@ def _ppe_kernel(
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
-    refined_growth, merge_loop_growth: extract_plane_hierarchy's refined_merge_growth and
-    merge_loop_growth (0: off).
+    refined_growth, merge_loop_growth: GreedyOptions's refined_merge_growth and merge_loop_growth (0: off).
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
     The work pools have fixed capacities (queue gcap, candidate nodes hcap, adjacency nodes acap) so
     that no array is reassigned inside the loops: numba then keeps reference counting (atomic
@@ -184,777 +1113,46 @@ def _ppe_kernel(
     empty log with ``overflow`` (3,) holding the capacity each pool needs (0: enough); the caller
     runs it again with larger pools (the greedy is deterministic, so the result is the same).
     Its arrays are views of the work buffers work_f (float64), work_i (int64) and work_i32 (int32)
-    of at least the sizes _work_sizes gives, which the caller reuses from call to call.
+    of at least the sizes _work_sizes gives, which the caller reuses from call to call (fresh memory
+    would cost a page fault per 4 KiB page on first touch, tens of thousands per scan).
     """
     n_pixels = height * width
-    n_valid = 0
-    for k in range(n_pixels):
-        if valid[k]:
-            n_valid += 1
-
-    # work memory: views of the caller's buffers, which a thread reuses from call to call (fresh
-    # memory would cost a page fault per 4 KiB page on first touch, tens of thousands per scan).
-    # The slicing is written out here: views returned by a helper function made numba count
-    # references inside the greedy's loops (checked in the machine code)
     n_f, n_i, n_i32 = _work_sizes(n_pixels, gcap, hcap, acap)
     if len(work_f) < n_f or len(work_i) < n_i or len(work_i32) < n_i32:
         raise ValueError('work buffers smaller than _work_sizes')
-    of = 0
-    oi = 0
-    o32 = 0
-    # pixel state. Pixel, plane and node ids, versions and stamps are 32-bit wherever they are
-    # stored (each is below 2^31 for the scans extract_plane_hierarchy accepts, < MAX_RAYS): the
-    # greedy waits on memory, and narrower arrays mean fewer cache misses
-    owner = work_i32[o32 : o32 + n_pixels]
-    o32 = _aligned(o32 + n_pixels)
-    nextpix = work_i32[o32 : o32 + n_pixels]
-    o32 = _aligned(o32 + n_pixels)
-    parent = work_i32[o32 : o32 + n_pixels]
-    o32 = _aligned(o32 + n_pixels)
-    buf = work_i[oi : oi + n_pixels]
-    oi = _aligned(oi + n_pixels)
-    buf2 = work_i[oi : oi + n_pixels]
-    oi = _aligned(oi + n_pixels)
-    seen = work_i32[o32 : o32 + n_pixels]
-    o32 = _aligned(o32 + n_pixels)
-    # the plane (an id that may have been merged since) that last queued an extension candidate
-    # for each ray: while it resolves to a live plane p, p's candidate heap holds a node for the ray
-    candidate_of = work_i32[o32 : o32 + n_pixels]
-    o32 = _aligned(o32 + n_pixels)
-    candidate_of[:] = -1
-    owner[:] = -1
-    # parent, seen and the plane rows below are read only for plane ids (anchors of created
-    # planes) and written when a plane is created; pixel lists are written as they grow
-    seen_stamp = 0
-
-    # plane state
-    prow = work_f[of : of + n_pixels * (_NPF + 10)].reshape((n_pixels, _NPF + 10))
-    of = _aligned(of + n_pixels * (_NPF + 10))
-    # a plane's float state and its candidate-fit slot (ecache_f below) share a row: a plane's
-    # action reads and writes both; a plane's row is written when it is created
-    pf = prow[:, :_NPF]
-    ecache_f = prow[:, _NPF:]
-    # 32-bit fields (half the memory traffic of a plane's row): counts, versions and pixel ids are
-    # below H*W, stamps below the number of pops, node indices below the pools' sizes (a few times
-    # H*W), all below 2^31 for the scans extract_plane_hierarchy accepts (< MAX_RAYS)
-    pi = work_i32[o32 : o32 + n_pixels * _NPI].reshape((n_pixels, _NPI))
-    o32 = _aligned(o32 + n_pixels * _NPI)
-
-    # global heap
-    overflow = np.zeros(3, np.int64)
-    # kind, ids and versions all < 2^31 (ids < H*W); the far-bucket pool holds the heap's
-    # capacity (heap entries + far entries <= gcap) in chunks
-    n_chunks = _q_chunks(gcap)
-    gkey = work_f[of : of + gcap]
-    of = _aligned(of + gcap)
-    fkey = work_f[of : of + n_chunks * _Q_CHUNK]
-    of = _aligned(of + n_chunks * _Q_CHUNK)
-    gint = work_i32[o32 : o32 + gcap * 5].reshape((gcap, 5))
-    o32 = _aligned(o32 + gcap * 5)
-    fint = work_i32[o32 : o32 + n_chunks * _Q_CHUNK * 5].reshape((n_chunks * _Q_CHUNK, 5))
-    o32 = _aligned(o32 + n_chunks * _Q_CHUNK * 5)
-    fnext = work_i32[o32 : o32 + n_chunks * 3].reshape((n_chunks, 3))
-    o32 = _aligned(o32 + n_chunks * 3)
-    bhead = work_i[oi : oi + _Q_BUCKETS]
-    oi = _aligned(oi + _Q_BUCKETS)
-    bhead[:] = -1
-    qstate = np.zeros(_NQS, np.int64)
-    qstate[_QCUR] = -1
-    gsize = 0
-
-    # skew heap node pool
-    hf = work_f[of : of + hcap * 2].reshape((hcap, 2))
-    of = _aligned(of + hcap * 2)
-    hi = work_i32[o32 : o32 + hcap * 4].reshape((hcap, 4))
-    o32 = _aligned(o32 + hcap * 4)
-    hused = 0
-    hfree = -1
-
-    # adjacency pool (a segment of neighbouring plane ids per plane), one row per node so that a
-    # node is one memory access: neighbour and a merge deferred on the owner's node (its kind, the
-    # two versions it was valued at, and its key (inf: none) in the float view akey)
-    anode = work_i[oi : oi + acap * _AN_FIELDS].reshape((acap, _AN_FIELDS))
-    oi = _aligned(oi + acap * _AN_FIELDS)
-    akey = anode.view(np.float64)
-    aused = 0
-    afree = np.full(_ADJ_CLASSES, -1, np.int64)
-
-    # the last merge refined per plane (keyed by its smaller id): partner, both versions; value, w, information
-    mcache_i = work_i32[o32 : o32 + n_pixels * 3].reshape((n_pixels, 3))
-    o32 = _aligned(o32 + n_pixels * 3)
-    mcache_f = work_f[of : of + n_pixels * 10].reshape((n_pixels, 10))
-    of = _aligned(of + n_pixels * 10)
-    # the last hybrid merge refined per plane, on its smaller plane (_keep_refined_merge; the
-    # partner is in the plane's float row): own version, partner's count; the plane's residual
-    # model at the union's w
-    rcache_i = work_i32[o32 : o32 + n_pixels * 2].reshape((n_pixels, 2))
-    o32 = _aligned(o32 + n_pixels * 2)
-    rcache_f = work_f[of : of + n_pixels * 13].reshape((n_pixels, 13))
-    of = _aligned(of + n_pixels * 13)
-    # the least candidate fit of each small plane's current version: ray, version (here); SSE, w,
-    # information (ecache_f, in the plane's float row)
-    ecache_i = work_i32[o32 : o32 + n_pixels * 2].reshape((n_pixels, 2))
-    o32 = _aligned(o32 + n_pixels * 2)
-
-    # action log
-    log_kind = work_i32[o32 : o32 + n_pixels + 1]
-    o32 = _aligned(o32 + n_pixels + 1)
-    log_a = work_i[oi : oi + n_pixels + 1]
-    oi = _aligned(oi + n_pixels + 1)
-    log_b = work_i[oi : oi + n_pixels + 1]
-    oi = _aligned(oi + n_pixels + 1)
-    log_inc = work_f[of : of + n_pixels + 1]
-    of = _aligned(of + n_pixels + 1)
-    n_actions = 0
-
-    cutoff = _run_cutoff(max_increment, min_count, n_pixels)
-    model_cutoff = MODEL_CUTOFF_FACTOR * cutoff
-
-    # initial seeds: the best valid config of every anchor (seed_best, seed_key from _seed_errors)
-    # up to the cutoff, in a sorted array (next-best seeds of anchors whose best seed became
-    # invalid go through the heap); ties by anchor id; the keys in that order too
-    # (seed_key[seed_order[i]] would be a random access)
-    seed_order, seed_sorted_key = _sort_seed_keys(seed_key, cutoff)
-    seed_sorted_best = np.empty(len(seed_order), np.int32)  # read in order with the keys
-    for t in range(len(seed_order)):
-        seed_sorted_best[t] = seed_best[seed_order[t]]
-    n_seeds = len(seed_order)
-    seed_ptr = 0
-
-    plane_count = n_valid
-    version_counter = 0
-    stats = np.zeros(_N_STATS, np.int64)
-    cell = np.empty(4, np.int64)
-    nb_pix = np.empty(4, np.int64)
-
-    while True:
-        # ---------------- capacity (the loop below pushes a bounded number of entries) -------
-        # ---------------- find the next action with an exact key ----------------------------
-        found = False
-        key = 0.0
-        kind = 0
-        act_a = 0
-        act_b = 0
-        while gsize > 0 or qstate[_QCOUNT] > 0 or seed_ptr < n_seeds:
-            if gsize + qstate[_QCOUNT] + 8 >= gcap:
-                overflow[0] = 2 * gcap
-            if gsize == 0 and qstate[_QCOUNT] > 0:
-                gsize = _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi)
-                if gsize == 0 and seed_ptr >= n_seeds:
-                    break
-            if hused + 8 >= hcap:
-                overflow[1] = 2 * hcap
-            if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
-                return _empty_log(stats, overflow)
-            # the next entry: the sorted initial seeds or the heap, whichever comes first
-            take_sorted = False
-            if seed_ptr < n_seeds:
-                sa = seed_order[seed_ptr]
-                if gsize == 0:
-                    take_sorted = True
-                else:
-                    sk = seed_sorted_key[seed_ptr]
-                    if sk < gkey[0] or (
-                        sk == gkey[0]
-                        and (
-                            gint[0, 0] > _G_SEED
-                            or (
-                                gint[0, 0] == _G_SEED
-                                and (gint[0, 1] > sa or (gint[0, 1] == sa and gint[0, 2] > seed_sorted_best[seed_ptr]))
-                            )
-                        )
-                    ):
-                        take_sorted = True
-            if take_sorted:
-                key = seed_sorted_key[seed_ptr]
-                kind = _G_SEED
-                ea = sa
-                eb = seed_sorted_best[seed_ptr]
-                eva = 0
-                evb = 0
-                seed_ptr += 1
-            else:
-                gsize = _g_pop(gkey, gint, gsize)
-                key, kind, ea, eb, eva, evb = _g_entry(gkey, gint, gsize)
-                if gsize > 0:  # the next entry's planes load while this one is handled
-                    _prefetch(pi, gint[0, 1], 0)
-                    _prefetch(pf, gint[0, 1], 0)
-                    if gint[0, 0] == _G_EXTEND:  # its candidate node (at the push) and ray
-                        _prefetch(hi, gint[0, 4], 0)
-                        _prefetch(hf, gint[0, 4], 0)
-                        _prefetch(owner, gint[0, 2], 0)
-                    else:
-                        _prefetch(pi, gint[0, 2], 0)
-            stats[_ST_POPS] += 1
-            if kind == _G_SEED:
-                anchor = ea
-                c = eb
-                ok = True
-                i = anchor // width
-                j = anchor % width
-                for t in range(4):
-                    k = (i + offsets[c, t, 0]) * width + (j + offsets[c, t, 1])
-                    if owner[k] >= 0:
-                        ok = False
-                        break
-                if ok:
-                    found = True
-                    act_a = anchor
-                    act_b = c
-                    break
-                # next best valid seed of this anchor after (key, c); none when the anchor's own
-                # ray is taken (every tetromino contains its anchor)
-                best = -1
-                for c2 in range(17 if owner[anchor] < 0 else 0):
-                    e2 = seed_sse[anchor, c2]
-                    if not np.isfinite(e2):
-                        continue
-                    if e2 < key or (e2 == key and c2 <= c):
-                        continue
-                    ok2 = True
-                    for t in range(4):
-                        k = (i + offsets[c2, t, 0]) * width + (j + offsets[c2, t, 1])
-                        if owner[k] >= 0:
-                            ok2 = False
-                            break
-                    if not ok2:
-                        continue
-                    if best < 0 or e2 < seed_sse[anchor, best]:
-                        best = c2
-                if best >= 0 and seed_sse[anchor, best] <= cutoff:
-                    gsize = _q_push(
-                        gkey,
-                        gint,
-                        gsize,
-                        fkey,
-                        fint,
-                        fnext,
-                        bhead,
-                        qstate,
-                        seed_sse[anchor, best],
-                        _G_SEED,
-                        anchor,
-                        best,
-                        0,
-                        0,
-                    )
-            elif kind == _G_EXTEND:
-                p = ea
-                if pi[p, _PALIVE] == 0 or eva != pi[p, _PSTAMP]:
-                    continue
-                # candidate rays taken by another plane since: drop them
-                root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
-                pi[p, _PROOT] = root
-                k = hi[root, 0] if root >= 0 else -1
-                if root < 0 or k != eb:
-                    pass  # the proxy's candidate was dropped: re-queue the proxy for the new top
-                elif hi[root, 1] == pi[p, _PVER]:
-                    inc = hf[root, 1] - pf[p, _PE]
-                    if key >= inc:
-                        found = True
-                        key = inc
-                        act_a = p
-                        act_b = k
-                        break
-                    # (the proxy key was a bound): fall through to re-push with the exact key
-                else:
-                    # stale bound: evaluate exactly for the current version and re-insert
-                    stats[_ST_REEVALS] += 1
-                    newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
-                    small = pi[p, _PCOUNT] + 1 <= exact_plane_size
-                    n = _gather(pi, nextpix, p, buf, endpoints, directions) if small else 0
-                    inc = _candidate_increment(
-                        endpoints, directions, pf, p, small, buf, n, k, pi[p, _PVER], ecache_i, ecache_f
-                    )
-                    if inc < 0.0:
-                        inc = 0.0
-                    value = pf[p, _PE] + inc
-                    hf[root, 0] = value - slack * abs(value)
-                    hf[root, 1] = value
-                    hi[root, 1] = pi[p, _PVER]
-                    hi[root, 2] = -1
-                    hi[root, 3] = -1
-                    if not np.isfinite(value):
-                        hi[root, 2] = hfree
-                        hfree = root
-                        pi[p, _PROOT] = newroot
-                        if candidate_of[k] >= 0 and _find(parent, candidate_of[k]) == p:
-                            candidate_of[k] = -1  # p may hold no other node for k
-                    else:
-                        pi[p, _PROOT] = _h_meld(hf, hi, newroot, root)
-                # push the plane's proxy with its current top, then release the merges deferred
-                # behind the old proxy that the new one does not precede
-                gsize, proxy_key = _queue_proxy(
-                    gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff
-                )
-                if gsize + qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= gcap:
-                    overflow[0] = 2 * (gcap + pi[p, _PADJN])
-                    return _empty_log(stats, overflow)
-                if pf[p, _PDEFER] <= proxy_key and pf[p, _PDEFER] < np.inf:
-                    gsize = _release_deferred(
-                        gkey,
-                        gint,
-                        gsize,
-                        fkey,
-                        fint,
-                        fnext,
-                        bhead,
-                        qstate,
-                        anode,
-                        akey,
-                        pf,
-                        p,
-                        pi[p, _PADJ],
-                        pi[p, _PADJN],
-                        proxy_key,
-                    )
-            else:
-                a = ea
-                b = eb
-                if pi[a, _PALIVE] == 0 or pi[b, _PALIVE] == 0:
-                    continue
-                if pi[a, _PMVER] != eva or pi[b, _PMVER] != evb:
-                    continue
-                # an exact entry is current when neither plane changed since it was valued: the
-                # planes are at their merge versions, or a refinement of them at their versions
-                # is the last kept one; else a large plane grew since (no full merge loop) and the
-                # merge is refined again at the planes' current state
-                if kind == _G_MERGE_EXACT and (
-                    (pi[a, _PVER] == pi[a, _PMVER] and pi[b, _PVER] == pi[b, _PMVER])
-                    or (mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER])
-                ):
-                    found = True
-                    act_a = a
-                    act_b = b
-                    break
-                # a model merge reached the top: refine it (exact union fit when small, else
-                # the larger plane's model plus the smaller plane's exact residuals)
-                stats[_ST_MERGE_REFINES] += 1
-                if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= exact_plane_size:
-                    n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
-                    n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
-                    sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
-                    _cache_merge(
-                        mcache_i,
-                        mcache_f,
-                        a,
-                        b,
-                        pi[a, _PVER],
-                        pi[b, _PVER],
-                        sse,
-                        u0,
-                        u1,
-                        u2,
-                        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-                    )
-                    inc = sse - pf[a, _PE] - pf[b, _PE]
-                    if inc < 0.0:
-                        inc = 0.0
-                    if inc <= cutoff:
-                        gsize = _q_push(
-                            gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b, eva, evb
-                        )
-                    continue
-                big = a
-                small = b
-                if pi[b, _PCOUNT] > pi[a, _PCOUNT]:
-                    big = b
-                    small = a
-                n = _gather(pi, nextpix, small, buf, endpoints, directions)
-                stats[_ST_REFINE_RAYS] += n
-                if n <= exact_plane_size:
-                    e_small = pf[small, _PE]  # a small plane's E is its exact fit's
-                else:
-                    e_small, _, _, _ = fit_rays(
-                        endpoints,
-                        directions,
-                        buf,
-                        n,
-                        pf[small, _PW],
-                        pf[small, _PW + 1],
-                        pf[small, _PW + 2],
-                        _FIT_ITERATIONS,
-                        _FIT_TOLERANCE,
-                    )
-                _, m0, m1, m2 = _model_merge(pf, a, b)
-                value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
-                _cache_merge(mcache_i, mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], value, m0, m1, m2, info)
-                if refined_growth > 0.0:
-                    _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, m0, m1, m2, info, grad)
-                inc = value - pf[big, _PE] - e_small
-                if inc < 0.0:
-                    inc = 0.0
-                if inc <= cutoff:
-                    gsize = _q_push(
-                        gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, inc, _G_MERGE_EXACT, a, b, eva, evb
-                    )
-        if not found:
-            break
-        if not (key <= max_increment or plane_count > min_count):
-            break
-
-        # ---------------- execute ----------------------------------------------------------
-        if n_actions >= len(log_kind):
-            break
-        log_a[n_actions] = act_a
-        log_b[n_actions] = act_b
-        log_inc[n_actions] = key
-        changed = -1
-        new_pixels = 0
-        adj_before = 0  # the changed plane's adjacency nodes before this action's appends
-        in_buf = -1  # the changed plane's rays when the execution left them in buf (-1: not)
-        if kind == _G_SEED:
-            log_kind[n_actions] = KIND_CREATE
-            p = act_a
-            i = p // width
-            j = p % width
-            for t in range(4):
-                cell[t] = (i + offsets[act_b, t, 0]) * width + (j + offsets[act_b, t, 1])
-            # a plane id is created once (its anchor is taken for good): its rows start here
-            parent[p] = p
-            seen[p] = -1
-            pi[p, _PSTAMP] = 0
-            for t in range(3):
-                mcache_i[p, t] = -1
-            pf[p, _PRPARTNER] = -1.0
-            ecache_i[p, 0] = -1
-            ecache_i[p, 1] = -1
-            pi[p, _PALIVE] = 1
-            pi[p, _PROOT] = -1
-            pi[p, _PADJ] = -1
-            pi[p, _PADJC] = 0
-            pi[p, _PADJN] = 0
-            pi[p, _PHEAD] = cell[0]
-            for t in range(4):
-                owner[cell[t]] = p
-                nextpix[cell[t]] = cell[t + 1] if t < 3 else -1
-            pi[p, _PTAIL] = cell[3]
-            pi[p, _PCOUNT] = 4
-            pf[p, _PCOUNTLIN] = 4
-            _set_exact_state(endpoints, directions, pf, cell, 4, p, np.nan, np.nan, np.nan)
-            rmax = 0.0
-            for t in range(4):
-                k = cell[t]
-                r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
-                rmax = max(rmax, r)
-            pf[p, _PRMAX] = rmax
-            plane_count -= 3
-            changed = p
-            new_pixels = 4
-            for t in range(4):
-                buf2[t] = cell[t]
-        elif kind == _G_EXTEND:
-            log_kind[n_actions] = KIND_EXTEND
-            p = act_a
-            k = act_b
-            count = pi[p, _PCOUNT]
-            adj_before = pi[p, _PADJN]
-            owner[k] = p
-            nextpix[k] = -1
-            nextpix[pi[p, _PTAIL]] = k
-            pi[p, _PTAIL] = k
-            pi[p, _PCOUNT] = count + 1
-            r = np.sqrt(endpoints[k, 0] ** 2 + endpoints[k, 1] ** 2 + endpoints[k, 2] ** 2)
-            pf[p, _PRMAX] = max(pf[p, _PRMAX], r)
-            if count + 1 <= exact_plane_size and ecache_i[p, 0] == k and ecache_i[p, 1] == pi[p, _PVER]:
-                # the candidate's own fit (the least of this version's): no fit again
-                sse, w0, w1, w2, info = _get_fit(ecache_f, p)
-                _store_state(pf, p, sse, w0, w1, w2, info)
-                pf[p, _PCOUNTLIN] = count + 1
-            elif count + 1 <= exact_plane_size:
-                n = _gather(pi, nextpix, p, buf, endpoints, directions)
-                _set_exact_state(endpoints, directions, pf, buf, n, p, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2])
-                in_buf = n
-                pf[p, _PCOUNTLIN] = n
-            else:
-                inc, x0, x1, x2, f, g0, g1, g2 = _model_extension(endpoints, directions, pf, p, k)
-                denom = 1.0 + g0 * x0 + g1 * x1 + g2 * x2
-                pf[p, _PW] -= x0 * f / denom
-                pf[p, _PW + 1] -= x1 * f / denom
-                pf[p, _PW + 2] -= x2 * f / denom
-                pf[p, _PH] += g0 * g0
-                pf[p, _PH + 1] += g0 * g1
-                pf[p, _PH + 2] += g0 * g2
-                pf[p, _PH + 3] += g1 * g1
-                pf[p, _PH + 4] += g1 * g2
-                pf[p, _PH + 5] += g2 * g2
-                pf[p, _PE] += key
-            plane_count -= 1
-            changed = p
-            new_pixels = 1
-            buf2[0] = k
-        else:
-            log_kind[n_actions] = KIND_MERGE
-            a = act_a
-            b = act_b
-            s = min(a, b)
-            o = max(a, b)
-            na = pi[a, _PCOUNT]
-            nbn = pi[b, _PCOUNT]
-            total = na + nbn
-            info = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-            value = 0.0
-            if mcache_i[a, 0] == b and mcache_i[a, 1] == pi[a, _PVER] and mcache_i[a, 2] == pi[b, _PVER]:
-                # the refinement that queued this merge computed the same fit (same planes, versions)
-                value, w0, w1, w2, info = _get_fit(mcache_f, a)
-            elif total <= exact_plane_size:
-                # exact merged state from the best of the union's starting points
-                n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
-                n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
-                _, w0, w1, w2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
-            else:
-                big = a if na >= nbn else b
-                small = b if big == a else a
-                n = _gather(pi, nextpix, small, buf, endpoints, directions)
-                _, m0, m1, m2 = _model_merge(pf, a, b)
-                value, w0, w1, w2, info, _ = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
-            # concatenate pixel lists into s
-            nextpix[pi[s, _PTAIL]] = pi[o, _PHEAD]
-            pi[s, _PTAIL] = pi[o, _PTAIL]
-            parent[o] = s
-            pi[s, _PCOUNT] = total
-            pi[s, _PROOT] = _h_meld(hf, hi, pi[s, _PROOT], pi[o, _PROOT])
-            # adjacency lists
-            adj_before = pi[s, _PADJN]
-            aused = _adj_concat(anode, afree, pi, s, o, aused)
-            if aused < 0:
-                overflow[2] = 2 * acap
-                return _empty_log(stats, overflow)
-            pf[s, _PRMAX] = max(pf[a, _PRMAX], pf[b, _PRMAX])
-            lin = max(pf[a, _PCOUNTLIN], pf[b, _PCOUNTLIN])
-            if total <= exact_plane_size:
-                n = _gather(pi, nextpix, s, buf, endpoints, directions)
-                _set_exact_state(endpoints, directions, pf, buf, n, s, w0, w1, w2)
-                pf[s, _PCOUNTLIN] = n
-            else:
-                pf[s, _PE] = value
-                pf[s, _PW] = w0
-                pf[s, _PW + 1] = w1
-                pf[s, _PW + 2] = w2
-                for t in range(6):
-                    pf[s, _PH + t] = info[t]
-                pf[s, _PCOUNTLIN] = lin
-            pi[o, _PALIVE] = 0
-            pi[o, _PROOT] = -1
-            plane_count -= 1
-            changed = s
-            new_pixels = 0
-        n_actions += 1
-
-        # ---------------- bookkeeping of the changed plane ---------------------------------
-        p = changed
-        count = pi[p, _PCOUNT]
-        # a large plane grown a little since its last full merge loop values only its new
-        # neighbours' merges; its queued and deferred merges stay (they carry its merge version)
-        partial = (
-            kind != _G_SEED and count > exact_plane_size and count <= pf[p, _PCOUNTLOOP] * (1.0 + merge_loop_growth)
-        )
-        if count > exact_plane_size:
-            dw = np.sqrt(
-                (pf[p, _PW] - pf[p, _PWL]) ** 2
-                + (pf[p, _PW + 1] - pf[p, _PWL + 1]) ** 2
-                + (pf[p, _PW + 2] - pf[p, _PWL + 2]) ** 2
-            )
-            if count >= 2 * pf[p, _PCOUNTLIN] or dw * pf[p, _PRMAX] > drift_limit:
-                n = _gather(pi, nextpix, p, buf, endpoints, directions)
-                stats[_ST_RELINS] += 1
-                stats[_ST_RELIN_RAYS] += n
-                _relinearise(endpoints, directions, pf, buf, n, p)
-                pf[p, _PCOUNTLIN] = n
-                partial = False
-        # versions are unique across planes: the candidates a merged plane inherits from the
-        # absorbed plane can never pass for current ones
-        version_counter += 1
-        pi[p, _PVER] = version_counter
-
-        # capacity for the candidate nodes this step pushes (adjacency segments check their own)
-        if hused + 4 * new_pixels + 8 >= hcap:
-            overflow[1] = 2 * hcap
-        if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
-            return _empty_log(stats, overflow)
-
-        # new neighbours of the added pixels: extension candidates and adjacent planes
-        n_gathered = in_buf  # p's rays are gathered into buf once, for its first exact candidate fit
-        for t in range(new_pixels):
-            k = buf2[t]
-            i = k // width
-            j = k % width
-            n_nb = 0
-            if j + 1 < width and ok_right[k]:
-                nb_pix[n_nb] = k + 1
-                n_nb += 1
-            if j > 0 and ok_right[k - 1]:
-                nb_pix[n_nb] = k - 1
-                n_nb += 1
-            if i + 1 < height and ok_down[k]:
-                nb_pix[n_nb] = k + width
-                n_nb += 1
-            if i > 0 and ok_down[k - width]:
-                nb_pix[n_nb] = k - width
-                n_nb += 1
-            for u in range(n_nb):  # the neighbours' rows load together (a candidate's fit reads its ray)
-                _prefetch(endpoints, nb_pix[u], 0)
-                _prefetch(directions, nb_pix[u], 0)
-                _prefetch(owner, nb_pix[u], 0)
-                _prefetch(candidate_of, nb_pix[u], 0)
-            for u in range(n_nb):
-                q = nb_pix[u]
-                if owner[q] < 0:
-                    if candidate_of[q] >= 0 and _find(parent, candidate_of[q]) == p:
-                        # p already holds a node for q, valued for an earlier version: its key is a
-                        # lower bound, and it is valued again when it reaches the top of p's heap
-                        continue
-                    # extension candidate (p, q), exact value for the current version
-                    stats[_ST_NEW_CANDIDATES] += 1
-                    small = count + 1 <= exact_plane_size
-                    if small and n_gathered < 0:
-                        n_gathered = _gather(pi, nextpix, p, buf, endpoints, directions)
-                    inc = _candidate_increment(
-                        endpoints, directions, pf, p, small, buf, n_gathered, q, pi[p, _PVER], ecache_i, ecache_f
-                    )
-                    if not np.isfinite(inc):
-                        continue
-                    if inc < 0.0:
-                        inc = 0.0
-                    value = pf[p, _PE] + inc
-                    if hfree >= 0:
-                        node = hfree
-                        hfree = hi[node, 2]
-                    else:
-                        node = hused
-                        hused += 1
-                    hf[node, 0] = value - slack * abs(value)
-                    hf[node, 1] = value
-                    hi[node, 0] = q
-                    hi[node, 1] = pi[p, _PVER]
-                    hi[node, 2] = -1
-                    hi[node, 3] = -1
-                    pi[p, _PROOT] = _h_meld(hf, hi, pi[p, _PROOT], node)
-                    candidate_of[q] = p
-                else:
-                    other = _find(parent, owner[q])
-                    if other != p:
-                        aused = _adj_append(anode, akey, afree, pi, p, other, aused)
-                        if aused >= 0:
-                            aused = _adj_append(anode, akey, afree, pi, other, p, aused)
-                        if aused < 0:
-                            overflow[2] = 2 * acap
-                            return _empty_log(stats, overflow)
-
-        # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
-        root, hfree = _h_drop_taken(hf, hi, owner, pi[p, _PROOT], hfree)
-        pi[p, _PROOT] = root
-        if gsize + qstate[_QCOUNT] + 2 + pi[p, _PADJN] >= gcap:
-            overflow[0] = 2 * (gcap + pi[p, _PADJN])
-        if overflow[0] > 0 or overflow[1] > 0 or overflow[2] > 0:
-            return _empty_log(stats, overflow)
-        gsize, proxy_key = _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf, pi, p, cutoff)
-
-        # merges with every neighbouring plane (compacting p's adjacency list). A merge whose key
-        # exceeds p's proxy key is deferred on p's node instead of queued: p's proxy comes first,
-        # and p either changes (and re-evaluates every merge here) or re-queues its proxy, which
-        # releases the deferred merges its new key no longer precedes
-        seen_stamp += 1
-        first = pi[p, _PADJ]
-        end = first + pi[p, _PADJN]
-        n_adj = 0
-        least = np.inf
-        release = False
-        if partial:
-            n_adj = adj_before
-            least = pf[p, _PDEFER]
-            release = least <= proxy_key and least < np.inf
-        else:
-            pi[p, _PMVER] = pi[p, _PVER]
-            pf[p, _PCOUNTLOOP] = count
-        for r in range(first + n_adj, end):
-            if r + 1 < end:  # the next neighbour's rows load while this one is evaluated
-                q = anode[r + 1, _AN_PLANE]
-                _prefetch(parent, q, 0)
-                _prefetch(seen, q, 0)
-                _prefetch(pi, q, 0)
-                _prefetch(pf, q, 0)
-                _prefetch(pf, q, _PH + 5)
-            q = _find(parent, anode[r, _AN_PLANE])
-            if not (q == p or pi[q, _PALIVE] == 0 or seen[q] == seen_stamp):
-                # kept: compacted to the front of the segment (x <= r, so no unread row is overwritten)
-                x = first + n_adj
-                seen[q] = seen_stamp
-                anode[x, _AN_PLANE] = q
-                n_adj += 1
-                stats[_ST_MERGE_EVALS] += 1
-                a = min(p, q)
-                b = max(p, q)
-                total = pi[a, _PCOUNT] + pi[b, _PCOUNT]
-                if total <= exact_merge_size:
-                    n1 = _gather(pi, nextpix, a, buf, endpoints, directions)
-                    n2 = _gather(pi, nextpix, b, buf, endpoints, directions, n1)
-                    sse, _, _, _ = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
-                    inc = sse - pf[a, _PE] - pf[b, _PE]
-                    gkind = _G_MERGE_EXACT
-                elif (
-                    pf[q, _PRPARTNER] == p
-                    and rcache_i[q, 0] == pi[q, _PVER]
-                    and pi[p, _PCOUNT] <= rcache_i[q, 1] * (1.0 + refined_growth)
-                ):
-                    # refined before, q unchanged since and p grown a little: q's residual model
-                    # at the refined union's w stands for its exact residuals
-                    inc = _refined_merge_increment(pf, p, rcache_f, q)
-                    gkind = _G_MERGE_EXACT
-                    stats[_ST_REFINED_REUSES] += 1
-                else:
-                    # queued below its model value so that it is refined (exactly) before any
-                    # action it could precede even where the model overestimates the increment
-                    inc = _model_merge_increment(pf, a, b) * model_key_factor
-                    gkind = _G_MERGE_MODEL
-                if inc < 0.0:
-                    inc = 0.0
-                akey[x, _AN_KEY] = np.inf
-                if inc <= (cutoff if gkind == _G_MERGE_EXACT else model_cutoff):
-                    if inc <= proxy_key or not defer_merges:
-                        gsize = _q_push(
-                            gkey,
-                            gint,
-                            gsize,
-                            fkey,
-                            fint,
-                            fnext,
-                            bhead,
-                            qstate,
-                            inc,
-                            gkind,
-                            a,
-                            b,
-                            pi[a, _PMVER],
-                            pi[b, _PMVER],
-                        )
-                    else:
-                        akey[x, _AN_KEY] = inc
-                        least = min(least, inc)
-                        anode[x, _AN_KIND] = gkind
-                        anode[x, _AN_VA] = pi[a, _PMVER]
-                        anode[x, _AN_VB] = pi[b, _PMVER]
-        pi[p, _PADJN] = n_adj
-        pf[p, _PDEFER] = least
-        if release:  # the kept deferred merges that p's new proxy key no longer precedes
-            gsize = _release_deferred(
-                gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, anode, akey, pf, p, first, n_adj, proxy_key
-            )
-
-    stats[_ST_HEAP_PEAK] = gcap
-    return (
-        log_kind[:n_actions].astype(np.int8),
-        log_a[:n_actions].copy(),
-        log_b[:n_actions].copy(),
-        log_inc[:n_actions].copy(),
-        stats,
-        overflow,
+    px, pf, ecache_f, pi, of, oi, o32 = _pixel_and_plane_views(work_f, work_i, work_i32, n_pixels)
+    q, pools, of, oi, o32 = _queue_and_pool_views(work_f, work_i, work_i32, gcap, hcap, acap, of, oi, o32)
+    mcache_f, mcache_i, rcache_f, rcache_i, ecache_i, log = _cache_and_log_views(
+        work_f, work_i, work_i32, n_pixels, of, oi, o32
     )
-
-
-# --------------------------------------------------------------------------------------------
-# replay of the action log
-# --------------------------------------------------------------------------------------------
+    pl = Planes(pf, pi, ecache_f, ecache_i, mcache_f, mcache_i, rcache_f, rcache_i)
+    cutoff = _run_cutoff(max_increment, min_count, n_pixels)
+    kn = Knobs(
+        exact_plane_size,
+        exact_merge_size,
+        drift_limit,
+        max_increment,
+        min_count,
+        slack,
+        model_key_factor,
+        refined_growth,
+        merge_loop_growth,
+        defer_merges,
+        cutoff,
+        MODEL_CUTOFF_FACTOR * cutoff,
+        gcap,
+        hcap,
+        acap,
+    )
+    g = Grid(endpoints, directions, ok_right, ok_down, offsets, height, width)
+    n_valid = 0
+    for k in range(n_pixels):
+        n_valid += valid[k]
+    n = _greedy_loop(g, kn, px, pl, q, pools, _initial_seeds(seed_sse, seed_best, seed_key, cutoff), log, n_valid)
+    if n < 0:
+        return _empty_log(log.stats, log.overflow)
+    log.stats[_ST_HEAP_PEAK] = gcap
+    return log.kind[:n].astype(np.int8), log.a[:n].copy(), log.b[:n].copy(), log.inc[:n].copy(), log.stats, log.overflow
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)

@@ -93,6 +93,7 @@ _AN_VA = 2  # versions of the deferred merge's planes (smaller id first)
 _AN_VB = 3
 _AN_KEY = 4  # key of the deferred merge, a float64 in the same row (inf: none)
 _AN_FIELDS = 5
+_AN_FREE_LINK = 0  # a free segment's first row: the next free segment of its size (-1: none)
 #: A plane's adjacency nodes are one segment of the pool; segment sizes are powers of two from this.
 _ADJ_MIN_ROWS = 4
 _ADJ_CLASSES = 40
@@ -146,3 +147,48 @@ STAT_NAMES = (
     'heap_capacity',
     'refined_merge_reuses',
 )
+# global queue entries: the key in gkey (fkey in the far buckets), the int fields in a gint (fint) row
+_GI_KIND = 0  # _G_SEED, _G_EXTEND, _G_MERGE_MODEL or _G_MERGE_EXACT
+_GI_A = 1  # anchor (seed), plane (extension proxy), smaller plane id (merge)
+_GI_B = 2  # config (seed), candidate ray (proxy), larger plane id (merge)
+_GI_VA = 3  # the proxy's stamp; the merge's merge version of a
+_GI_VB = 4  # the proxy's candidate node (only a prefetch hint); the merge's merge version of b
+_NGI = 5
+# far-bucket chunks: fnext[c] = (next chunk of the bucket, free-stack slot, entries in use)
+_FN_NEXT = 0
+_FN_FREE = 1
+_FN_COUNT = 2
+_NFN = 3
+# candidate heap nodes: hf[node] = (bound key, exact value); hi[node] = (ray, version, left, right)
+_HF_BOUND = 0  # the candidate's value less BOUND_SLACK of itself (a lower bound for later versions)
+_HF_VALUE = 1  # E of the extended plane at version _HI_VER (m^2)
+_NHF = 2
+_HI_RAY = 0
+_HI_VER = 1  # the plane's version the value is for
+_HI_LEFT = 2  # left child; the free list's link of a free node
+_HI_RIGHT = 3
+_NHI = 4
+# fit tables (ecache_f, mcache_f; _put_fit and _get_fit): value (SSE, m^2), w (3), information (6)
+_FIT_VALUE = 0
+_FIT_W = 1
+_FIT_INFO = 4
+_NFIT = 10
+# candidate-fit cache ecache_i: the ray and the plane's version of the fit in ecache_f
+_EC_RAY = 0
+_EC_VER = 1
+_NEC = 2
+# refined-merge cache mcache_i (on the smaller id): partner, versions of the smaller and the larger plane
+_MC_PARTNER = 0
+_MC_VA = 1
+_MC_VB = 2
+_NMC = 3
+# refined hybrid merge cache, on the smaller plane (_keep_refined_merge): rcache_i = (own version,
+# partner's ray count); rcache_f = (excess SSE, half gradient (3), information (6), w (3))
+_RC_VER = 0
+_RC_COUNT = 1
+_NRCI = 2
+_RC_EXCESS = 0
+_RC_GRAD = 1
+_RC_INFO = 4
+_RC_W = 10
+_NRCF = 13

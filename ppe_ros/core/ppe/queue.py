@@ -10,8 +10,23 @@ import numpy as np
 
 from ppe_ros.core.ppe.intrinsics import _float_bits
 from ppe_ros.core.ppe.layout import (
+    _FN_COUNT,
+    _FN_NEXT,
     _G_EXTEND,
     _G_SEED,
+    _GI_A,
+    _GI_B,
+    _GI_KIND,
+    _GI_VA,
+    _GI_VB,
+    _HF_BOUND,
+    _HF_VALUE,
+    _HI_LEFT,
+    _HI_RAY,
+    _HI_RIGHT,
+    _HI_VER,
+    _NFN,
+    _NGI,
     _NQS,
     _PALIVE,
     _PE,
@@ -45,11 +60,11 @@ def _q_chunks(capacity):
 def _g_less(gkey, gint, i, j):
     if gkey[i] != gkey[j]:
         return gkey[i] < gkey[j]
-    if gint[i, 0] != gint[j, 0]:
-        return gint[i, 0] < gint[j, 0]
-    if gint[i, 1] != gint[j, 1]:
-        return gint[i, 1] < gint[j, 1]
-    return gint[i, 2] < gint[j, 2]
+    if gint[i, _GI_KIND] != gint[j, _GI_KIND]:
+        return gint[i, _GI_KIND] < gint[j, _GI_KIND]
+    if gint[i, _GI_A] != gint[j, _GI_A]:
+        return gint[i, _GI_A] < gint[j, _GI_A]
+    return gint[i, _GI_B] < gint[j, _GI_B]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -57,35 +72,35 @@ def _g_before(key, kind, a, b, gkey, gint, j):
     """True when the entry (key, kind, a, b) comes before heap slot j."""
     if key != gkey[j]:
         return key < gkey[j]
-    if kind != gint[j, 0]:
-        return kind < gint[j, 0]
-    if a != gint[j, 1]:
-        return a < gint[j, 1]
-    return b < gint[j, 2]
+    if kind != gint[j, _GI_KIND]:
+        return kind < gint[j, _GI_KIND]
+    if a != gint[j, _GI_A]:
+        return a < gint[j, _GI_A]
+    return b < gint[j, _GI_B]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_move(gkey, gint, dst, src):
     gkey[dst] = gkey[src]
-    for c in range(5):
+    for c in range(_NGI):
         gint[dst, c] = gint[src, c]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_entry(gkey, gint, i):
     """Heap slot i as (key, kind, a, b, va, vb)."""
-    return gkey[i], gint[i, 0], gint[i, 1], gint[i, 2], gint[i, 3], gint[i, 4]
+    return gkey[i], gint[i, _GI_KIND], gint[i, _GI_A], gint[i, _GI_B], gint[i, _GI_VA], gint[i, _GI_VB]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _g_set(gkey, gint, i, key, kind, a, b, va, vb):
     """Write the entry (key, kind, a, b, va, vb) into slot i."""
     gkey[i] = key
-    gint[i, 0] = kind
-    gint[i, 1] = a
-    gint[i, 2] = b
-    gint[i, 3] = va
-    gint[i, 4] = vb
+    gint[i, _GI_KIND] = kind
+    gint[i, _GI_A] = a
+    gint[i, _GI_B] = b
+    gint[i, _GI_VA] = va
+    gint[i, _GI_VB] = vb
 
 
 # Helpers called from the greedy's loops that only read and write arrays they are given are
@@ -177,18 +192,18 @@ def _q_bucket(key):
 def _q_new(capacity):
     """An empty queue: heap (gkey, gint), far-bucket chunk pool (fkey, fint, fnext), bucket heads, state.
 
-    Chunk c holds the entries c * _Q_CHUNK + [0, fnext[c, 2]) of fkey and fint; fnext[c, 0] links a
-    bucket's chunks (its head chunk first); fnext[:, 1] is the stack of free chunk ids.
+    Chunk c holds the entries c * _Q_CHUNK + [0, fnext[c, _FN_COUNT]) of fkey and fint; fnext[c, _FN_NEXT] links a
+    bucket's chunks (its head chunk first); fnext[:, _FN_FREE] is the stack of free chunk ids.
     """
     qstate = np.zeros(_NQS, np.int64)
     qstate[_QCUR] = -1
     chunks = _q_chunks(capacity)
     return (
         np.empty(capacity),
-        np.empty((capacity, 5), np.int32),
+        np.empty((capacity, _NGI), np.int32),
         np.empty(chunks * _Q_CHUNK),
-        np.empty((chunks * _Q_CHUNK, 5), np.int32),
-        np.empty((chunks, 3), np.int32),
+        np.empty((chunks * _Q_CHUNK, _NGI), np.int32),
+        np.empty((chunks, _NFN), np.int32),
         np.full(_Q_BUCKETS, -1, np.int64),
         qstate,
     )
@@ -201,19 +216,19 @@ def _q_push(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, key, kind, a, b
     if bucket <= qstate[_QCUR]:
         return _g_push(gkey, gint, gsize, key, kind, a, b, va, vb)
     chunk = bhead[bucket]
-    if chunk < 0 or fnext[chunk, 2] == _Q_CHUNK:
+    if chunk < 0 or fnext[chunk, _FN_COUNT] == _Q_CHUNK:
         if qstate[_QFREE] > 0:
             qstate[_QFREE] -= 1
             new = fnext[qstate[_QFREE], 1]
         else:
             new = qstate[_QUSED]
             qstate[_QUSED] += 1
-        fnext[new, 0] = chunk
-        fnext[new, 2] = 0
+        fnext[new, _FN_NEXT] = chunk
+        fnext[new, _FN_COUNT] = 0
         bhead[bucket] = new
         chunk = new
-    slot = chunk * _Q_CHUNK + fnext[chunk, 2]
-    fnext[chunk, 2] += 1
+    slot = chunk * _Q_CHUNK + fnext[chunk, _FN_COUNT]
+    fnext[chunk, _FN_COUNT] += 1
     _g_set(fkey, fint, slot, key, kind, a, b, va, vb)  # a pool slot has a heap slot's layout
     qstate[_QCOUNT] += 1
     return gsize
@@ -236,27 +251,27 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
         chunk = bhead[j]
         bhead[j] = -1
         while chunk >= 0:
-            nxt = fnext[chunk, 0]
-            for node in range(chunk * _Q_CHUNK, chunk * _Q_CHUNK + fnext[chunk, 2]):
-                kind = fint[node, 0]
-                a = fint[node, 1]
-                b = fint[node, 2]
+            nxt = fnext[chunk, _FN_NEXT]
+            for node in range(chunk * _Q_CHUNK, chunk * _Q_CHUNK + fnext[chunk, _FN_COUNT]):
+                kind = fint[node, _GI_KIND]
+                a = fint[node, _GI_A]
+                b = fint[node, _GI_B]
                 keep = True
                 if kind == _G_EXTEND:
-                    keep = pi[a, _PALIVE] != 0 and fint[node, 3] == pi[a, _PSTAMP]
+                    keep = pi[a, _PALIVE] != 0 and fint[node, _GI_VA] == pi[a, _PSTAMP]
                 elif kind != _G_SEED:
                     keep = (
                         pi[a, _PALIVE] != 0
                         and pi[b, _PALIVE] != 0
-                        and fint[node, 3] == pi[a, _PMVER]
-                        and fint[node, 4] == pi[b, _PMVER]
+                        and fint[node, _GI_VA] == pi[a, _PMVER]
+                        and fint[node, _GI_VB] == pi[b, _PMVER]
                     )
                 if keep:
                     gkey[size] = fkey[node]
-                    for c in range(5):
+                    for c in range(_NGI):
                         gint[size, c] = fint[node, c]
                     size += 1
-            qstate[_QCOUNT] -= fnext[chunk, 2]
+            qstate[_QCOUNT] -= fnext[chunk, _FN_COUNT]
             fnext[qstate[_QFREE], 1] = chunk
             qstate[_QFREE] += 1
             chunk = nxt
@@ -272,9 +287,9 @@ def _q_load(gkey, gint, fkey, fint, fnext, bhead, qstate, pi):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _h_less(hf, hi, x, y):
-    if hf[x, 0] != hf[y, 0]:
-        return hf[x, 0] < hf[y, 0]
-    return hi[x, 0] < hi[y, 0]
+    if hf[x, _HF_BOUND] != hf[y, _HF_BOUND]:
+        return hf[x, _HF_BOUND] < hf[y, _HF_BOUND]
+    return hi[x, _HI_RAY] < hi[y, _HI_RAY]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -288,14 +303,14 @@ def _h_meld(hf, hi, x, y):
         x, y = y, x
     root = x
     while True:
-        r = hi[x, 3]
-        hi[x, 3] = hi[x, 2]
+        r = hi[x, _HI_RIGHT]
+        hi[x, _HI_RIGHT] = hi[x, _HI_LEFT]
         if r < 0:
-            hi[x, 2] = y
+            hi[x, _HI_LEFT] = y
             break
         if _h_less(hf, hi, y, r):
             r, y = y, r
-        hi[x, 2] = r
+        hi[x, _HI_LEFT] = r
         x = r
     return root
 
@@ -306,9 +321,9 @@ def _h_drop_taken(hf, hi, owner, root, hfree):
 
     Returns (root, hfree).
     """
-    while root >= 0 and owner[hi[root, 0]] >= 0:
-        newroot = _h_meld(hf, hi, hi[root, 2], hi[root, 3])
-        hi[root, 2] = hfree
+    while root >= 0 and owner[hi[root, _HI_RAY]] >= 0:
+        newroot = _h_meld(hf, hi, hi[root, _HI_LEFT], hi[root, _HI_RIGHT])
+        hi[root, _HI_LEFT] = hfree
         hfree = root
         root = newroot
     return root, hfree
@@ -330,13 +345,13 @@ def _queue_proxy(gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, hf, hi, pf
     root = pi[p, _PROOT]
     if root < 0:
         return gsize, np.inf
-    if hi[root, 1] == pi[p, _PVER]:
-        pkey = hf[root, 1] - pf[p, _PE]
+    if hi[root, _HI_VER] == pi[p, _PVER]:
+        pkey = hf[root, _HF_VALUE] - pf[p, _PE]
     else:
-        pkey = hf[root, 0] - pf[p, _PE]
+        pkey = hf[root, _HF_BOUND] - pf[p, _PE]
     pi[p, _PSTAMP] += 1
     if pkey > cutoff:
         return gsize, np.inf
     return _q_push(
-        gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, pkey, _G_EXTEND, p, hi[root, 0], pi[p, _PSTAMP], root
+        gkey, gint, gsize, fkey, fint, fnext, bhead, qstate, pkey, _G_EXTEND, p, hi[root, _HI_RAY], pi[p, _PSTAMP], root
     ), pkey

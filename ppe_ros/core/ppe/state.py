@@ -8,9 +8,19 @@ import numpy as np
 
 from ppe_ros.core.fitting import fit_rays, fit_with_information, gn_pass, ray_terms, solve_sym3
 from ppe_ros.core.ppe.intrinsics import _prefetch
+
+# --------------------------------------------------------------------------------------------
 from ppe_ros.core.ppe.layout import (
+    _EC_RAY,
+    _EC_VER,
+    _FIT_INFO,
     _FIT_ITERATIONS,
     _FIT_TOLERANCE,
+    _FIT_VALUE,
+    _FIT_W,
+    _MC_PARTNER,
+    _MC_VA,
+    _MC_VB,
     _PCOUNT,
     _PE,
     _PH,
@@ -19,10 +29,14 @@ from ppe_ros.core.ppe.layout import (
     _PVER,
     _PW,
     _PWL,
+    _RC_COUNT,
+    _RC_EXCESS,
+    _RC_GRAD,
+    _RC_INFO,
+    _RC_VER,
+    _RC_W,
     UNION_MODEL_AGREEMENT,
 )
-
-# --------------------------------------------------------------------------------------------
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -82,23 +96,30 @@ def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _put_fit(fits, r, value, w0, w1, w2, information):
     """Write a fit into row r of an (n, 10) fit table: value (SSE, m^2), w (3) and information (6)."""
-    fits[r, 0] = value
-    fits[r, 1] = w0
-    fits[r, 2] = w1
-    fits[r, 3] = w2
+    fits[r, _FIT_VALUE] = value
+    fits[r, _FIT_W] = w0
+    fits[r, _FIT_W + 1] = w1
+    fits[r, _FIT_W + 2] = w2
     for t in range(6):
-        fits[r, 4 + t] = information[t]
+        fits[r, _FIT_INFO + t] = information[t]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _get_fit(fits, r):
     """Row r of an (n, 10) fit table: (value, w0, w1, w2, information)."""
     return (
-        fits[r, 0],
-        fits[r, 1],
-        fits[r, 2],
-        fits[r, 3],
-        (fits[r, 4], fits[r, 5], fits[r, 6], fits[r, 7], fits[r, 8], fits[r, 9]),
+        fits[r, _FIT_VALUE],
+        fits[r, _FIT_W],
+        fits[r, _FIT_W + 1],
+        fits[r, _FIT_W + 2],
+        (
+            fits[r, _FIT_INFO],
+            fits[r, _FIT_INFO + 1],
+            fits[r, _FIT_INFO + 2],
+            fits[r, _FIT_INFO + 3],
+            fits[r, _FIT_INFO + 4],
+            fits[r, _FIT_INFO + 5],
+        ),
     )
 
 
@@ -118,9 +139,9 @@ def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version
     sse, w0, w1, w2, information = fit_with_information(
         endpoints, directions, idx, n + 1, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
     )
-    if ecache_i[p, 1] != version or sse < ecache_f[p, 0]:
-        ecache_i[p, 0] = k
-        ecache_i[p, 1] = version
+    if ecache_i[p, _EC_VER] != version or sse < ecache_f[p, _FIT_VALUE]:
+        ecache_i[p, _EC_RAY] = k
+        ecache_i[p, _EC_VER] = version
         _put_fit(ecache_f, p, sse, w0, w1, w2, information)
     return sse - pf[p, _PE]
 
@@ -319,21 +340,21 @@ def _keep_refined_merge(rcache_i, rcache_f, pf, pi, big, small, e_small, value, 
     """
     (h0, h1, h2, h3, h4, h5), (e0, e1, e2), (he0, he1, he2) = _model_offset(pf, big, w0, w1, w2)
     pf[small, _PRPARTNER] = big
-    rcache_i[small, 0] = pi[small, _PVER]
-    rcache_i[small, 1] = pi[big, _PCOUNT]
-    rcache_f[small, 0] = value - (pf[big, _PE] + e0 * he0 + e1 * he1 + e2 * he2) - e_small
-    rcache_f[small, 1] = r[0] - he0
-    rcache_f[small, 2] = r[1] - he1
-    rcache_f[small, 3] = r[2] - he2
-    rcache_f[small, 4] = info[0] - h0
-    rcache_f[small, 5] = info[1] - h1
-    rcache_f[small, 6] = info[2] - h2
-    rcache_f[small, 7] = info[3] - h3
-    rcache_f[small, 8] = info[4] - h4
-    rcache_f[small, 9] = info[5] - h5
-    rcache_f[small, 10] = w0
-    rcache_f[small, 11] = w1
-    rcache_f[small, 12] = w2
+    rcache_i[small, _RC_VER] = pi[small, _PVER]
+    rcache_i[small, _RC_COUNT] = pi[big, _PCOUNT]
+    rcache_f[small, _RC_EXCESS] = value - (pf[big, _PE] + e0 * he0 + e1 * he1 + e2 * he2) - e_small
+    rcache_f[small, _RC_GRAD] = r[0] - he0
+    rcache_f[small, _RC_GRAD + 1] = r[1] - he1
+    rcache_f[small, _RC_GRAD + 2] = r[2] - he2
+    rcache_f[small, _RC_INFO] = info[0] - h0
+    rcache_f[small, _RC_INFO + 1] = info[1] - h1
+    rcache_f[small, _RC_INFO + 2] = info[2] - h2
+    rcache_f[small, _RC_INFO + 3] = info[3] - h3
+    rcache_f[small, _RC_INFO + 4] = info[4] - h4
+    rcache_f[small, _RC_INFO + 5] = info[5] - h5
+    rcache_f[small, _RC_W] = w0
+    rcache_f[small, _RC_W + 1] = w1
+    rcache_f[small, _RC_W + 2] = w2
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -346,25 +367,25 @@ def _refined_merge_increment(pf, big, rcache_f, small):
     while big is unchanged.
     """
     (h0, h1, h2, h3, h4, h5), (e0, e1, e2), (he0, he1, he2) = _model_offset(
-        pf, big, rcache_f[small, 10], rcache_f[small, 11], rcache_f[small, 12]
+        pf, big, rcache_f[small, _RC_W], rcache_f[small, _RC_W + 1], rcache_f[small, _RC_W + 2]
     )
-    c0 = he0 + rcache_f[small, 1]
-    c1 = he1 + rcache_f[small, 2]
-    c2 = he2 + rcache_f[small, 3]
+    c0 = he0 + rcache_f[small, _RC_GRAD]
+    c1 = he1 + rcache_f[small, _RC_GRAD + 1]
+    c2 = he2 + rcache_f[small, _RC_GRAD + 2]
     y0, y1, y2, ok = solve_sym3(
-        h0 + rcache_f[small, 4],
-        h1 + rcache_f[small, 5],
-        h2 + rcache_f[small, 6],
-        h3 + rcache_f[small, 7],
-        h4 + rcache_f[small, 8],
-        h5 + rcache_f[small, 9],
+        h0 + rcache_f[small, _RC_INFO],
+        h1 + rcache_f[small, _RC_INFO + 1],
+        h2 + rcache_f[small, _RC_INFO + 2],
+        h3 + rcache_f[small, _RC_INFO + 3],
+        h4 + rcache_f[small, _RC_INFO + 4],
+        h5 + rcache_f[small, _RC_INFO + 5],
         c0,
         c1,
         c2,
     )
     if not ok:
         return np.inf
-    inc = rcache_f[small, 0] + e0 * he0 + e1 * he1 + e2 * he2 - (c0 * y0 + c1 * y1 + c2 * y2)
+    inc = rcache_f[small, _RC_EXCESS] + e0 * he0 + e1 * he1 + e2 * he2 - (c0 * y0 + c1 * y1 + c2 * y2)
     if inc < 0.0:
         inc = 0.0
     return inc
@@ -412,7 +433,7 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _cache_merge(mcache_i, mcache_f, a, b, va, vb, value, w0, w1, w2, info):
     """Remember the refined merge of planes a < b at versions (va, vb): its value, merged w and information."""
-    mcache_i[a, 0] = b
-    mcache_i[a, 1] = va
-    mcache_i[a, 2] = vb
+    mcache_i[a, _MC_PARTNER] = b
+    mcache_i[a, _MC_VA] = va
+    mcache_i[a, _MC_VB] = vb
     _put_fit(mcache_f, a, value, w0, w1, w2, info)
