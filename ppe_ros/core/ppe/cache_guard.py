@@ -4,7 +4,7 @@ numba's ``cache=True`` keys a cached kernel on its own source file only: when a 
 (or inlines) in another module changes, the stale machine code is loaded anyway. The kernels of
 ``ppe_ros.core.ppe`` call across its modules and into ``ppe_ros.core.fitting``, so at import of the
 package (before any kernel is compiled or loaded) :func:`guard_kernel_cache` hashes the sources of
-all of them; when the hash differs from the stamp kept in the package's numba cache directory
+its kernel modules and fitting.py; when the hash differs from the stamp kept in the package's numba cache directory
 (``NUMBA_CACHE_DIR`` when set, else numba's own choice: ``__pycache__`` next to the sources or the
 user-wide cache), the package's cache files (``*.nbi``, ``*.nbc``) are deleted and the new stamp is
 written. Cost: hashing about 150 KB of source per import (well under a millisecond).
@@ -28,9 +28,14 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 DEPENDENCIES = (PACKAGE_DIR.parent / 'fitting.py',)
 
 
+def kernel_modules(package_dir: Path = PACKAGE_DIR) -> list[Path]:
+    """The package's modules that define numba kernels or intrinsics (the others' changes need no recompile)."""
+    return [p for p in sorted(package_dir.glob('*.py')) if 'nb.njit' in (text := p.read_text()) or '@intrinsic' in text]
+
+
 def kernel_sources(package_dir: Path = PACKAGE_DIR, dependencies=DEPENDENCIES) -> list[Path]:
-    """The package's modules and the dependencies, in a fixed order."""
-    return sorted(package_dir.glob('*.py')) + [Path(d) for d in dependencies]
+    """The package's kernel modules and the dependencies, in a fixed order."""
+    return kernel_modules(package_dir) + [Path(d) for d in dependencies]
 
 
 def sources_digest(paths: list[Path]) -> str:
@@ -102,7 +107,7 @@ def guard_kernel_cache(package_dir: Path = PACKAGE_DIR, dependencies=DEPENDENCIE
     """
     if os.environ.get('PPE_NUMBA_CACHE_GUARD', '1') == '0':
         return False
-    modules = sorted(package_dir.glob('*.py'))
+    modules = kernel_modules(package_dir)
     cache_dir = cache_directory()
     if cache_dir is None:
         return False

@@ -232,12 +232,15 @@ def _full(log):
     return log.overflow[0] > 0 or log.overflow[1] > 0 or log.overflow[2] > 0
 
 
+# The phases are inlined into the driver loop (numba's inline='always'): as calls, each would pass the
+# bundles' arrays (dozens of them) by value on every pop and action.
+
 # --------------------------------------------------------------------------------------------
 # phase 1: the next action with an exact key
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _pop_entry(q, sd, pl, pools, px, gsize, seed_ptr):
     """The next entry: the sorted initial seeds' or the heap's, whichever comes first.
 
@@ -276,7 +279,7 @@ def _pop_entry(q, sd, pl, pools, px, gsize, seed_ptr):
     return key, kind, ea, eb, eva, evb, gsize, seed_ptr
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _seed_entry(g, kn, px, q, sd, key, anchor, c, gsize):
     """A popped seed (anchor, config c): True when its cells are all free; else its anchor's next best
     valid seed after (key, c) is queued. Returns (found, gsize)."""
@@ -312,7 +315,7 @@ def _seed_entry(g, kn, px, q, sd, key, anchor, c, gsize):
     return False, gsize
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _revalue_candidate(g, kn, px, pl, pools, p, root, hfree):
     """Value the top candidate node root of plane p (a stale bound) exactly for p's current version and
     put it back into p's heap (a candidate of infinite value is freed instead). Returns hfree."""
@@ -343,7 +346,7 @@ def _revalue_candidate(g, kn, px, pl, pools, p, root, hfree):
     return hfree
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _extend_entry(g, kn, px, pl, q, pools, log, key, p, ray, stamp, gsize, hfree):
     """A popped extension proxy of plane p for its top candidate ray (at proxy stamp).
 
@@ -443,7 +446,7 @@ def _refined_increment(g, kn, px, pl, log, a, b):
     return value - pf[big, _PE] - e_small
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge_entry(g, kn, px, pl, q, log, kind, a, b, va, vb, gsize):
     """A popped merge of planes a < b valued at their merge versions (va, vb): True when it is current and
     exact; a model merge (or an exact one of a grown plane) is refined and queued again with its exact
@@ -463,7 +466,7 @@ def _merge_entry(g, kn, px, pl, q, log, kind, a, b, va, vb, gsize):
     return False, gsize
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _next_action(g, kn, px, pl, q, pools, sd, log, gsize, hused, hfree, seed_ptr):
     """Pop entries until one is an action with an exact key (stale entries are dropped, bounds and model
     merges valued again and re-queued). Returns (outcome, key, kind, a, b, gsize, hfree, seed_ptr);
@@ -501,7 +504,7 @@ def _next_action(g, kn, px, pl, q, pools, sd, log, gsize, hused, hfree, seed_ptr
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _create(g, px, pl, p, c):
     """Create plane p (its anchor's id) from the tetromino of config c at p; its cells go into px.buf2."""
     pf, pi, cell, endpoints = pl.pf, pl.pi, px.cell, g.endpoints
@@ -541,7 +544,7 @@ def _create(g, px, pl, p, c):
         px.buf2[t] = cell[t]
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _extend(g, kn, px, pl, p, k, key):
     """Extend plane p by ray k (increment key); ray k goes into px.buf2. Returns the count of p's rays left
     gathered in px.buf (-1: none)."""
@@ -582,7 +585,7 @@ def _extend(g, kn, px, pl, p, k, key):
     return -1
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merged_fit(g, kn, px, pl, a, b):
     """The merged plane's (value, w0, w1, w2, information) of planes a and b (value and information only
     meaningful for a union larger than exact_plane_size, whose state is not refitted)."""
@@ -608,7 +611,7 @@ def _merged_fit(g, kn, px, pl, a, b):
     return value, w0, w1, w2, info
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge(g, kn, px, pl, pools, a, b, aused):
     """Merge planes a and b into the smaller id s. Returns (s, s's adjacency nodes before the merge, aused);
     aused -1 when the adjacency pool ran out."""
@@ -651,7 +654,7 @@ def _merge(g, kn, px, pl, pools, a, b, aused):
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _refresh(g, kn, px, pl, log, p, created, version):
     """After an action on plane p: re-linearise a large plane that doubled or drifted, and give p the new
     version. Returns partial: p is large and grew by at most merge_loop_growth since its last full merge
@@ -699,7 +702,7 @@ def _neighbours(g, k, nb_pix):
     return n
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _add_candidate(g, kn, px, pl, pools, log, p, q, n_gathered, hused, hfree):
     """Queue ray q as an extension candidate of plane p, valued exactly for p's current version (unless p
     already holds a node for q). Returns (n_gathered, hused, hfree): p's rays are gathered into px.buf
@@ -738,7 +741,7 @@ def _add_candidate(g, kn, px, pl, pools, log, p, q, n_gathered, hused, hfree):
     return n_gathered, hused, hfree
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _frontier(g, kn, px, pl, pools, log, p, new_pixels, in_buf, hused, hfree, aused):
     """The new neighbours of plane p's added pixels px.buf2[:new_pixels]: free rays become extension
     candidates, other planes neighbours (both adjacency lists). Returns (hused, hfree, aused); aused -1
@@ -767,7 +770,7 @@ def _frontier(g, kn, px, pl, pools, log, p, new_pixels, in_buf, hused, hfree, au
     return hused, hfree, aused
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge_key(g, kn, px, pl, p, q):
     """Key, entry kind and reuse flag of the merge of planes p and q: an exact union fit for small unions, the kept
     refinement's residual model while it stands, else the planes' models (queued below their value)."""
@@ -792,7 +795,7 @@ def _merge_key(g, kn, px, pl, p, q):
     return _model_merge_increment(pf, a, b) * kn.model_key_factor, _G_MERGE_MODEL, False
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key, gsize, seen_stamp):
     """Value the merges of plane p with its neighbouring planes (compacting p's adjacency segment; a
     partial loop values only the nodes appended by this action). A merge whose key exceeds p's proxy key

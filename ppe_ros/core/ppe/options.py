@@ -4,7 +4,10 @@ extraction's parameters (those are extract_plane_hierarchy's own arguments)."""
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
+
+import numpy as np
 
 from ppe_ros.core.ppe.layout import (
     DEFAULT_EXACT_PLANE_SIZE,
@@ -54,12 +57,14 @@ class GreedyOptions:
     def __post_init__(self) -> None:
         for name in ('exact_plane_size', 'exact_merge_size'):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+            if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real) or value != int(value):
                 raise ValueError(f'{name} must be a whole number of rays; got {value!r}')
         if int(self.exact_plane_size) < 4:
             raise ValueError(f'exact_plane_size must be >= 4; got {self.exact_plane_size!r}')
         if self.pool_capacity is not None and (
-            isinstance(self.pool_capacity, bool) or int(self.pool_capacity) != self.pool_capacity
+            isinstance(self.pool_capacity, bool | np.bool_)
+            or not isinstance(self.pool_capacity, numbers.Real)
+            or int(self.pool_capacity) != self.pool_capacity
         ):
             raise ValueError(f'pool_capacity must be a whole number >= 1 or None; got {self.pool_capacity!r}')
         if self.pool_capacity is not None and int(self.pool_capacity) < 1:
