@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     from ppe_ros.ros.messages import rclpy_message_types
 
     clouds = ouster_clouds(rclpy_message_types())
-    from ppe_ros.core import extraction
+    from ppe_ros.core.ppe import tiles as extraction_tiles
 
     command = ' '.join(['python benchmarks/bench_node_workers.py', *(argv if argv is not None else sys.argv[1:])])
     print(f'machine: {machine_description()}; command: {command}; {time.strftime("%Y-%m-%d %H:%M")}\n')
@@ -155,15 +155,15 @@ def main(argv: list[str] | None = None) -> int:
         '| mean ms per frame | median latency ms | most at once | outputs in input order |'
     )
     print('|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|')
-    auto_columns = extraction.AUTO_TILE_COLUMNS
+    auto_columns = extraction_tiles.AUTO_TILE_COLUMNS
     for workers in args.workers:
         for one_tile in (True, False) if args.compare_tiles else (False,):
             # one tile: 'auto' then means one strip of the whole width (the exact greedy)
-            extraction.AUTO_TILE_COLUMNS = 2**31 if one_tile else auto_columns
+            extraction_tiles.AUTO_TILE_COLUMNS = 2**31 if one_tile else auto_columns
             try:
                 r = run(workers, args.seconds, args.rate, clouds, args.sensor)
             finally:
-                extraction.AUTO_TILE_COLUMNS = auto_columns
+                extraction_tiles.AUTO_TILE_COLUMNS = auto_columns
             tiles = '1' if one_tile or args.sensor == 'none' else 'default'
             dropped = f'{r["dropped"]} ({100 * r["dropped"] / max(r["sent"], 1):.0f} %)'
             print(

@@ -45,23 +45,24 @@ CONFIGS = (
 def _timed_extraction(points, origins, kwargs: dict, threads: int) -> tuple[float, float, float, object]:
     """Wall time of extract_planes, the hierarchy's seeds + greedy time, the process's CPU time, the planes."""
     from ppe_ros.core import extraction
+    from ppe_ros.core.ppe import api
 
     numba.set_num_threads(threads)
     seen = []
-    original = extraction.extract_plane_hierarchy
+    original = api.extract_plane_hierarchy
 
     def recording(*args, **kw):
         hierarchy = original(*args, **kw)
         seen.append(hierarchy.seconds)
         return hierarchy
 
-    extraction.extract_plane_hierarchy = recording
+    api.extract_plane_hierarchy = recording
     try:
         start, cpu = time.perf_counter(), time.process_time()
         planes = extraction.extract_planes(points, origins=origins, threads=threads, **kwargs)
         total, cpu = time.perf_counter() - start, time.process_time() - cpu
     finally:
-        extraction.extract_plane_hierarchy = original
+        api.extract_plane_hierarchy = original
     return total, seen[0], cpu, planes
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+from dataclasses import replace
 
 import numba as nb
 import numpy as np
@@ -18,36 +19,30 @@ import scenes
 from reference_ppe import reference_extract
 
 from ppe_ros.core.extraction import (
-    _FIT_ITERATIONS,
-    _FIT_TOLERANCE,
-    _NPF,
-    _NPI,
-    _PCOUNT,
-    _PE,
-    _PW,
     ACTION_DTYPE,
     KIND_CREATE,
     KIND_EXTEND,
     KIND_MERGE,
     TETROMINO_OFFSETS,
     UNION_MODEL_AGREEMENT,
-    _edge_masks,
-    _hybrid_merge,
-    _keep_refined_merge,
-    _model_merge,
-    _ray_columns,
-    _refined_merge_increment,
-    _seed_errors,
-    _seed_exceeds,
-    _set_exact_state,
-    _union_fit,
-    _work_memory,
+    GreedyOptions,
     extract_plane_hierarchy,
     extract_planes,
     release_work_memory,
 )
-from ppe_ros.core.fitting import _fit_rays, fit_plane
+from ppe_ros.core.fitting import fit_plane, fit_rays
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.ppe.layout import _FIT_ITERATIONS, _FIT_TOLERANCE, _NPF, _NPI, _PCOUNT, _PE, _PW
+from ppe_ros.core.ppe.memory import _work_memory
+from ppe_ros.core.ppe.seeds import _edge_masks, _ray_columns, _seed_errors, _seed_exceeds
+from ppe_ros.core.ppe.state import (
+    _hybrid_merge,
+    _keep_refined_merge,
+    _model_merge,
+    _refined_merge_increment,
+    _set_exact_state,
+    _union_fit,
+)
 from ppe_ros.core.scan import make_ray_scan
 from ppe_ros.core.synthetic import ScanGrid, generate_scan, plane_scan
 
@@ -56,7 +51,14 @@ from ppe_ros.core.synthetic import ScanGrid, generate_scan, plane_scan
 pytestmark = pytest.mark.timeout(300, method='thread')
 
 #: Every increment exact: the fast extractor must then follow the reference's semantics.
-EXACT = {'exact_plane_size': 10**9, 'exact_merge_size': 10**9}
+EXACT = {'options': GreedyOptions(exact_plane_size=10**9, exact_merge_size=10**9)}
+
+
+def _with(settings: dict, **changes) -> dict:
+    """settings (EXACT or {}) with the GreedyOptions fields changed."""
+    return {'options': replace(settings.get('options', GreedyOptions()), **changes)}
+
+
 #: Thresholds (m^2) at which the small scenes are cut.
 SMALL_CUTS = (1e-5, 1e-4, 1e-3, 1e-2)
 
@@ -318,7 +320,7 @@ def test_deferring_merges_does_not_change_the_action_log(exact):
     scan = medium_scan()
     settings = EXACT if exact else {}
     deferred = extract_plane_hierarchy(scan.points, origins=scan.origins, **settings)
-    queued = extract_plane_hierarchy(scan.points, origins=scan.origins, defer_merges=False, **settings)
+    queued = extract_plane_hierarchy(scan.points, origins=scan.origins, **_with(settings, defer_merges=False))
     assert (deferred.actions['kind'] == KIND_MERGE).sum() > 50
     assert np.array_equal(deferred.actions, queued.actions)
     # and at a threshold with a distance limit, where merges are cut off
@@ -330,8 +332,7 @@ def test_deferring_merges_does_not_change_the_action_log(exact):
         origins=scan.origins,
         max_neighbor_distance=0.15,
         max_error_increment=0.02,
-        defer_merges=False,
-        **settings,
+        **_with(settings, defer_merges=False),
     )
     assert np.array_equal(deferred.actions, queued.actions)
 
@@ -345,12 +346,12 @@ def test_pools_that_run_out_are_enlarged_without_changing_the_action_log(exact):
     settings = EXACT if exact else {}
     for cut in ({}, {'max_neighbor_distance': 0.15, 'max_error_increment': 0.02}):
         default = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut, **settings)
-        tiny = extract_plane_hierarchy(scan.points, origins=scan.origins, pool_capacity=1, **cut, **settings)
+        tiny = extract_plane_hierarchy(scan.points, origins=scan.origins, **cut, **_with(settings, pool_capacity=1))
         assert len(default.actions) > 100
         assert np.array_equal(default.actions, tiny.actions)
         assert 1 < tiny.stats['heap_capacity'] <= default.stats['heap_capacity']
     with pytest.raises(ValueError, match='pool_capacity must be >= 1'):
-        extract_plane_hierarchy(scan.points, pool_capacity=0)
+        GreedyOptions(pool_capacity=0)
 
 
 def test_reused_work_memory_does_not_change_the_result():
@@ -783,14 +784,14 @@ def _seed_errors_one_by_one(scan, ok_right, ok_down):
                         a, b = min(idx[t], idx[u]), max(idx[t], idx[u])
                         edges_ok &= bool(ok_right[a] if b == a + 1 else ok_down[a])
             if edges_ok:
-                sse = _fit_rays(scan.endpoints, scan.directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
+                sse = fit_rays(scan.endpoints, scan.directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
                 out[anchor, c] = sse if np.isfinite(sse) else np.inf
     return out
 
 
 @pytest.mark.parametrize('lmax', [0.3, np.inf])
 def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
-    """The vectorised four-ray fits (and their fall-backs) against _fit_rays on each seed.
+    """The vectorised four-ray fits (and their fall-backs) against fit_rays on each seed.
 
     The scene has noise, no-returns, ray starts off the origin and exactly collinear rays (a
     degenerate seed the straight-line fit cannot finish).
@@ -900,14 +901,14 @@ def test_seed_bound_never_exceeds_the_radial_fit_and_is_tight_far_above_it():
 
     Four neighbouring rays on noisy planes at normal and grazing incidence, grid steps of 0.35 and
     1.4 degrees (an OS-1-128's and an OS-1-32's), noise of 1 mm to 0.3 m (a depth step); the radial
-    SSE of _fit_rays's plane (a local minimum) bounds the least one from above.
+    SSE of fit_rays's plane (a local minimum) bounds the least one from above.
     """
     rng = np.random.default_rng(7)
     idx = np.arange(4)
     far_above = caught = 0
     for trial in range(2000):
         points, directions = _four_rays(rng, grazing=trial % 2 == 0, step_rad=np.deg2rad((0.35, 1.4)[trial % 4 // 2]))
-        sse = _fit_rays(points, directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
+        sse = fit_rays(points, directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
         if not np.isfinite(sse):
             continue
         assert not _seed_exceeds_py(points, directions, idx, sse * (1 + 1e-6))  # a plane has SSE below that
@@ -949,18 +950,19 @@ def test_ray_columns_are_the_transposed_rays():
 @pytest.mark.parametrize('value', [-0.1, np.nan, np.inf])
 def test_bad_growth_fractions_raise_a_clear_error(name, value):
     with pytest.raises(ValueError, match=name):
-        extract_plane_hierarchy(scenes.plane_patch(noise=0.0).points, **{name: value})
+        extract_plane_hierarchy(scenes.plane_patch(noise=0.0).points, options=GreedyOptions(**{name: value}))
 
 
 def test_scans_at_the_ray_limit_raise_a_clear_error(monkeypatch):
     """The greedy keeps 32-bit plane fields; a scan with MAX_RAYS rays or more is refused up front."""
     import ppe_ros.core.extraction as extraction
+    import ppe_ros.core.ppe.api as api
 
     points = plane_scan(rows=5, cols=5).points
-    monkeypatch.setattr(extraction, 'MAX_RAYS', 25)
+    monkeypatch.setattr(api, 'MAX_RAYS', 25)
     with pytest.raises(ValueError, match='fewer than 25 rays'):
         extraction.extract_plane_hierarchy(points)
-    monkeypatch.setattr(extraction, 'MAX_RAYS', 26)
+    monkeypatch.setattr(api, 'MAX_RAYS', 26)
     assert len(extraction.extract_plane_hierarchy(points).actions) > 0
 
 
@@ -1002,9 +1004,7 @@ def test_union_fit_keeps_the_model_start_only_when_the_models_agree():
         pf, (sse, w0, w1, w2) = _union_of_two_fitted_sets(endpoints, directions, rays_a, rays_b)
         model_inc, m0, m1, m2 = _model_merge(pf, 0, 1)
         starts = ((m0, m1, m2), tuple(pf[0, _PW : _PW + 3]), tuple(pf[1, _PW : _PW + 3]), (np.nan, np.nan, np.nan))
-        fits = [
-            _fit_rays(endpoints, directions, union, 12, *start, _FIT_ITERATIONS, _FIT_TOLERANCE) for start in starts
-        ]
+        fits = [fit_rays(endpoints, directions, union, 12, *start, _FIT_ITERATIONS, _FIT_TOLERANCE) for start in starts]
         inc = fits[0][0] - pf[0, _PE] - pf[1, _PE]
         if model_inc < np.inf and abs(inc - model_inc) <= UNION_MODEL_AGREEMENT * max(inc, model_inc):
             expected = fits[0]
@@ -1084,7 +1084,9 @@ def test_kept_refined_merges_replace_refinements_without_changing_the_segmentati
     scan = generate_scan(seed=0, grid=grid, radial_sigma=0.02)
     settings = {'max_neighbor_distance': 0.18, 'max_error_increment': 0.0484}
     kept = extract_plane_hierarchy(scan.points, origins=scan.origins, **settings)
-    refined = extract_plane_hierarchy(scan.points, origins=scan.origins, refined_merge_growth=0.0, **settings)
+    refined = extract_plane_hierarchy(
+        scan.points, origins=scan.origins, options=GreedyOptions(refined_merge_growth=0.0), **settings
+    )
     assert refined.stats['refined_merge_reuses'] == 0
     assert kept.stats['refined_merge_reuses'] > 100
     assert kept.stats['merge_refinements'] < 0.8 * refined.stats['merge_refinements']
@@ -1104,7 +1106,9 @@ def test_partial_merge_loops_of_large_planes_keep_the_segmentation():
     scan = generate_scan(seed=0, grid=grid, radial_sigma=0.02)
     settings = {'max_neighbor_distance': 0.18, 'max_error_increment': 0.0484}
     partial = extract_plane_hierarchy(scan.points, origins=scan.origins, **settings)
-    full = extract_plane_hierarchy(scan.points, origins=scan.origins, merge_loop_growth=0.0, **settings)
+    full = extract_plane_hierarchy(
+        scan.points, origins=scan.origins, options=GreedyOptions(merge_loop_growth=0.0), **settings
+    )
     assert partial.stats['merge_evaluations'] < 0.98 * full.stats['merge_evaluations']
     assert not np.array_equal(partial.actions, full.actions)  # the partial loops did change the order
     labels = partial.cut(max_error_increment=0.0484).labels
@@ -1112,7 +1116,9 @@ def test_partial_merge_loops_of_large_planes_keep_the_segmentation():
     np.testing.assert_array_equal(labels, full.cut(max_error_increment=0.0484).labels)
     # the partial loops' pushes (released merges) within the pools' capacity checks: pools that
     # start at one row and run out again and again give the same log
-    tiny = extract_plane_hierarchy(scan.points, origins=scan.origins, pool_capacity=1, **settings)
+    tiny = extract_plane_hierarchy(
+        scan.points, origins=scan.origins, options=GreedyOptions(pool_capacity=1), **settings
+    )
     assert np.array_equal(tiny.actions, partial.actions)
 
 
@@ -1137,7 +1143,7 @@ def _strip_logs(points, bounds, **kwargs):
 
 @pytest.mark.parametrize('noise', [None, 'lidar'])
 def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(noise):
-    from ppe_ros.core.extraction import _placed_borders, _tile_bounds
+    from ppe_ros.core.ppe.tiles import _placed_borders, _tile_bounds
     from ppe_ros.core.sensor import sensor_profile
 
     points = medium_scan().sensor_points  # ray starts at the origin: the strips share the internal frame
@@ -1176,7 +1182,7 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
 
 
 def test_tile_borders_move_to_the_columns_that_fewest_edges_cross():
-    from ppe_ros.core.extraction import _placed_borders
+    from ppe_ros.core.ppe.tiles import _placed_borders
 
     height, width = 6, 64
     ok_right = np.ones((height, width), bool)
@@ -1239,7 +1245,7 @@ def test_one_tile_is_the_exact_greedy_and_the_default_without_consolidation():
     ],
 )
 def test_tile_bounds(height, width, tiles, bounds):
-    from ppe_ros.core.extraction import _tile_bounds
+    from ppe_ros.core.ppe.tiles import _tile_bounds
 
     assert _tile_bounds(width, tiles, height) == bounds
 

@@ -8,7 +8,8 @@ import numba as nb
 import numpy as np
 import pytest
 
-from ppe_ros.core.extraction import (
+from ppe_ros.core.ppe.intrinsics import _prefetch
+from ppe_ros.core.ppe.layout import (
     _G_EXTEND,
     _G_MERGE_EXACT,
     _G_MERGE_MODEL,
@@ -21,14 +22,9 @@ from ppe_ros.core.extraction import (
     _Q_CHUNK,
     _Q_PER_OCTAVE,
     _QCOUNT,
-    _g_pop,
-    _prefetch,
-    _q_bucket,
-    _q_load,
-    _q_new,
-    _q_push,
-    _sort_seed_keys,
 )
+from ppe_ros.core.ppe.queue import _g_pop, _q_bucket, _q_load, _q_new, _q_push
+from ppe_ros.core.ppe.seeds import _sort_seed_keys
 
 
 @nb.njit

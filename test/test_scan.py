@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ppe_ros.core.extraction import _edge_masks
+from ppe_ros.core.ppe.seeds import _edge_masks
 from ppe_ros.core.scan import make_ray_scan
 
 

@@ -32,7 +32,7 @@ FIT_MAX_ITERATIONS = 50
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+def solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """Solve the symmetric positive definite 3x3 system A x = b (adjugate, one division).
 
     Positive definiteness is tested on the Jacobi-scaled matrix D^-1/2 A D^-1/2 (unit diagonal):
@@ -82,7 +82,7 @@ def _init_add(acc, x, y, z):
 
 
 # Fits called in the greedy's loops allocate nothing and are compiled with _nrt=False (no atomic
-# reference counting of their array arguments on each call; see ppe_ros.core.extraction).
+# reference counting of their array arguments on each call; see ppe_ros.core.ppe.queue).
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -92,7 +92,7 @@ def _linear_init(endpoints, idx, count):
     for t in range(count):
         k = idx[t]
         acc = _init_add(acc, endpoints[k, 0], endpoints[k, 1], endpoints[k, 2])
-    return _solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
+    return solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -104,7 +104,7 @@ def _ray_terms_at(px, py, pz, vx, vy, vz, w0, w1, w2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _ray_terms(endpoints, directions, k, w0, w1, w2):
+def ray_terms(endpoints, directions, k, w0, w1, w2):
     """:func:`_ray_terms_at` of ray k."""
     return _ray_terms_at(
         endpoints[k, 0],
@@ -138,11 +138,11 @@ def _gn_add(acc, res, g0, g1, g2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _gn_pass(endpoints, directions, idx, count, w0, w1, w2):
+def gn_pass(endpoints, directions, idx, count, w0, w1, w2):
     """One pass over rays idx[:count] at w: SSE, Gauss-Newton information J^T J (6) and J^T r (3)."""
     acc = _ZERO10
     for t in range(count):
-        res, g0, g1, g2 = _ray_terms(endpoints, directions, idx[t], w0, w1, w2)
+        res, g0, g1, g2 = ray_terms(endpoints, directions, idx[t], w0, w1, w2)
         acc = _gn_add(acc, res, g0, g1, g2)
     return acc
 
@@ -160,11 +160,11 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
     (a00 a01 a02 a11 a12 a22) at the returned w, from the pass that accepted it. sse is inf when
     the fit is degenerate.
     """
-    sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = _gn_pass(endpoints, directions, idx, count, w0, w1, w2)
+    sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = gn_pass(endpoints, directions, idx, count, w0, w1, w2)
     if not np.isfinite(sse):
         return np.inf, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
     for _ in range(max_iterations):
-        d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        d0, d1, d2, ok = solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
         if not ok:
             return sse, w0, w1, w2, False, (a00, a01, a02, a11, a12, a22)
         predicted = d0 * b0 + d1 * b1 + d2 * b2
@@ -176,7 +176,7 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
             n0 = w0 - step * d0
             n1 = w1 - step * d1
             n2 = w2 - step * d2
-            trial = _gn_pass(endpoints, directions, idx, count, n0, n1, n2)
+            trial = gn_pass(endpoints, directions, idx, count, n0, n1, n2)
             if trial[0] <= sse:
                 improved = True
                 break
@@ -193,7 +193,7 @@ def _gauss_newton(endpoints, directions, idx, count, w0, w1, w2, max_iterations,
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
+def fit_with_information(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
     """Exact fit of rays idx[:count]; starts from (w0, w1, w2) if finite, else the algebraic fit.
 
     Returns (sse, w0, w1, w2, information) with the Gauss-Newton information J^T J
@@ -214,20 +214,22 @@ def _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
-    """:func:`_fit` without the information: (sse, w0, w1, w2)."""
-    sse, w0, w1, w2, _ = _fit(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance)
+def fit_rays(endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance):
+    """:func:`fit_with_information` without the information: (sse, w0, w1, w2)."""
+    sse, w0, w1, w2, _ = fit_with_information(
+        endpoints, directions, idx, count, w0, w1, w2, max_iterations, relative_tolerance
+    )
     return sse, w0, w1, w2
 
 
-# Four-ray fits in straight-line code (the tetromino seeds). Loops over anchors that call _fit4
+# Four-ray fits in straight-line code (the tetromino seeds). Loops over anchors that call fit4
 # are vectorised by LLVM (no data-dependent branches); P and V are the endpoints and directions
 # as (3, n) arrays so that neighbouring anchors read neighbouring memory.
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _fit4_pass(P, V, rays, w0, w1, w2):
-    """:func:`_gn_pass` of the four rays (same operations in the same order)."""
+    """:func:`gn_pass` of the four rays (same operations in the same order)."""
     acc = _ZERO10
     for t in range(4):
         k = rays[t]
@@ -240,12 +242,12 @@ def _fit4_pass(P, V, rays, w0, w1, w2):
 def _fit4_step(P, V, rays, state):
     """One iteration of :func:`_gauss_newton` with a full step, as selects instead of returns.
 
-    state = (w, system, stopped, fallback) with w = (w0, w1, w2) and system = _gn_pass at w;
+    state = (w, system, stopped, fallback) with w = (w0, w1, w2) and system = gn_pass at w;
     stopped when _gauss_newton would have returned, fallback when it would have halved the step.
     """
     w, system, stopped, fallback = state
     sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = system
-    d0, d1, d2, ok = _solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+    d0, d1, d2, ok = solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
     stop_now = (not ok) | (not (d0 * b0 + d1 * b1 + d2 * b2 > FIT_RELATIVE_TOLERANCE * sse))
     trial_w = (w[0] - d0, w[1] - d1, w[2] - d2)
     trial = _fit4_pass(P, V, rays, trial_w[0], trial_w[1], trial_w[2])
@@ -259,20 +261,20 @@ def _fit4_step(P, V, rays, state):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _fit4(P, V, k0, k1, k2, k3):
-    """:func:`_fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
+def fit4(P, V, k0, k1, k2, k3):
+    """:func:`fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
 
-    Runs the algebraic start and up to three Gauss-Newton iterations exactly as :func:`_fit` would
+    Runs the algebraic start and up to three Gauss-Newton iterations exactly as :func:`fit_with_information` would
     (most seed fits converge within three; the rest go to the general fit, which a fourth
     vectorised iteration would not save).
-    Returns (sse, done): when done, sse is bit-identical to _fit_rays's; done is False when _fit
-    would go on (more iterations, a halved step) or the set is degenerate: call _fit_rays then.
+    Returns (sse, done): when done, sse is bit-identical to fit_rays's; done is False when fit_with_information
+    would go on (more iterations, a halved step) or the set is degenerate: call fit_rays then.
     """
     rays = (k0, k1, k2, k3)
     acc = _ZERO9  # _linear_init: range-weighted algebraic fit
     for t in range(4):
         acc = _init_add(acc, P[0, rays[t]], P[1, rays[t]], P[2, rays[t]])
-    w0, w1, w2, ok = _solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
+    w0, w1, w2, ok = solve_sym3(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8])
     system = _fit4_pass(P, V, rays, w0, w1, w2)
     good = ok & np.isfinite(system[0])
     state = ((w0, w1, w2), system, False, False)
@@ -288,7 +290,7 @@ def _fit_groups(endpoints, directions, members, starts, max_iterations, relative
     n_groups = len(starts) - 1
     for g in nb.prange(n_groups):
         idx = members[starts[g] : starts[g + 1]]
-        sse, w0, w1, w2, information = _fit(
+        sse, w0, w1, w2, information = fit_with_information(
             endpoints, directions, idx, len(idx), np.nan, np.nan, np.nan, max_iterations, relative_tolerance
         )
         out_sse[g] = sse

@@ -1,0 +1,155 @@
+"""The tiled greedy: vertical strips of the grid (azimuth sectors of a sweep) run independently and in parallel."""
+
+from __future__ import annotations
+
+import threading
+
+import numba as nb
+import numpy as np
+
+from ppe_ros.core.ppe.greedy import _greedy
+from ppe_ros.core.ppe.layout import _ST_HEAP_PEAK, KIND_CREATE
+from ppe_ros.core.ppe.memory import _reusable
+
+#: Columns per tile of tiles='auto' on a sweep (a grid at least 4 times as wide as high: 45 deg sectors
+#: of a 1024-column spinning lidar); images get twice as wide strips (measured: 128-column strips of
+#: ICL-NUIM's 640 x 480 frames lost 6-8 points of k in the depth-camera profile's consolidation,
+#: 320-column ones none).
+AUTO_TILE_COLUMNS = 128
+
+
+def _tile_bounds(width: int, tiles: int | str, height: int = 1) -> list[int]:
+    """Column bounds [0, c1, ..., width] of ``tiles`` vertical strips of near-equal width.
+
+    'auto': one strip per AUTO_TILE_COLUMNS columns on a grid at least 4 times as wide as high, per
+    2 AUTO_TILE_COLUMNS otherwise (at least 1). Strips are at least 8 columns wide.
+    """
+    if isinstance(tiles, str):
+        if tiles != 'auto':
+            raise ValueError(f"tiles must be a count >= 1 or 'auto'; got {tiles!r}")
+        columns = AUTO_TILE_COLUMNS if width >= 4 * height else 2 * AUTO_TILE_COLUMNS
+        count = max(1, round(width / columns))
+    else:
+        if isinstance(tiles, bool) or int(tiles) != tiles or int(tiles) < 1:
+            raise ValueError(f"tiles must be a count >= 1 or 'auto'; got {tiles!r}")
+        count = int(tiles)
+    count = max(1, min(count, width // 8))
+    return [round(i * width / count) for i in range(count + 1)]
+
+
+#: A tile border may move by this fraction of the strip width to where the fewest grid edges cross it.
+TILE_BORDER_SLACK = 0.25
+
+
+def _placed_borders(bounds: list[int], ok_right: np.ndarray, height: int, width: int) -> list[int]:
+    """The inner borders moved (each within TILE_BORDER_SLACK of a strip's width) to the column between c - 1
+    and c that the fewest admissible grid edges cross (ties: the nearest to the nominal border, then the
+    left one): a border there cuts fewest surfaces (it falls on depth jumps, no-returns, edges of objects).
+    """
+    if len(bounds) <= 2:
+        return bounds
+    crossing = ok_right.reshape(height, width).sum(axis=0)  # crossing[c - 1]: edges between columns c - 1, c
+    slack = int(TILE_BORDER_SLACK * width / (len(bounds) - 1))
+    placed = [0]
+    for nominal in bounds[1:-1]:
+        candidates = np.arange(max(nominal - slack, placed[-1] + 8), min(nominal + slack, width - 8) + 1)
+        if len(candidates) == 0:
+            placed.append(nominal)
+            continue
+        order = np.lexsort((candidates, np.abs(candidates - nominal), crossing[candidates - 1]))
+        placed.append(int(candidates[order[0]]))
+    return [*placed, width]
+
+
+_tile_pool_lock = threading.Lock()
+_tile_pool: list = []
+
+
+def _tile_executor(workers: int):
+    """A process-wide pool of at least ``workers`` threads for tiles (its threads keep their work memory)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with _tile_pool_lock:
+        if not _tile_pool or _tile_pool[0]._max_workers < workers:
+            # a smaller pool is replaced, not shut down: a caller may still submit to it; its idle
+            # threads end when it is no longer referenced
+            _tile_pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-tile')]
+        return _tile_pool[0]
+
+
+def _tile_inputs(inputs: tuple, height: int, width: int, c0: int, c1: int) -> tuple:
+    """The inputs of _greedy for columns c0:c1, copied (row-major, tile-local pixel ids) into work memory."""
+    out = []
+    for index, array in enumerate(inputs):
+        trailing = array.shape[1:]
+        tile = array.reshape((height, width, *trailing))[:, c0:c1]
+        buffer = _reusable(f'tile{index}_{array.dtype.str}', tile.size, array.dtype).reshape(tile.shape)
+        np.copyto(buffer, tile)
+        out.append(buffer.reshape((-1, *trailing)))
+    return tuple(out)
+
+
+def _tiled_greedy(
+    inputs: tuple,
+    height: int,
+    width: int,
+    bounds: list[int],
+    options,
+    stop_increment: float,
+    stop_count: int,
+    threads: int | None,
+) -> tuple:
+    """The greedy on each column strip separately (up to ``threads`` at once), as one action log.
+
+    The strips' grid edges across a border were cut before the seeds, so each strip is an independent
+    problem; its log is translated to the whole grid's pixel ids (a tile's row-major order is the
+    grid's, so "a merge keeps the smaller id" still holds). The logs are interleaved by each strip's
+    running maximum increment (stable: strip order breaks ties), so that for every e the cut at e of
+    the joint log is the union of every strip's own cut at e. The result does not depend on threads.
+    """
+    n_tiles = len(bounds) - 1
+
+    def run(t: int) -> tuple:
+        c0, c1 = bounds[t], bounds[t + 1]
+        local = _tile_inputs(inputs, height, width, c0, c1)
+        kinds, a_ids, b_ids, incs, stats = _greedy(local, height, c1 - c0, options, stop_increment, stop_count)
+        tile_width = c1 - c0
+        a_ids = (a_ids // tile_width) * width + c0 + a_ids % tile_width
+        b_global = (b_ids // tile_width) * width + c0 + b_ids % tile_width
+        b_ids = np.where(kinds == KIND_CREATE, b_ids, b_global)
+        return kinds, a_ids, b_ids, incs, stats
+
+    threads = min(nb.get_num_threads() if threads is None else int(threads), n_tiles)
+    if threads == 1:
+        results = [run(t) for t in range(n_tiles)]
+    else:
+        tickets = iter(range(n_tiles))  # next() on a range iterator is atomic under the GIL
+        ticket_lock = threading.Lock()
+
+        def drain() -> list:
+            done = []
+            while True:
+                with ticket_lock:
+                    t = next(tickets, None)
+                if t is None:
+                    return done
+                done.append((t, run(t)))
+
+        pool = _tile_executor(threads - 1)
+        futures = [pool.submit(drain) for _ in range(threads - 1)]
+        pairs = drain()
+        for future in futures:
+            pairs += future.result()
+        results = [r for _, r in sorted(pairs, key=lambda pair: pair[0])]
+    kinds = np.concatenate([r[0] for r in results])
+    running_max = np.concatenate([np.maximum.accumulate(r[3]) if len(r[3]) else r[3] for r in results])
+    order = np.argsort(running_max, kind='stable')
+    stats = np.sum([r[4] for r in results], axis=0)
+    stats[_ST_HEAP_PEAK] = max(int(r[4][_ST_HEAP_PEAK]) for r in results)
+    return (
+        kinds[order],
+        np.concatenate([r[1] for r in results])[order],
+        np.concatenate([r[2] for r in results])[order],
+        np.concatenate([r[3] for r in results])[order],
+        stats,
+    )
