@@ -20,6 +20,7 @@ _EXPORTS = {
     'extract_planes': 'ppe_ros.core.extraction',
     'extract_plane_hierarchy': 'ppe_ros.core.extraction',
     'PlaneHierarchy': 'ppe_ros.core.extraction',
+    'GreedyOptions': 'ppe_ros.core.extraction',
     'release_work_memory': 'ppe_ros.core.extraction',
     'fit_plane': 'ppe_ros.core.fitting',
     'fit_labeled_planes': 'ppe_ros.core.fitting',
