@@ -43,6 +43,7 @@ kernel is tested against.
 from __future__ import annotations
 
 import heapq
+import threading
 
 import numba as nb
 import numpy as np
@@ -132,6 +133,21 @@ def _scatter(m):
     )
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _union_scatter(m_a, m_b):
+    """:func:`_scatter` of the moments m_a + m_b, without allocating their sum."""
+    inv = 1.0 / (m_a[0] + m_b[0])
+    m0, m1, m2 = (m_a[1] + m_b[1]) * inv, (m_a[2] + m_b[2]) * inv, (m_a[3] + m_b[3]) * inv
+    return (m0, m1, m2), (
+        (m_a[4] + m_b[4]) * inv - m0 * m0,
+        (m_a[5] + m_b[5]) * inv - m0 * m1,
+        (m_a[6] + m_b[6]) * inv - m0 * m2,
+        (m_a[7] + m_b[7]) * inv - m1 * m1,
+        (m_a[8] + m_b[8]) * inv - m1 * m2,
+        (m_a[9] + m_b[9]) * inv - m2 * m2,
+    )
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _plane_of(m, out):
     """The orthogonal LS plane of moments m into out (13): mean (3), scatter (6), own (the smallest
@@ -168,7 +184,7 @@ def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     U is the union's LS plane; step is the distance between the planes of A and B along U's normal
     at the midpoint of their means. m_*: moments; plane_*: their _plane_of rows.
     """
-    mean_u, sc = _scatter(m_a + m_b)
+    mean_u, sc = _union_scatter(m_a, m_b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
     scatter = min(max(plane_a[9], plane_b[9]), max(m_a[10] / m_a[0], m_b[10] / m_b[0]))
     allowed_a = allowed_b = tau2 + noise_factor2 * scatter
@@ -200,9 +216,9 @@ def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise
     return float(_merge_cost(m_a, m_b, plane_a, plane_b, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, connected_only):
-    """True if ray k may lie between two pieces of the surface with plane (normal, mean).
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _bridges(ids, endpoints, directions, ranges, sigmas, k, normals, means, g, tau, connected_only):
+    """True if ray k may lie between two pieces of the surface of piece g (plane normals[g], means[g]).
 
     It may if it has no plane and ends on the plane (within 2 tau + 2 sigma_k |n . v_k| along the
     normal), or, unless connected_only, if it has no return or ends in front of the plane (on the
@@ -211,12 +227,13 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, c
     if not np.isfinite(ranges[k]):
         return not connected_only
     r = ranges[k]
-    along = normal[0] * directions[k, 0] + normal[1] * directions[k, 1] + normal[2] * directions[k, 2]
+    n0, n1, n2 = normals[g, 0], normals[g, 1], normals[g, 2]
+    along = n0 * directions[k, 0] + n1 * directions[k, 1] + n2 * directions[k, 2]
     margin = 2.0 * tau + 2.0 * sigmas[k] * abs(along)
     height = (
-        normal[0] * (endpoints[k, 0] - mean[0])
-        + normal[1] * (endpoints[k, 1] - mean[1])
-        + normal[2] * (endpoints[k, 2] - mean[2])
+        n0 * (endpoints[k, 0] - means[g, 0])
+        + n1 * (endpoints[k, 1] - means[g, 1])
+        + n2 * (endpoints[k, 2] - means[g, 2])
     )
     if abs(height) <= margin:
         return ids[k] < 0
@@ -229,14 +246,15 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, c
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _candidate_pairs(
-    ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap, connected_only
+    ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap, connected_only, first, last
 ):
-    """Candidate pairs (a < b) as an (m, 2) array, possibly with repeats (see the module docstring)."""
-    out = np.empty((2 * len(ids) + 16, 2), np.int64)
+    """Candidate pairs (a < b) found from the pixels first..last-1 (the later piece b of a pair is on
+    one of them), as an (m, 2) array, possibly with repeats (see the module docstring)."""
+    out = np.empty((2 * (last - first) + 16, 2), np.int64)
     n_out = 0
     for direction in range(2):  # 0: along rows (left), 1: along columns (up)
         step = 1 if direction == 0 else width
-        for k in range(len(ids)):
+        for k in range(first, last):
             b = ids[k]
             if b < 0:
                 continue
@@ -251,7 +269,7 @@ def _candidate_pairs(
             if back >= 0:  # pieces that touch are candidates
                 out, n_out = _add_pair(out, n_out, back, b)
             if back < 0 or _bridges(
-                ids, endpoints, directions, ranges, sigmas, k - step, normals[b], means[b], tau, connected_only
+                ids, endpoints, directions, ranges, sigmas, k - step, normals, means, b, tau, connected_only
             ):
                 # walk back over rays that bridge to b's plane, to the first ray that does not: a
                 # candidate if it is on a plane and every ray between bridges to that plane too
@@ -260,9 +278,7 @@ def _candidate_pairs(
                     q = k - g * step
                     if ids[q] == b:
                         break
-                    if _bridges(
-                        ids, endpoints, directions, ranges, sigmas, q, normals[b], means[b], tau, connected_only
-                    ):
+                    if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, b, tau, connected_only):
                         continue
                     if ids[q] >= 0 and _gap_bridges(
                         ids,
@@ -273,8 +289,9 @@ def _candidate_pairs(
                         q,
                         k,
                         step,
-                        normals[ids[q]],
-                        means[ids[q]],
+                        normals,
+                        means,
+                        ids[q],
                         tau,
                         connected_only,
                     ):
@@ -298,10 +315,10 @@ def _add_pair(out, n_out, a, b):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _gap_bridges(ids, endpoints, directions, ranges, sigmas, first, last, step, normal, mean, tau, connected_only):
-    """True if every ray strictly between pixels first and last (a line of the grid) bridges to the plane."""
+def _gap_bridges(ids, endpoints, directions, ranges, sigmas, first, last, step, normals, means, g, tau, connected_only):
+    """True if every ray strictly between pixels first and last (a line of the grid) bridges to piece g's plane."""
     for q in range(first + step, last, step):
-        if not _bridges(ids, endpoints, directions, ranges, sigmas, q, normal, mean, tau, connected_only):
+        if not _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, g, tau, connected_only):
             return False
     return True
 
@@ -413,17 +430,47 @@ def _piece_planes(moments):
     return normals, means, own
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _dense_ids_kernel(ids, bound):
+    """Dense ids of ids in -1..bound-1: (labels (K,) the present ids ascending, dense (N,) the rank of
+    each pixel's id among them, -1 for -1)."""
+    rank = np.full(bound, -1, np.int64)
+    for k in range(len(ids)):
+        if ids[k] >= 0:
+            rank[ids[k]] = 0
+    n_labels = 0
+    for g in range(bound):
+        if rank[g] == 0:
+            rank[g] = n_labels
+            n_labels += 1
+    labels = np.empty(n_labels, np.int64)
+    for g in range(bound):
+        if rank[g] >= 0:
+            labels[rank[g]] = g
+    dense = np.empty(len(ids), np.int64)
+    for k in range(len(ids)):
+        dense[k] = rank[ids[k]] if ids[k] >= 0 else -1
+    return labels, dense
+
+
+def _dense_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels: the distinct ids >= 0 ascending, dense: (N,) each entry's index in labels, -1 where ids < 0)."""
+    bound = int(ids.max()) + 1 if ids.size else 0
+    if bound <= 4 * ids.size + 16:  # ids bounded by the pixel count (the greedy's plane ids): no sort
+        return _dense_ids_kernel(ids, max(bound, 0))
+    uniq, dense = np.unique(ids, return_inverse=True)
+    negative = int(np.searchsorted(uniq, 0))
+    return uniq[negative:], np.where(ids >= 0, dense.reshape(-1) - negative, -1).astype(np.int64)
+
+
 def _dense_pieces(scan: RayScan, ids: np.ndarray, sigmas: np.ndarray, min_points: int):
-    """The pieces of ``ids`` (>= 0; -1: none) as dense ids 0..K-1 with their moments.
+    """The pieces of ``ids`` (int64 >= 0; -1: none) as dense ids 0..K-1 with their moments.
 
     Returns (labels: (K,) the original id of each dense id, dense: (H*W,) dense id of each pixel or -1,
     moments: (K, 11), small: (K,) pieces of fewer than min_points rays, planes: _piece_planes of the
     moments, with small pieces' rows computed from a placeholder).
     """
-    uniq, dense = np.unique(ids, return_inverse=True)
-    dense = dense.reshape(-1) - (1 if len(uniq) and uniq[0] < 0 else 0)
-    labels = uniq[uniq >= 0]
-    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
+    labels, dense = _dense_ids(ids)
     ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
     small = moments[:, 0] < min_points
@@ -462,6 +509,56 @@ def _last_next_to_first(valid: np.ndarray, directions: np.ndarray) -> bool:
     seam = np.einsum('ik,ik->i', directions[:, -1], directions[:, 0])[seam_both]
     step_angle = np.median(np.arccos(np.clip(steps, -1.0, 1.0)))
     return float(np.median(np.arccos(np.clip(seam, -1.0, 1.0)))) <= 2.0 * float(step_angle)
+
+
+#: Pixels per thread below which the candidate pairs are found in the calling thread alone.
+PARALLEL_MIN_PIXELS = 32768
+
+_pool_lock = threading.Lock()
+_pool: list = []
+
+
+def _executor(workers: int):
+    """A process-wide pool of at least ``workers`` threads for the consolidation's nogil kernels."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with _pool_lock:
+        if not _pool or _pool[0]._max_workers < workers:
+            # a smaller pool is replaced, not shut down: a caller may still use it
+            _pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-surfaces')]
+        return _pool[0]
+
+
+def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, max_gap, connected_only) -> np.ndarray:
+    """_candidate_pairs of all pixels, in numba's thread count of row blocks at once (the kernel releases
+    the GIL); the blocks' pairs are concatenated in order (consolidate_pieces sorts and dedupes them)."""
+    n = len(ids)
+    parts = max(1, min(nb.get_num_threads(), n // PARALLEL_MIN_PIXELS))
+    bounds = [scan.width * round(i * scan.height / parts) for i in range(parts + 1)]
+
+    def block(i: int) -> np.ndarray:
+        return _candidate_pairs(
+            ids,
+            scan.endpoints,
+            scan.directions,
+            scan.ranges,
+            sigmas,
+            scan.height,
+            scan.width,
+            normals,
+            means,
+            tau,
+            max_gap,
+            connected_only,
+            bounds[i],
+            bounds[i + 1],
+        )
+
+    if parts == 1:
+        return block(0)
+    futures = [_executor(parts - 1).submit(block, i) for i in range(1, parts)]
+    first = block(0)
+    return np.concatenate([first, *(future.result() for future in futures)])
 
 
 def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -509,18 +606,14 @@ def consolidate_pieces(
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
-    if len(np.unique(ids[ids >= 0])) < 2:
-        return ids.copy()
     labels, dense, moments, small, (normals, means, _) = _dense_pieces(scan, ids, sigmas, 3)
+    if len(labels) < 2:
+        return ids.copy()
     dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
-    pairs = _candidate_pairs(
+    pairs = _parallel_candidate_pairs(
         dense_for_pairs,
-        scan.endpoints,
-        scan.directions,
-        scan.ranges,
+        scan,
         np.ascontiguousarray(sigmas, dtype=np.float64),
-        scan.height,
-        scan.width,
         normals,
         means,
         tau,
