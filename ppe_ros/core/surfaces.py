@@ -15,7 +15,7 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces, rows_wrap
-from ppe_ros.core.fitting import fit_pixel_groups
+from ppe_ros.core.fitting import fit_pixel_groups, fit_weighted_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan
 from ppe_ros.core.sensor import SensorProfile
@@ -51,9 +51,14 @@ def whole_surfaces(
         ids = _consolidate(
             unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points
         )
-    planes, _ = fit_pixel_groups(
-        scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
-    )
+    if sigmas is None:
+        planes, _ = fit_pixel_groups(
+            scan, ids, min_plane_points=min_plane_points, residuals=False, actions=steps, **cut
+        )
+    else:
+        planes = fit_weighted_pixel_groups(
+            scan, ids, min_plane_points=min_plane_points, sigmas=sigmas, actions=steps, **cut
+        )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
         planes = _drop_non_planar(
