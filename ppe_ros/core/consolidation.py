@@ -42,7 +42,6 @@ kernel is tested against.
 
 from __future__ import annotations
 
-import heapq
 import threading
 
 import numba as nb
@@ -331,14 +330,99 @@ def _find(parent, x):
     return x
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _heap_less(hkey, hint, i, j):
+    """Entry i of the heap before entry j: (cost, a, b, version a, version b) in lexicographic order."""
+    if hkey[i] != hkey[j]:
+        return hkey[i] < hkey[j]
+    for c in range(4):
+        if hint[i, c] != hint[j, c]:
+            return hint[i, c] < hint[j, c]
+    return False
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
+def _heap_swap(hkey, hint, i, j):
+    hkey[i], hkey[j] = hkey[j], hkey[i]
+    for c in range(4):
+        hint[i, c], hint[j, c] = hint[j, c], hint[i, c]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _heap_sift_down(hkey, hint, size, i):
+    while True:
+        smallest = i
+        for child in (2 * i + 1, 2 * i + 2):
+            if child < size and _heap_less(hkey, hint, child, smallest):
+                smallest = child
+        if smallest == i:
+            return
+        _heap_swap(hkey, hint, i, smallest)
+        i = smallest
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _heap_push(hkey, hint, size, cost, a, b, va, vb):
+    """Push (cost, a, b, va, vb) onto the binary min-heap hkey[:size], hint[:size] (grown when full);
+    returns (hkey, hint, size)."""
+    if size == len(hkey):
+        grown_key = np.empty(2 * len(hkey) + 16)
+        grown_int = np.empty((2 * len(hkey) + 16, 4), np.int64)
+        grown_key[:size] = hkey[:size]
+        grown_int[:size] = hint[:size]
+        hkey, hint = grown_key, grown_int
+    hkey[size] = cost
+    hint[size, 0], hint[size, 1], hint[size, 2], hint[size, 3] = a, b, va, vb
+    i = size
+    while i > 0:
+        parent = (i - 1) // 2
+        if not _heap_less(hkey, hint, i, parent):
+            break
+        _heap_swap(hkey, hint, i, parent)
+        i = parent
+    return hkey, hint, size + 1
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _heap_pop(hkey, hint, size):
+    """Remove the first entry of the heap hkey[:size], hint[:size]; returns (a, b, va, vb, size)."""
+    a, b, va, vb = hint[0, 0], hint[0, 1], hint[0, 2], hint[0, 3]
+    size -= 1
+    if size > 0:
+        hkey[0] = hkey[size]
+        for c in range(4):
+            hint[0, c] = hint[size, c]
+        _heap_sift_down(hkey, hint, size, 0)
+    return a, b, va, vb, size
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _pair_costs(moments, pairs, tau2, noise_factor2):
+    """_plane_of rows (K, 13) of the pieces and the _merge_cost of every pair (m,)."""
+    n = moments.shape[0]
+    plane = np.empty((n, 13))
+    for x in range(n):
+        _plane_of(moments[x], plane[x])
+    costs = np.empty(pairs.shape[0])
+    for e in range(pairs.shape[0]):
+        a = pairs[e, 0]
+        b = pairs[e, 1]
+        costs[e] = _merge_cost(moments[a], moments[b], plane[a], plane[b], tau2, noise_factor2)
+    return plane, costs
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2):
     """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
 
     A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2).
+    plane_rows, costs: the pieces' _plane_of rows and the pairs' costs (:func:`_pair_costs`). The queue
+    is a binary heap ordered by (cost, a, b, version a, version b): every order of pushes pops the
+    same sequence.
     """
     n = moments.shape[0]
     mom = moments.copy()
+    plane = plane_rows.copy()
     parent = np.arange(n)
     version = np.zeros(n, np.int64)
     # half-edges: a linked list of neighbours per root (head, tail, next)
@@ -357,21 +441,20 @@ def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
             else:
                 nxt[tail[u]] = h
             tail[u] = h
-    plane = np.empty((n, 13))
-    for x in range(n):
-        _plane_of(mom[x], plane[x])
-    heap = [(0.0, np.int64(0), np.int64(0), np.int64(0), np.int64(0))]
-    heap.pop()
+    hkey = np.empty(2 * m + 16)
+    hint = np.empty((2 * m + 16, 4), np.int64)
+    size = 0
     for e in range(m):
-        a = pairs[e, 0]
-        b = pairs[e, 1]
-        cost = _merge_cost(mom[a], mom[b], plane[a], plane[b], tau2, noise_factor2)
-        if cost <= 1.0:
-            heapq.heappush(heap, (cost, a, b, np.int64(0), np.int64(0)))
+        if costs[e] <= 1.0:
+            hkey[size] = costs[e]
+            hint[size, 0], hint[size, 1], hint[size, 2], hint[size, 3] = pairs[e, 0], pairs[e, 1], 0, 0
+            size += 1
+    for i in range(size // 2 - 1, -1, -1):
+        _heap_sift_down(hkey, hint, size, i)
     stamp = np.full(n, -1, np.int64)
     n_merges = 0
-    while len(heap) > 0:
-        cost, a, b, va, vb = heapq.heappop(heap)
+    while size > 0:
+        a, b, va, vb, size = _heap_pop(hkey, hint, size)
         if parent[a] != a or parent[b] != b or version[a] != va or version[b] != vb:
             continue
         # merge b into a (a < b: the smaller id survives)
@@ -407,12 +490,42 @@ def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
                 hi = max(a, c)
                 value = _merge_cost(mom[lo], mom[hi], plane[lo], plane[hi], tau2, noise_factor2)
                 if value <= 1.0:
-                    heapq.heappush(heap, (value, lo, hi, version[lo], version[hi]))
+                    hkey, hint, size = _heap_push(hkey, hint, size, value, lo, hi, version[lo], version[hi])
             h = following
     roots = np.empty(n, np.int64)
     for x in range(n):
         roots[x] = _find(parent, x)
     return roots
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _unique_pairs(pairs, n):
+    """The distinct rows of pairs (m, 2) of ids in 0..n-1, sorted by (first, second): two stable
+    counting sorts (by the second id, then the first) and a pass over equal neighbours."""
+    m = pairs.shape[0]
+    by_second = np.empty(m, np.int64)
+    order = np.empty(m, np.int64)
+    start = np.zeros(n + 1, np.int64)
+    for column, source, target in ((1, np.arange(m), by_second), (0, by_second, order)):
+        start[:] = 0
+        for e in range(m):
+            start[pairs[e, column] + 1] += 1
+        for g in range(n):
+            start[g + 1] += start[g]
+        for e in source:
+            g = pairs[e, column]
+            target[start[g]] = e
+            start[g] += 1
+    out = np.empty((m, 2), np.int64)
+    n_out = 0
+    for e in order:
+        a = pairs[e, 0]
+        b = pairs[e, 1]
+        if n_out == 0 or out[n_out - 1, 0] != a or out[n_out - 1, 1] != b:
+            out[n_out, 0] = a
+            out[n_out, 1] = b
+            n_out += 1
+    return out[:n_out].copy()
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -513,6 +626,8 @@ def _last_next_to_first(valid: np.ndarray, directions: np.ndarray) -> bool:
 
 #: Pixels per thread below which the candidate pairs are found in the calling thread alone.
 PARALLEL_MIN_PIXELS = 32768
+#: Row blocks per thread of the candidate pairs (the cost per row varies: no returns, occluders).
+BLOCKS_PER_THREAD = 4
 
 _pool_lock = threading.Lock()
 _pool: list = []
@@ -530,11 +645,12 @@ def _executor(workers: int):
 
 
 def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, max_gap, connected_only) -> np.ndarray:
-    """_candidate_pairs of all pixels, in numba's thread count of row blocks at once (the kernel releases
-    the GIL); the blocks' pairs are concatenated in order (consolidate_pieces sorts and dedupes them)."""
-    n = len(ids)
-    parts = max(1, min(nb.get_num_threads(), n // PARALLEL_MIN_PIXELS))
-    bounds = [scan.width * round(i * scan.height / parts) for i in range(parts + 1)]
+    """_candidate_pairs of all pixels: row blocks (BLOCKS_PER_THREAD per thread) taken in turn by numba's
+    thread count of threads (the kernel releases the GIL); the blocks' pairs are concatenated in block
+    order (consolidate_pieces sorts and dedupes them)."""
+    threads = max(1, min(nb.get_num_threads(), len(ids) // PARALLEL_MIN_PIXELS))
+    n_blocks = min(threads * BLOCKS_PER_THREAD, scan.height) if threads > 1 else 1
+    bounds = [scan.width * round(i * scan.height / n_blocks) for i in range(n_blocks + 1)]
 
     def block(i: int) -> np.ndarray:
         return _candidate_pairs(
@@ -554,11 +670,25 @@ def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, m
             bounds[i + 1],
         )
 
-    if parts == 1:
+    if n_blocks == 1:
         return block(0)
-    futures = [_executor(parts - 1).submit(block, i) for i in range(1, parts)]
-    first = block(0)
-    return np.concatenate([first, *(future.result() for future in futures)])
+    tickets = iter(range(n_blocks))  # next() on a range iterator is atomic under the GIL
+    ticket_lock = threading.Lock()
+
+    def drain() -> list:
+        done = []
+        while True:
+            with ticket_lock:
+                i = next(tickets, None)
+            if i is None:
+                return done
+            done.append((i, block(i)))
+
+    futures = [_executor(threads - 1).submit(drain) for _ in range(threads - 1)]
+    results = drain()
+    for future in futures:
+        results += future.result()
+    return np.concatenate([pairs for _, pairs in sorted(results, key=lambda item: item[0])])
 
 
 def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -622,13 +752,12 @@ def consolidate_pieces(
     )
     if wrap_columns:
         pairs = np.concatenate([pairs, _seam_pairs(dense_for_pairs, scan.height, scan.width)])
-    n = np.int64(len(labels))
-    codes = np.unique(pairs[:, 0] * n + pairs[:, 1])  # sorted by (a, b), each pair once
-    pairs = np.stack([codes // n, codes % n], axis=1)
+    pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))  # sorted by (a, b), each pair once
     factor = float(noise_factor)
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
-    roots = _consolidate_kernel(moments, np.ascontiguousarray(pairs), tau * tau, factor * factor)
+    plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
+    roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
 
 
