@@ -8,7 +8,9 @@
 wrapping the module-level functions it calls (time.perf_counter, inclusive: a stage's time contains the
 stages it calls, e.g. ``_drop_non_planar`` its refit by ``fit_pixel_groups``). Stages a tree does not have
 are left blank. Times are medians over the repeats after one warm-up call (which also compiles the
-kernels); "whole_surfaces" is the serial pass after the greedy, "hierarchy" the ray scan, noise scaling,
+kernels), wall time and CPU time (time.process_time, all threads: the work, which the machine's other load
+changes less than the wall time); "whole_surfaces" is the serial pass after the greedy, "hierarchy" the ray
+scan, noise scaling,
 edge masks, seeds and greedy, "seeds + greedy" the hierarchy's own timer (PlaneHierarchy.seconds).
 
 ``--trees A B ...``: one worker process per source tree (PYTHONPATH=tree), the repeats alternated between
@@ -51,6 +53,8 @@ TIMED = (
     ('surfaces:systematic_covariances', '  systematic_covariances'),
 )
 SEEDS_GREEDY = 'seeds + greedy'
+#: Key prefix of a stage's CPU time (time.process_time: every thread of the process).
+CPU = 'cpu:'
 TOTAL = 'extract_planes'
 
 
@@ -86,11 +90,12 @@ class _Timers:
         sums = self.sums
 
         def timed(*args, **kwargs):
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             try:
                 return function(*args, **kwargs)
             finally:
                 sums[name] = sums.get(name, 0.0) + time.perf_counter() - start
+                sums[CPU + name] = sums.get(CPU + name, 0.0) + time.process_time() - cpu
 
         timed.__wrapped__ = function
         return timed
@@ -109,12 +114,12 @@ class _Timers:
         module = sys.modules[self.extract_planes.__module__]
         module.extract_plane_hierarchy = recording
         try:
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             self.extract_planes(points, origins=origins, sensor=sensor)
-            total = time.perf_counter() - start
+            total, cpu = time.perf_counter() - start, time.process_time() - cpu
         finally:
             module.extract_plane_hierarchy = original
-        return {**self.sums, SEEDS_GREEDY: float(sum(seconds)), TOTAL: total}
+        return {**self.sums, SEEDS_GREEDY: float(sum(seconds)), TOTAL: total, CPU + TOTAL: cpu}
 
 
 def _load(names: list[str]) -> list[tuple]:
@@ -145,24 +150,26 @@ def _worker() -> int:
 
 
 def _table(scans: list[str], trees: list[str], names: list[str], runs: dict) -> list[str]:
-    """Markdown table: stage, each tree's median (min), and each tree's ratio to the first tree."""
-    head = '| scan | stage | ' + ' | '.join(f'{Path(t).name} median s (min)' for t in trees)
-    head += ''.join(f' | {Path(trees[0]).name} / {Path(t).name}' for t in trees[1:]) + ' |'
-    lines = [head, '|---|---|' + '---:|' * (len(trees) + len(trees) - 1)]
+    """Markdown table: stage, each tree's median wall time (min) and median CPU time, and the first
+    tree's medians divided by each other tree's (wall, CPU)."""
+    head = '| scan | stage | ' + ' | '.join(f'{Path(t).name} wall median s (min) | CPU median s' for t in trees)
+    head += ''.join(f' | {Path(trees[0]).name} / {Path(t).name} wall, CPU' for t in trees[1:]) + ' |'
+    lines = [head, '|---|---|' + '---:|' * (3 * len(trees) - 1)]
     for s, scan in enumerate(scans):
         for name in names:
             cells, medians = [], []
             for tree in trees:
-                values = [run[s][name] for run in runs[tree] if name in run[s]]
-                if values:
-                    medians.append(float(np.median(values)))
-                    cells.append(f'{medians[-1]:.4f} ({min(values):.4f})')
+                walls = [run[s][name] for run in runs[tree] if name in run[s]]
+                cpus = [run[s][CPU + name] for run in runs[tree] if CPU + name in run[s]]
+                if walls:
+                    medians.append((float(np.median(walls)), float(np.median(cpus))))
+                    cells.append(f'{medians[-1][0]:.4f} ({min(walls):.4f}) | {medians[-1][1]:.4f}')
                 else:
                     medians.append(None)
-                    cells.append('')
+                    cells.append(' | ')
             for m in medians[1:]:
-                ok = m is not None and medians[0] is not None and m > 0
-                cells.append(f'{medians[0] / m:.2f}x' if ok else '')
+                ok = m is not None and medians[0] is not None and min(m) > 0
+                cells.append(f'{medians[0][0] / m[0]:.2f}x, {medians[0][1] / m[1]:.2f}x' if ok else '')
             lines.append(f'| {scan} | {name} | ' + ' | '.join(cells) + ' |')
     return lines
 

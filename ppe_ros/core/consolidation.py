@@ -253,12 +253,16 @@ def _candidate_pairs(
     n_out = 0
     for direction in range(2):  # 0: along rows (left), 1: along columns (up)
         step = 1 if direction == 0 else width
+        i = first // width
+        j = first - i * width - 1
         for k in range(first, last):
+            j += 1  # (i, j): the row and column of pixel k
+            if j == width:
+                j = 0
+                i += 1
             b = ids[k]
             if b < 0:
                 continue
-            i = k // width
-            j = k - i * width
             position = j if direction == 0 else i
             if position == 0:
                 continue
@@ -273,7 +277,7 @@ def _candidate_pairs(
                 # walk back over rays that bridge to b's plane, to the first ray that does not: a
                 # candidate if it is on a plane and every ray between bridges to that plane too
                 a = -1
-                for g in range(1, min(max_gap, position) + 1):
+                for g in range(1 if back < 0 else 2, min(max_gap, position) + 1):  # back bridges: tested
                     q = k - g * step
                     if ids[q] == b:
                         break
@@ -614,14 +618,52 @@ def _last_next_to_first(valid: np.ndarray, directions: np.ndarray) -> bool:
     """:func:`columns_wrap` on a ``(rows, columns)`` validity grid and its ``(rows, columns, 3)`` unit directions."""
     if valid.shape[1] < 8 or valid.shape[0] < 1:
         return False
-    both = valid[:, 1:] & valid[:, :-1]
-    seam_both = valid[:, -1] & valid[:, 0]
-    if np.count_nonzero(both) < 4 or not seam_both.any():
+    steps = _reusable('neighbour_dots', valid.shape[0] * (valid.shape[1] - 1), np.float64)
+    seam = _reusable('seam_dots', valid.shape[0], np.float64)
+    n_steps, n_seam = _neighbour_dots(valid, directions, steps, seam)
+    if n_steps < 4 or n_seam == 0:
         return False
-    steps = np.einsum('ijk,ijk->ij', directions[:, 1:], directions[:, :-1])[both]
-    seam = np.einsum('ik,ik->i', directions[:, -1], directions[:, 0])[seam_both]
-    step_angle = np.median(np.arccos(np.clip(steps, -1.0, 1.0)))
-    return float(np.median(np.arccos(np.clip(seam, -1.0, 1.0)))) <= 2.0 * float(step_angle)
+    step_angle = _median_angle(steps[:n_steps])
+    return _median_angle(seam[:n_seam]) <= 2.0 * step_angle
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _neighbour_dots(valid, directions, steps, seam):
+    """Cosines of the angles between the rays of neighbouring columns (both valid; row-major order)
+    into steps, and between the last and the first column into seam; returns their counts. The dot
+    products are summed as (0 + 2) + 1, the order of np.einsum's two-lane sum of three terms."""
+    rows, columns = valid.shape
+    n_steps = 0
+    n_seam = 0
+    for i in range(rows):
+        for j in range(columns):
+            if j + 1 < columns:
+                if not (valid[i, j + 1] and valid[i, j]):
+                    continue
+                a, b = j + 1, j
+            elif valid[i, columns - 1] and valid[i, 0]:
+                a, b = columns - 1, 0
+            else:
+                continue
+            cosine = (
+                directions[i, a, 0] * directions[i, b, 0] + directions[i, a, 2] * directions[i, b, 2]
+            ) + directions[i, a, 1] * directions[i, b, 1]
+            if j + 1 < columns:
+                steps[n_steps] = cosine
+                n_steps += 1
+            else:
+                seam[n_seam] = cosine
+                n_seam += 1
+    return n_steps, n_seam
+
+
+def _median_angle(cosines: np.ndarray) -> float:
+    """``np.median(np.arccos(np.clip(cosines, -1, 1)))`` from the middle cosines alone (arccos decreases:
+    the middle angles are those of the middle cosines); cosines (work memory) is partitioned in place."""
+    n = len(cosines)
+    middle = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+    cosines.partition(middle)
+    return float(np.median(np.arccos(np.clip(cosines[middle], -1.0, 1.0))))
 
 
 #: Pixels per thread below which the candidate pairs are found in the calling thread alone.
@@ -762,13 +804,14 @@ def consolidate_pieces(
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances, wrap_columns):
+def _absorb_kernel(
+    ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances, wrap_columns, queue
+):
     """Grow every surface into 4-neighbouring rays without one that lie on its plane (breadth first,
     in pixel order); ids is updated in place. A ray k lies on surface P when its distance from P's
-    plane is at most tolerances[P] + 2 sigma_k |n . v_k|. wrap_columns: the first and the last column
-    are neighbours."""
+    plane is at most tolerances[P] + 2 sigma_k |n . v_k| (a non-finite sigma_k counts as 0).
+    wrap_columns: the first and the last column are neighbours. queue: work memory of len(ids)."""
     n = len(ids)
-    queue = np.empty(n, np.int64)
     head = 0
     tail = 0
     for k in range(n):
@@ -808,7 +851,8 @@ def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, nor
                 + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
                 + normals[p, 2] * (endpoints[q, 2] - means[p, 2])
             )
-            if abs(distance) <= tolerances[p] + 2.0 * sigmas[q] * abs(along):
+            sigma = sigmas[q] if np.isfinite(sigmas[q]) else 0.0
+            if abs(distance) <= tolerances[p] + 2.0 * sigma * abs(along):
                 ids[q] = p
                 queue[tail] = q
                 tail += 1
@@ -835,13 +879,12 @@ def absorb_rays(
         return ids
     labels, dense, _, small, (normals, means, own) = _dense_pieces(scan, ids, sigmas, max(int(min_points), 3))
     dense = np.where((dense >= 0) & ~small[np.maximum(dense, 0)], dense, -1)
-    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     tolerances = np.sqrt(float(surface_tolerance) ** 2 + float(noise_factor) ** 2 * own)
     _absorb_kernel(
         dense,
         scan.endpoints,
         scan.directions,
-        ray_sigmas,
+        np.ascontiguousarray(sigmas, dtype=np.float64),
         scan.valid,
         scan.height,
         scan.width,
@@ -849,5 +892,189 @@ def absorb_rays(
         means,
         tolerances,
         bool(wrap_columns),
+        np.empty(len(dense), np.int64),
     )
     return np.where(dense >= 0, labels[np.maximum(dense, 0)], -1)
+
+
+_work_memory = threading.local()
+
+
+def _reusable(name: str, size: int, dtype) -> np.ndarray:
+    """A 1-D array of ``size`` elements from this thread's work memory of the consolidation (kept for
+    the next call: fresh memory costs a page fault per 4 KiB page when first touched, about 0.5 ms per
+    MB here). Each thread keeps its own buffers; a larger request replaces the buffer."""
+    buffers = getattr(_work_memory, 'buffers', None)
+    if buffers is None:
+        buffers = _work_memory.buffers = {}
+    buffer = buffers.get(name)
+    if buffer is None or len(buffer) < size or buffer.dtype != dtype:
+        buffer = buffers[name] = np.empty(size, dtype)
+    return buffer[:size]
+
+
+def release_work_memory() -> None:
+    """Free the work memory :func:`consolidated_surfaces` keeps between calls in the calling thread
+    (about 40 bytes per ray of the largest scan so far)."""
+    _work_memory.buffers = {}
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _dense_moments_kernel(ids, rank, dense, endpoints, sigmas):
+    """_dense_ids_kernel and _piece_moments in one: rank (len > ids.max()) and dense (len(ids)) are
+    filled in place; returns (labels (K,), moments (K, 11)). Non-finite sigmas count as 0."""
+    rank[:] = -1
+    for k in range(len(ids)):
+        if ids[k] >= 0:
+            rank[ids[k]] = 0
+    n_labels = 0
+    for g in range(len(rank)):
+        if rank[g] == 0:
+            rank[g] = n_labels
+            n_labels += 1
+    labels = np.empty(n_labels, np.int64)
+    for g in range(len(rank)):
+        if rank[g] >= 0:
+            labels[rank[g]] = g
+    mom = np.zeros((n_labels, 11))
+    for k in range(len(ids)):
+        g = rank[ids[k]] if ids[k] >= 0 else -1
+        dense[k] = g
+        if g < 0:
+            continue
+        x = endpoints[k, 0]
+        y = endpoints[k, 1]
+        z = endpoints[k, 2]
+        sigma = sigmas[k] if np.isfinite(sigmas[k]) else 0.0
+        mom[g, 0] += 1.0
+        mom[g, 1] += x
+        mom[g, 2] += y
+        mom[g, 3] += z
+        mom[g, 4] += x * x
+        mom[g, 5] += x * y
+        mom[g, 6] += x * z
+        mom[g, 7] += y * y
+        mom[g, 8] += y * z
+        mom[g, 9] += z * z
+        mom[g, 10] += sigma * sigma
+    return labels, mom
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _without_small(dense, small, out):
+    """out[k] = dense[k], or -1 where it is a small piece's (small[dense[k]])."""
+    for k in range(len(dense)):
+        out[k] = -1 if dense[k] >= 0 and small[dense[k]] else dense[k]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _surface_moments_kernel(dense, roots, endpoints, sigmas, min_points, surface):
+    """Each pixel's surface (the consolidation's root of its piece), numbered 0..S-1 by ascending root,
+    into surface (-1: none, or a surface of fewer than min_points rays); returns the surfaces' (S, 11)
+    moments, summed over their pixels in pixel order (non-finite sigmas count as 0)."""
+    index = np.full(len(roots), -1, np.int64)
+    for k in range(len(dense)):
+        if dense[k] >= 0:
+            index[roots[dense[k]]] = 0
+    n_surfaces = 0
+    for r in range(len(roots)):
+        if index[r] == 0:
+            index[r] = n_surfaces
+            n_surfaces += 1
+    mom = np.zeros((n_surfaces, 11))
+    for k in range(len(dense)):
+        if dense[k] < 0:
+            surface[k] = -1
+            continue
+        g = index[roots[dense[k]]]
+        surface[k] = g
+        x = endpoints[k, 0]
+        y = endpoints[k, 1]
+        z = endpoints[k, 2]
+        sigma = sigmas[k] if np.isfinite(sigmas[k]) else 0.0
+        mom[g, 0] += 1.0
+        mom[g, 1] += x
+        mom[g, 2] += y
+        mom[g, 3] += z
+        mom[g, 4] += x * x
+        mom[g, 5] += x * y
+        mom[g, 6] += x * z
+        mom[g, 7] += y * y
+        mom[g, 8] += y * z
+        mom[g, 9] += z * z
+        mom[g, 10] += sigma * sigma
+    for k in range(len(dense)):
+        if surface[k] >= 0 and mom[surface[k], 0] < min_points:
+            surface[k] = -1
+    return mom
+
+
+def consolidated_surfaces(
+    scan: RayScan,
+    piece_ids: np.ndarray,
+    sigmas: np.ndarray,
+    surface_tolerance: float,
+    *,
+    noise_factor: float = 0.0,
+    connected_only: bool = False,
+    min_points: int = 1,
+    wrap_columns: bool = False,
+) -> np.ndarray:
+    """``absorb_rays(scan, consolidate_pieces(scan, piece_ids, ...), ...)`` with the surfaces numbered
+    0..S-1 (by their smallest piece id) instead of by that id: the same rays in the same surfaces,
+    with the work arrays in this thread's work memory (:func:`release_work_memory`).
+
+    Returns ``(H*W,)`` surface of each pixel (-1: none); the array is work memory, overwritten by
+    this thread's next call (copy it to keep it).
+    """
+    tau = float(surface_tolerance)
+    factor = float(noise_factor)
+    if not (np.isfinite(tau) and tau > 0.0):
+        raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
+    if not (np.isfinite(factor) and factor >= 0.0):
+        raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
+    ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
+    if ids.shape != (scan.size,):
+        raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
+    sigmas = np.ascontiguousarray(sigmas, dtype=np.float64)
+    surface = _reusable('surface', scan.size, np.int64)
+    if ids.size == 0 or ids.max() < 0:
+        surface[:] = -1
+        return surface
+    bound = int(ids.max()) + 1
+    dense = _reusable('dense', scan.size, np.int64)
+    if bound <= 4 * ids.size + 16:
+        labels, moments = _dense_moments_kernel(ids, _reusable('rank', bound, np.int64), dense, scan.endpoints, sigmas)
+    else:
+        labels, dense[:] = _dense_ids(ids)
+        moments = _piece_moments(dense, scan.endpoints, np.where(np.isfinite(sigmas), sigmas, 0.0), len(labels))
+    roots = np.arange(len(labels))
+    if len(labels) >= 2:
+        small = moments[:, 0] < 3
+        normals, means, _ = _piece_planes(np.where(small[:, None], np.ones(11), moments))
+        pair_ids = _reusable('pair_ids', scan.size, np.int64)
+        _without_small(dense, small, pair_ids)
+        pairs = _parallel_candidate_pairs(pair_ids, scan, sigmas, normals, means, tau, DEFAULT_MAX_GAP, connected_only)
+        if wrap_columns:
+            pairs = np.concatenate([pairs, _seam_pairs(pair_ids, scan.height, scan.width)])
+        pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))
+        plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
+        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
+    surface_moments = _surface_moments_kernel(dense, roots, scan.endpoints, sigmas, max(int(min_points), 3), surface)
+    small = surface_moments[:, 0] < max(int(min_points), 3)
+    normals, means, own = _piece_planes(np.where(small[:, None], np.ones(11), surface_moments))
+    _absorb_kernel(
+        surface,
+        scan.endpoints,
+        scan.directions,
+        sigmas,
+        scan.valid,
+        scan.height,
+        scan.width,
+        normals,
+        means,
+        np.sqrt(tau**2 + factor**2 * own),
+        bool(wrap_columns),
+        dense,  # the queue: dense is no longer needed
+    )
+    return surface

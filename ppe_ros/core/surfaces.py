@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numba as nb
 import numpy as np
 
-from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces, rows_wrap
+from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
 from ppe_ros.core.fitting import fit_pixel_groups, fit_weighted_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import RayScan
@@ -40,11 +40,7 @@ def whole_surfaces(
     ids = hierarchy.plane_ids(steps)
     scan = hierarchy.scan
     sigmas = hierarchy.sigmas
-    unit_scan = (
-        scan
-        if sigmas is None
-        else replace(scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
-    )
+    unit_scan = scan if sigmas is None else replace(scan, directions=_unit_directions(scan, sigmas))
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
         noise_factor = 0.0 if profile is None else profile.noise_factor
@@ -81,6 +77,22 @@ def whole_surfaces(
     return planes
 
 
+def _unit_directions(scan: RayScan, sigmas: np.ndarray) -> np.ndarray:
+    """``scan.directions / sigma_k`` (the greedy's scaled directions made unit again; invalid rays as
+    they are), in the consolidation's work memory (valid until this thread's next whole_surfaces)."""
+    out = _reusable('unit_directions', 3 * scan.size, np.float64).reshape(scan.size, 3)
+    _unit_directions_kernel(scan.directions, scan.valid, np.ascontiguousarray(sigmas, dtype=np.float64), out)
+    return out
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _unit_directions_kernel(directions, valid, sigmas, out):
+    for k in range(len(valid)):
+        scale = sigmas[k] if valid[k] else 1.0
+        for c in range(3):
+            out[k, c] = directions[k, c] / scale
+
+
 def _consolidate(
     unit_scan: RayScan,
     ids: np.ndarray,
@@ -107,10 +119,18 @@ def _consolidate(
             valid=unit_scan.valid[order],
         )
         ids, ray_sigmas, wrap = ids[order], ray_sigmas[order], True
-    ids = consolidate_pieces(
-        scan, ids, ray_sigmas, tau, connected_only=connected_only, noise_factor=noise_factor, wrap_columns=wrap
+    # consolidate_pieces then absorb_rays, the surfaces numbered 0..S-1 (fit_pixel_groups numbers
+    # planes by size and first pixel: the ids' values do not matter), in work memory
+    ids = consolidated_surfaces(
+        scan,
+        ids,
+        ray_sigmas,
+        tau,
+        connected_only=connected_only,
+        noise_factor=noise_factor,
+        min_points=min_points,
+        wrap_columns=wrap,
     )
-    ids = absorb_rays(scan, ids, ray_sigmas, tau, noise_factor=noise_factor, min_points=min_points, wrap_columns=wrap)
     if order is None:
         return ids
     back = np.empty_like(ids)
