@@ -188,3 +188,65 @@ def test_consolidation_of_the_scene_is_independent_of_the_thread_count(monkeypat
         numba.set_num_threads(previous)
     assert len(np.unique(one[one >= 0])) < len(np.unique(ids[ids >= 0]))
     np.testing.assert_array_equal(one, two)
+
+
+def _groups(ids: np.ndarray) -> np.ndarray:
+    """Each pixel's group numbered by its first pixel (-1: none): equal for equal partitions."""
+    out = np.full(ids.shape, -1, np.int64)
+    on = ids >= 0
+    _, first, inverse = np.unique(ids[on], return_index=True, return_inverse=True)
+    out[on] = np.flatnonzero(on)[first][inverse]
+    return out
+
+
+@pytest.mark.parametrize(('seed', 'connected_only', 'wrap'), [(9, False, True), (10, True, False), (11, False, False)])
+def test_consolidated_surfaces_group_the_rays_as_consolidate_then_absorb(seed, connected_only, wrap):
+    scan, ids, sigmas = _scene(seed, rows=40)
+    ids = ids.copy()
+    ids[::97] = np.where(ids[::97] >= 0, 10**6 + np.arange(len(ids[::97])), -1)  # pieces of one ray
+    kw = {'noise_factor': 1.0, 'connected_only': connected_only, 'wrap_columns': wrap}
+    merged = consolidation.consolidate_pieces(scan, ids, sigmas, 0.05, **kw)
+    want = consolidation.absorb_rays(scan, merged, sigmas, 0.05, noise_factor=1.0, min_points=6, wrap_columns=wrap)
+    got = consolidation.consolidated_surfaces(scan, ids, sigmas, 0.05, min_points=6, **kw).copy()
+    assert 3 < len(np.unique(want[want >= 0])) < len(np.unique(ids[ids >= 0]))
+    np.testing.assert_array_equal(_groups(got), _groups(want))
+    big = consolidation.consolidated_surfaces(
+        scan, np.where(ids >= 0, ids * 10**9, -1), sigmas, 0.05, min_points=6, **kw
+    )
+    np.testing.assert_array_equal(_groups(big), _groups(want))  # ids far beyond the pixel count (np.unique)
+    none = consolidation.consolidated_surfaces(scan, np.full(scan.size, -1), sigmas, 0.05)
+    assert (none == -1).all()
+
+
+def _reference_columns_wrap(valid: np.ndarray, directions: np.ndarray) -> bool:
+    """The numpy test that _last_next_to_first replaced."""
+    both = valid[:, 1:] & valid[:, :-1]
+    seam_both = valid[:, -1] & valid[:, 0]
+    if np.count_nonzero(both) < 4 or not seam_both.any():
+        return False
+    steps = np.einsum('ijk,ijk->ij', directions[:, 1:], directions[:, :-1])[both]
+    seam = np.einsum('ik,ik->i', directions[:, -1], directions[:, 0])[seam_both]
+    step_angle = np.median(np.arccos(np.clip(steps, -1.0, 1.0)))
+    return float(np.median(np.arccos(np.clip(seam, -1.0, 1.0)))) <= 2.0 * float(step_angle)
+
+
+def test_the_seam_test_equals_the_numpy_medians():
+    rng = np.random.default_rng(12)
+    for trial in range(40):
+        rows, cols = int(rng.integers(1, 6)), int(rng.integers(8, 40))
+        span = rng.uniform(1.5, 2.2) * np.pi  # around a full revolution: the seam step near the others
+        az = np.linspace(0.0, span, cols, endpoint=False) + rng.normal(0, 0.01, cols)
+        el = rng.uniform(-0.3, 0.3, (rows, 1))
+        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0 * az], -1)
+        valid = rng.random((rows, cols)) < (0.5 if trial % 3 else 0.95)
+        want = _reference_columns_wrap(valid, d)
+        assert consolidation._last_next_to_first(valid, d) == want
+        steps = consolidation._reusable('t', rows * (cols - 1), np.float64)
+        seam = consolidation._reusable('u', rows, np.float64)
+        n_steps, n_seam = consolidation._neighbour_dots(valid, d, steps, seam)
+        both = valid[:, 1:] & valid[:, :-1]
+        assert n_seam == np.count_nonzero(valid[:, -1] & valid[:, 0])
+        np.testing.assert_allclose(steps[:n_steps], np.einsum('ijk,ijk->ij', d[:, 1:], d[:, :-1])[both], rtol=1e-15)
+        if n_steps:
+            want_median = np.median(np.arccos(np.clip(steps[:n_steps], -1.0, 1.0)))
+            assert consolidation._median_angle(steps[:n_steps].copy()) == want_median

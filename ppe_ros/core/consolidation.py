@@ -174,7 +174,7 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
     return max(q + offset * offset - piece[9], 0.0)
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
     and step^2 / t^2, with t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
@@ -335,34 +335,44 @@ def _find(parent, x):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _heap_less(hkey, hint, i, j):
-    """Entry i of the heap before entry j: (cost, a, b, version a, version b) in lexicographic order."""
-    if hkey[i] != hkey[j]:
-        return hkey[i] < hkey[j]
-    for c in range(4):
-        if hint[i, c] != hint[j, c]:
-            return hint[i, c] < hint[j, c]
-    return False
+def _heap_before(hkey, hint, i, key, a, b, va, vb):
+    """Heap entry i before the entry (key, a, b, va, vb): (cost, a, b, version a, version b) in
+    lexicographic order."""
+    if hkey[i] != key:
+        return hkey[i] < key
+    if hint[i, 0] != a:
+        return hint[i, 0] < a
+    if hint[i, 1] != b:
+        return hint[i, 1] < b
+    if hint[i, 2] != va:
+        return hint[i, 2] < va
+    return hint[i, 3] < vb
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _heap_swap(hkey, hint, i, j):
-    hkey[i], hkey[j] = hkey[j], hkey[i]
-    for c in range(4):
-        hint[i, c], hint[j, c] = hint[j, c], hint[i, c]
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _heap_put(hkey, hint, i, key, a, b, va, vb):
+    hkey[i] = key
+    hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3] = a, b, va, vb
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _heap_sift_down(hkey, hint, size, i):
+    """Move entry i down the heap hkey[:size], hint[:size] to its place (children moved up into the hole)."""
+    key, a, b, va, vb = hkey[i], hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3]
     while True:
-        smallest = i
-        for child in (2 * i + 1, 2 * i + 2):
-            if child < size and _heap_less(hkey, hint, child, smallest):
-                smallest = child
-        if smallest == i:
-            return
-        _heap_swap(hkey, hint, i, smallest)
-        i = smallest
+        child = 2 * i + 1
+        if child >= size:
+            break
+        right = child + 1
+        if right < size and _heap_before(
+            hkey, hint, right, hkey[child], hint[child, 0], hint[child, 1], hint[child, 2], hint[child, 3]
+        ):
+            child = right
+        if not _heap_before(hkey, hint, child, key, a, b, va, vb):
+            break
+        _heap_put(hkey, hint, i, hkey[child], hint[child, 0], hint[child, 1], hint[child, 2], hint[child, 3])
+        i = child
+    _heap_put(hkey, hint, i, key, a, b, va, vb)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -375,15 +385,14 @@ def _heap_push(hkey, hint, size, cost, a, b, va, vb):
         grown_key[:size] = hkey[:size]
         grown_int[:size] = hint[:size]
         hkey, hint = grown_key, grown_int
-    hkey[size] = cost
-    hint[size, 0], hint[size, 1], hint[size, 2], hint[size, 3] = a, b, va, vb
     i = size
-    while i > 0:
+    while i > 0:  # parents after the new entry move down into the hole
         parent = (i - 1) // 2
-        if not _heap_less(hkey, hint, i, parent):
+        if _heap_before(hkey, hint, parent, cost, a, b, va, vb):
             break
-        _heap_swap(hkey, hint, i, parent)
+        _heap_put(hkey, hint, i, hkey[parent], hint[parent, 0], hint[parent, 1], hint[parent, 2], hint[parent, 3])
         i = parent
+    _heap_put(hkey, hint, i, cost, a, b, va, vb)
     return hkey, hint, size + 1
 
 
