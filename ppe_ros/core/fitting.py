@@ -622,7 +622,7 @@ def fit_weighted_pixel_groups(
     ``sigmas`` (m, the rays' range noise), as in fit_pixel_groups.
     """
     height, width = scan.height, scan.width
-    ids = np.where(scan.valid, plane_ids, -1).astype(np.int64)
+    ids = np.where(scan.valid, plane_ids, -1).astype(np.int64, copy=False)
     if ids.size and ids.max() >= scan.size:  # ids beyond the pixel count (labels): renumber them
         labelled = ids >= 0
         ids[labelled] = np.unique(ids[labelled], return_inverse=True)[1]
