@@ -162,14 +162,16 @@ def _table(scans: list[str], trees: list[str], names: list[str], runs: dict) -> 
                 walls = [run[s][name] for run in runs[tree] if name in run[s]]
                 cpus = [run[s][CPU + name] for run in runs[tree] if CPU + name in run[s]]
                 if walls:
-                    medians.append((float(np.median(walls)), float(np.median(cpus))))
-                    cells.append(f'{medians[-1][0]:.4f} ({min(walls):.4f}) | {medians[-1][1]:.4f}')
+                    medians.append((float(np.median(walls)), float(np.median(cpus)) if cpus else np.nan))
+                    cpu_cell = f'{medians[-1][1]:.4f}' if cpus else ''
+                    cells.append(f'{medians[-1][0]:.4f} ({min(walls):.4f}) | {cpu_cell}')
                 else:
                     medians.append(None)
                     cells.append(' | ')
             for m in medians[1:]:
-                ok = m is not None and medians[0] is not None and min(m) > 0
-                cells.append(f'{medians[0][0] / m[0]:.2f}x, {medians[0][1] / m[1]:.2f}x' if ok else '')
+                ok = m is not None and medians[0] is not None and m[0] > 0
+                cpu_ratio = f', {medians[0][1] / m[1]:.2f}x' if ok and m[1] > 0 else ''
+                cells.append(f'{medians[0][0] / m[0]:.2f}x{cpu_ratio}' if ok else '')
             lines.append(f'| {scan} | {name} | ' + ' | '.join(cells) + ' |')
     return lines
 
