@@ -263,7 +263,7 @@ def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_
     sigmas = np.where(scan.valid, 0.005, np.nan)
 
     def kept(flatness_length):
-        out = _drop_non_planar(scan, scan, planes, sigmas, 0.05, 0.0, 1.3, None, 4, 0, {}, flatness_length)
+        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, flatness_length)
         return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
 
     assert kept(None) == [0, 1, 2]

@@ -42,7 +42,7 @@ kernel is tested against.
 
 from __future__ import annotations
 
-import heapq
+import threading
 
 import numba as nb
 import numpy as np
@@ -132,6 +132,21 @@ def _scatter(m):
     )
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _union_scatter(m_a, m_b):
+    """:func:`_scatter` of the moments m_a + m_b, without allocating their sum."""
+    inv = 1.0 / (m_a[0] + m_b[0])
+    m0, m1, m2 = (m_a[1] + m_b[1]) * inv, (m_a[2] + m_b[2]) * inv, (m_a[3] + m_b[3]) * inv
+    return (m0, m1, m2), (
+        (m_a[4] + m_b[4]) * inv - m0 * m0,
+        (m_a[5] + m_b[5]) * inv - m0 * m1,
+        (m_a[6] + m_b[6]) * inv - m0 * m2,
+        (m_a[7] + m_b[7]) * inv - m1 * m1,
+        (m_a[8] + m_b[8]) * inv - m1 * m2,
+        (m_a[9] + m_b[9]) * inv - m2 * m2,
+    )
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _plane_of(m, out):
     """The orthogonal LS plane of moments m into out (13): mean (3), scatter (6), own (the smallest
@@ -159,7 +174,7 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
     return max(q + offset * offset - piece[9], 0.0)
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
     and step^2 / t^2, with t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
@@ -168,7 +183,7 @@ def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     U is the union's LS plane; step is the distance between the planes of A and B along U's normal
     at the midpoint of their means. m_*: moments; plane_*: their _plane_of rows.
     """
-    mean_u, sc = _scatter(m_a + m_b)
+    mean_u, sc = _union_scatter(m_a, m_b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
     scatter = min(max(plane_a[9], plane_b[9]), max(m_a[10] / m_a[0], m_b[10] / m_b[0]))
     allowed_a = allowed_b = tau2 + noise_factor2 * scatter
@@ -200,9 +215,9 @@ def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise
     return float(_merge_cost(m_a, m_b, plane_a, plane_b, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, connected_only):
-    """True if ray k may lie between two pieces of the surface with plane (normal, mean).
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _bridges(ids, endpoints, directions, ranges, sigmas, k, normals, means, g, tau, connected_only):
+    """True if ray k may lie between two pieces of the surface of piece g (plane normals[g], means[g]).
 
     It may if it has no plane and ends on the plane (within 2 tau + 2 sigma_k |n . v_k| along the
     normal), or, unless connected_only, if it has no return or ends in front of the plane (on the
@@ -211,12 +226,13 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, c
     if not np.isfinite(ranges[k]):
         return not connected_only
     r = ranges[k]
-    along = normal[0] * directions[k, 0] + normal[1] * directions[k, 1] + normal[2] * directions[k, 2]
+    n0, n1, n2 = normals[g, 0], normals[g, 1], normals[g, 2]
+    along = n0 * directions[k, 0] + n1 * directions[k, 1] + n2 * directions[k, 2]
     margin = 2.0 * tau + 2.0 * sigmas[k] * abs(along)
     height = (
-        normal[0] * (endpoints[k, 0] - mean[0])
-        + normal[1] * (endpoints[k, 1] - mean[1])
-        + normal[2] * (endpoints[k, 2] - mean[2])
+        n0 * (endpoints[k, 0] - means[g, 0])
+        + n1 * (endpoints[k, 1] - means[g, 1])
+        + n2 * (endpoints[k, 2] - means[g, 2])
     )
     if abs(height) <= margin:
         return ids[k] < 0
@@ -229,19 +245,24 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normal, mean, tau, c
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _candidate_pairs(
-    ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap, connected_only
+    ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap, connected_only, first, last
 ):
-    """Candidate pairs (a < b) as an (m, 2) array, possibly with repeats (see the module docstring)."""
-    out = np.empty((2 * len(ids) + 16, 2), np.int64)
+    """Candidate pairs (a < b) found from the pixels first..last-1 (the later piece b of a pair is on
+    one of them), as an (m, 2) array, possibly with repeats (see the module docstring)."""
+    out = np.empty((2 * (last - first) + 16, 2), np.int64)
     n_out = 0
     for direction in range(2):  # 0: along rows (left), 1: along columns (up)
         step = 1 if direction == 0 else width
-        for k in range(len(ids)):
+        i = first // width
+        j = first - i * width - 1
+        for k in range(first, last):
+            j += 1  # (i, j): the row and column of pixel k
+            if j == width:
+                j = 0
+                i += 1
             b = ids[k]
             if b < 0:
                 continue
-            i = k // width
-            j = k - i * width
             position = j if direction == 0 else i
             if position == 0:
                 continue
@@ -251,18 +272,16 @@ def _candidate_pairs(
             if back >= 0:  # pieces that touch are candidates
                 out, n_out = _add_pair(out, n_out, back, b)
             if back < 0 or _bridges(
-                ids, endpoints, directions, ranges, sigmas, k - step, normals[b], means[b], tau, connected_only
+                ids, endpoints, directions, ranges, sigmas, k - step, normals, means, b, tau, connected_only
             ):
                 # walk back over rays that bridge to b's plane, to the first ray that does not: a
                 # candidate if it is on a plane and every ray between bridges to that plane too
                 a = -1
-                for g in range(1, min(max_gap, position) + 1):
+                for g in range(1 if back < 0 else 2, min(max_gap, position) + 1):  # back bridges: tested
                     q = k - g * step
                     if ids[q] == b:
                         break
-                    if _bridges(
-                        ids, endpoints, directions, ranges, sigmas, q, normals[b], means[b], tau, connected_only
-                    ):
+                    if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, b, tau, connected_only):
                         continue
                     if ids[q] >= 0 and _gap_bridges(
                         ids,
@@ -273,8 +292,9 @@ def _candidate_pairs(
                         q,
                         k,
                         step,
-                        normals[ids[q]],
-                        means[ids[q]],
+                        normals,
+                        means,
+                        ids[q],
                         tau,
                         connected_only,
                     ):
@@ -298,10 +318,10 @@ def _add_pair(out, n_out, a, b):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _gap_bridges(ids, endpoints, directions, ranges, sigmas, first, last, step, normal, mean, tau, connected_only):
-    """True if every ray strictly between pixels first and last (a line of the grid) bridges to the plane."""
+def _gap_bridges(ids, endpoints, directions, ranges, sigmas, first, last, step, normals, means, g, tau, connected_only):
+    """True if every ray strictly between pixels first and last (a line of the grid) bridges to piece g's plane."""
     for q in range(first + step, last, step):
-        if not _bridges(ids, endpoints, directions, ranges, sigmas, q, normal, mean, tau, connected_only):
+        if not _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, g, tau, connected_only):
             return False
     return True
 
@@ -314,14 +334,108 @@ def _find(parent, x):
     return x
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _heap_before(hkey, hint, i, key, a, b, va, vb):
+    """Heap entry i before the entry (key, a, b, va, vb): (cost, a, b, version a, version b) in
+    lexicographic order."""
+    if hkey[i] != key:
+        return hkey[i] < key
+    if hint[i, 0] != a:
+        return hint[i, 0] < a
+    if hint[i, 1] != b:
+        return hint[i, 1] < b
+    if hint[i, 2] != va:
+        return hint[i, 2] < va
+    return hint[i, 3] < vb
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _heap_put(hkey, hint, i, key, a, b, va, vb):
+    hkey[i] = key
+    hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3] = a, b, va, vb
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
+def _heap_sift_down(hkey, hint, size, i):
+    """Move entry i down the heap hkey[:size], hint[:size] to its place (children moved up into the hole)."""
+    key, a, b, va, vb = hkey[i], hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3]
+    while True:
+        child = 2 * i + 1
+        if child >= size:
+            break
+        right = child + 1
+        if right < size and _heap_before(
+            hkey, hint, right, hkey[child], hint[child, 0], hint[child, 1], hint[child, 2], hint[child, 3]
+        ):
+            child = right
+        if not _heap_before(hkey, hint, child, key, a, b, va, vb):
+            break
+        _heap_put(hkey, hint, i, hkey[child], hint[child, 0], hint[child, 1], hint[child, 2], hint[child, 3])
+        i = child
+    _heap_put(hkey, hint, i, key, a, b, va, vb)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _heap_push(hkey, hint, size, cost, a, b, va, vb):
+    """Push (cost, a, b, va, vb) onto the binary min-heap hkey[:size], hint[:size] (grown when full);
+    returns (hkey, hint, size)."""
+    if size == len(hkey):
+        grown_key = np.empty(2 * len(hkey) + 16)
+        grown_int = np.empty((2 * len(hkey) + 16, 4), np.int64)
+        grown_key[:size] = hkey[:size]
+        grown_int[:size] = hint[:size]
+        hkey, hint = grown_key, grown_int
+    i = size
+    while i > 0:  # parents after the new entry move down into the hole
+        parent = (i - 1) // 2
+        if _heap_before(hkey, hint, parent, cost, a, b, va, vb):
+            break
+        _heap_put(hkey, hint, i, hkey[parent], hint[parent, 0], hint[parent, 1], hint[parent, 2], hint[parent, 3])
+        i = parent
+    _heap_put(hkey, hint, i, cost, a, b, va, vb)
+    return hkey, hint, size + 1
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _heap_pop(hkey, hint, size):
+    """Remove the first entry of the heap hkey[:size], hint[:size]; returns (a, b, va, vb, size)."""
+    a, b, va, vb = hint[0, 0], hint[0, 1], hint[0, 2], hint[0, 3]
+    size -= 1
+    if size > 0:
+        hkey[0] = hkey[size]
+        for c in range(4):
+            hint[0, c] = hint[size, c]
+        _heap_sift_down(hkey, hint, size, 0)
+    return a, b, va, vb, size
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _pair_costs(moments, pairs, tau2, noise_factor2):
+    """_plane_of rows (K, 13) of the pieces and the _merge_cost of every pair (m,)."""
+    n = moments.shape[0]
+    plane = np.empty((n, 13))
+    for x in range(n):
+        _plane_of(moments[x], plane[x])
+    costs = np.empty(pairs.shape[0])
+    for e in range(pairs.shape[0]):
+        a = pairs[e, 0]
+        b = pairs[e, 1]
+        costs[e] = _merge_cost(moments[a], moments[b], plane[a], plane[b], tau2, noise_factor2)
+    return plane, costs
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2):
     """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
 
     A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2).
+    plane_rows, costs: the pieces' _plane_of rows and the pairs' costs (:func:`_pair_costs`). The queue
+    is a binary heap ordered by (cost, a, b, version a, version b): every order of pushes pops the
+    same sequence.
     """
     n = moments.shape[0]
     mom = moments.copy()
+    plane = plane_rows.copy()
     parent = np.arange(n)
     version = np.zeros(n, np.int64)
     # half-edges: a linked list of neighbours per root (head, tail, next)
@@ -340,21 +454,20 @@ def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
             else:
                 nxt[tail[u]] = h
             tail[u] = h
-    plane = np.empty((n, 13))
-    for x in range(n):
-        _plane_of(mom[x], plane[x])
-    heap = [(0.0, np.int64(0), np.int64(0), np.int64(0), np.int64(0))]
-    heap.pop()
+    hkey = np.empty(2 * m + 16)
+    hint = np.empty((2 * m + 16, 4), np.int64)
+    size = 0
     for e in range(m):
-        a = pairs[e, 0]
-        b = pairs[e, 1]
-        cost = _merge_cost(mom[a], mom[b], plane[a], plane[b], tau2, noise_factor2)
-        if cost <= 1.0:
-            heapq.heappush(heap, (cost, a, b, np.int64(0), np.int64(0)))
+        if costs[e] <= 1.0:
+            hkey[size] = costs[e]
+            hint[size, 0], hint[size, 1], hint[size, 2], hint[size, 3] = pairs[e, 0], pairs[e, 1], 0, 0
+            size += 1
+    for i in range(size // 2 - 1, -1, -1):
+        _heap_sift_down(hkey, hint, size, i)
     stamp = np.full(n, -1, np.int64)
     n_merges = 0
-    while len(heap) > 0:
-        cost, a, b, va, vb = heapq.heappop(heap)
+    while size > 0:
+        a, b, va, vb, size = _heap_pop(hkey, hint, size)
         if parent[a] != a or parent[b] != b or version[a] != va or version[b] != vb:
             continue
         # merge b into a (a < b: the smaller id survives)
@@ -390,12 +503,42 @@ def _consolidate_kernel(moments, pairs, tau2, noise_factor2):
                 hi = max(a, c)
                 value = _merge_cost(mom[lo], mom[hi], plane[lo], plane[hi], tau2, noise_factor2)
                 if value <= 1.0:
-                    heapq.heappush(heap, (value, lo, hi, version[lo], version[hi]))
+                    hkey, hint, size = _heap_push(hkey, hint, size, value, lo, hi, version[lo], version[hi])
             h = following
     roots = np.empty(n, np.int64)
     for x in range(n):
         roots[x] = _find(parent, x)
     return roots
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _unique_pairs(pairs, n):
+    """The distinct rows of pairs (m, 2) of ids in 0..n-1, sorted by (first, second): two stable
+    counting sorts (by the second id, then the first) and a pass over equal neighbours."""
+    m = pairs.shape[0]
+    by_second = np.empty(m, np.int64)
+    order = np.empty(m, np.int64)
+    start = np.zeros(n + 1, np.int64)
+    for column, source, target in ((1, np.arange(m), by_second), (0, by_second, order)):
+        start[:] = 0
+        for e in range(m):
+            start[pairs[e, column] + 1] += 1
+        for g in range(n):
+            start[g + 1] += start[g]
+        for e in source:
+            g = pairs[e, column]
+            target[start[g]] = e
+            start[g] += 1
+    out = np.empty((m, 2), np.int64)
+    n_out = 0
+    for e in order:
+        a = pairs[e, 0]
+        b = pairs[e, 1]
+        if n_out == 0 or out[n_out - 1, 0] != a or out[n_out - 1, 1] != b:
+            out[n_out, 0] = a
+            out[n_out, 1] = b
+            n_out += 1
+    return out[:n_out].copy()
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -413,17 +556,47 @@ def _piece_planes(moments):
     return normals, means, own
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _dense_ids_kernel(ids, bound):
+    """Dense ids of ids in -1..bound-1: (labels (K,) the present ids ascending, dense (N,) the rank of
+    each pixel's id among them, -1 for -1)."""
+    rank = np.full(bound, -1, np.int64)
+    for k in range(len(ids)):
+        if ids[k] >= 0:
+            rank[ids[k]] = 0
+    n_labels = 0
+    for g in range(bound):
+        if rank[g] == 0:
+            rank[g] = n_labels
+            n_labels += 1
+    labels = np.empty(n_labels, np.int64)
+    for g in range(bound):
+        if rank[g] >= 0:
+            labels[rank[g]] = g
+    dense = np.empty(len(ids), np.int64)
+    for k in range(len(ids)):
+        dense[k] = rank[ids[k]] if ids[k] >= 0 else -1
+    return labels, dense
+
+
+def _dense_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels: the distinct ids >= 0 ascending, dense: (N,) each entry's index in labels, -1 where ids < 0)."""
+    bound = int(ids.max()) + 1 if ids.size else 0
+    if bound <= 4 * ids.size + 16:  # ids bounded by the pixel count (the greedy's plane ids): no sort
+        return _dense_ids_kernel(ids, max(bound, 0))
+    uniq, dense = np.unique(ids, return_inverse=True)
+    negative = int(np.searchsorted(uniq, 0))
+    return uniq[negative:], np.where(ids >= 0, dense.reshape(-1) - negative, -1).astype(np.int64)
+
+
 def _dense_pieces(scan: RayScan, ids: np.ndarray, sigmas: np.ndarray, min_points: int):
-    """The pieces of ``ids`` (>= 0; -1: none) as dense ids 0..K-1 with their moments.
+    """The pieces of ``ids`` (int64 >= 0; -1: none) as dense ids 0..K-1 with their moments.
 
     Returns (labels: (K,) the original id of each dense id, dense: (H*W,) dense id of each pixel or -1,
     moments: (K, 11), small: (K,) pieces of fewer than min_points rays, planes: _piece_planes of the
     moments, with small pieces' rows computed from a placeholder).
     """
-    uniq, dense = np.unique(ids, return_inverse=True)
-    dense = dense.reshape(-1) - (1 if len(uniq) and uniq[0] < 0 else 0)
-    labels = uniq[uniq >= 0]
-    dense = np.where(ids >= 0, dense, -1).astype(np.int64)
+    labels, dense = _dense_ids(ids)
     ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     moments = _piece_moments(dense, scan.endpoints, ray_sigmas, len(labels))
     small = moments[:, 0] < min_points
@@ -454,14 +627,119 @@ def _last_next_to_first(valid: np.ndarray, directions: np.ndarray) -> bool:
     """:func:`columns_wrap` on a ``(rows, columns)`` validity grid and its ``(rows, columns, 3)`` unit directions."""
     if valid.shape[1] < 8 or valid.shape[0] < 1:
         return False
-    both = valid[:, 1:] & valid[:, :-1]
-    seam_both = valid[:, -1] & valid[:, 0]
-    if np.count_nonzero(both) < 4 or not seam_both.any():
+    steps = _reusable('neighbour_dots', valid.shape[0] * (valid.shape[1] - 1), np.float64)
+    seam = _reusable('seam_dots', valid.shape[0], np.float64)
+    n_steps, n_seam = _neighbour_dots(valid, directions, steps, seam)
+    if n_steps < 4 or n_seam == 0:
         return False
-    steps = np.einsum('ijk,ijk->ij', directions[:, 1:], directions[:, :-1])[both]
-    seam = np.einsum('ik,ik->i', directions[:, -1], directions[:, 0])[seam_both]
-    step_angle = np.median(np.arccos(np.clip(steps, -1.0, 1.0)))
-    return float(np.median(np.arccos(np.clip(seam, -1.0, 1.0)))) <= 2.0 * float(step_angle)
+    step_angle = _median_angle(steps[:n_steps])
+    return _median_angle(seam[:n_seam]) <= 2.0 * step_angle
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _neighbour_dots(valid, directions, steps, seam):
+    """Cosines of the angles between the rays of neighbouring columns (both valid; row-major order)
+    into steps, and between the last and the first column into seam; returns their counts. The dot
+    products are summed as (0 + 2) + 1, the order of np.einsum's two-lane sum of three terms."""
+    rows, columns = valid.shape
+    n_steps = 0
+    n_seam = 0
+    for i in range(rows):
+        for j in range(columns):
+            if j + 1 < columns:
+                if not (valid[i, j + 1] and valid[i, j]):
+                    continue
+                a, b = j + 1, j
+            elif valid[i, columns - 1] and valid[i, 0]:
+                a, b = columns - 1, 0
+            else:
+                continue
+            cosine = (
+                directions[i, a, 0] * directions[i, b, 0] + directions[i, a, 2] * directions[i, b, 2]
+            ) + directions[i, a, 1] * directions[i, b, 1]
+            if j + 1 < columns:
+                steps[n_steps] = cosine
+                n_steps += 1
+            else:
+                seam[n_seam] = cosine
+                n_seam += 1
+    return n_steps, n_seam
+
+
+def _median_angle(cosines: np.ndarray) -> float:
+    """``np.median(np.arccos(np.clip(cosines, -1, 1)))`` from the middle cosines alone (arccos decreases:
+    the middle angles are those of the middle cosines); cosines (work memory) is partitioned in place."""
+    n = len(cosines)
+    middle = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+    cosines.partition(middle)
+    return float(np.median(np.arccos(np.clip(cosines[middle], -1.0, 1.0))))
+
+
+#: Pixels per thread below which the candidate pairs are found in the calling thread alone.
+PARALLEL_MIN_PIXELS = 32768
+#: Row blocks per thread of the candidate pairs (the cost per row varies: no returns, occluders).
+BLOCKS_PER_THREAD = 4
+
+_pool_lock = threading.Lock()
+_pool: list = []
+
+
+def _executor(workers: int):
+    """A process-wide pool of at least ``workers`` threads for the consolidation's nogil kernels."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with _pool_lock:
+        if not _pool or _pool[0]._max_workers < workers:
+            # a smaller pool is replaced, not shut down: a caller may still use it
+            _pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-surfaces')]
+        return _pool[0]
+
+
+def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, max_gap, connected_only) -> np.ndarray:
+    """_candidate_pairs of all pixels: row blocks (BLOCKS_PER_THREAD per thread) taken in turn by numba's
+    thread count of threads (the kernel releases the GIL); the blocks' pairs are concatenated in block
+    order (consolidate_pieces sorts and dedupes them)."""
+    threads = max(1, min(nb.get_num_threads(), len(ids) // PARALLEL_MIN_PIXELS))
+    n_blocks = min(threads * BLOCKS_PER_THREAD, scan.height) if threads > 1 else 1
+    bounds = [scan.width * round(i * scan.height / n_blocks) for i in range(n_blocks + 1)]
+
+    def block(i: int) -> np.ndarray:
+        return _candidate_pairs(
+            ids,
+            scan.endpoints,
+            scan.directions,
+            scan.ranges,
+            sigmas,
+            scan.height,
+            scan.width,
+            normals,
+            means,
+            tau,
+            max_gap,
+            connected_only,
+            bounds[i],
+            bounds[i + 1],
+        )
+
+    if n_blocks == 1:
+        return block(0)
+    tickets = iter(range(n_blocks))  # next() on a range iterator is atomic under the GIL
+    ticket_lock = threading.Lock()
+
+    def drain() -> list:
+        done = []
+        while True:
+            with ticket_lock:
+                i = next(tickets, None)
+            if i is None:
+                return done
+            done.append((i, block(i)))
+
+    futures = [_executor(threads - 1).submit(drain) for _ in range(threads - 1)]
+    results = drain()
+    for future in futures:
+        results += future.result()
+    return np.concatenate([pairs for _, pairs in sorted(results, key=lambda item: item[0])])
 
 
 def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -509,18 +787,14 @@ def consolidate_pieces(
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
-    if len(np.unique(ids[ids >= 0])) < 2:
-        return ids.copy()
     labels, dense, moments, small, (normals, means, _) = _dense_pieces(scan, ids, sigmas, 3)
+    if len(labels) < 2:
+        return ids.copy()
     dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
-    pairs = _candidate_pairs(
+    pairs = _parallel_candidate_pairs(
         dense_for_pairs,
-        scan.endpoints,
-        scan.directions,
-        scan.ranges,
+        scan,
         np.ascontiguousarray(sigmas, dtype=np.float64),
-        scan.height,
-        scan.width,
         normals,
         means,
         tau,
@@ -529,24 +803,24 @@ def consolidate_pieces(
     )
     if wrap_columns:
         pairs = np.concatenate([pairs, _seam_pairs(dense_for_pairs, scan.height, scan.width)])
-    n = np.int64(len(labels))
-    codes = np.unique(pairs[:, 0] * n + pairs[:, 1])  # sorted by (a, b), each pair once
-    pairs = np.stack([codes // n, codes % n], axis=1)
+    pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))  # sorted by (a, b), each pair once
     factor = float(noise_factor)
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
-    roots = _consolidate_kernel(moments, np.ascontiguousarray(pairs), tau * tau, factor * factor)
+    plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
+    roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances, wrap_columns):
+def _absorb_kernel(
+    ids, endpoints, directions, sigmas, valid, height, width, normals, means, tolerances, wrap_columns, queue
+):
     """Grow every surface into 4-neighbouring rays without one that lie on its plane (breadth first,
     in pixel order); ids is updated in place. A ray k lies on surface P when its distance from P's
-    plane is at most tolerances[P] + 2 sigma_k |n . v_k|. wrap_columns: the first and the last column
-    are neighbours."""
+    plane is at most tolerances[P] + 2 sigma_k |n . v_k| (a non-finite sigma_k counts as 0).
+    wrap_columns: the first and the last column are neighbours. queue: work memory of len(ids)."""
     n = len(ids)
-    queue = np.empty(n, np.int64)
     head = 0
     tail = 0
     for k in range(n):
@@ -586,7 +860,8 @@ def _absorb_kernel(ids, endpoints, directions, sigmas, valid, height, width, nor
                 + normals[p, 1] * (endpoints[q, 1] - means[p, 1])
                 + normals[p, 2] * (endpoints[q, 2] - means[p, 2])
             )
-            if abs(distance) <= tolerances[p] + 2.0 * sigmas[q] * abs(along):
+            sigma = sigmas[q] if np.isfinite(sigmas[q]) else 0.0
+            if abs(distance) <= tolerances[p] + 2.0 * sigma * abs(along):
                 ids[q] = p
                 queue[tail] = q
                 tail += 1
@@ -613,13 +888,12 @@ def absorb_rays(
         return ids
     labels, dense, _, small, (normals, means, own) = _dense_pieces(scan, ids, sigmas, max(int(min_points), 3))
     dense = np.where((dense >= 0) & ~small[np.maximum(dense, 0)], dense, -1)
-    ray_sigmas = np.ascontiguousarray(np.where(np.isfinite(sigmas), sigmas, 0.0), dtype=np.float64)
     tolerances = np.sqrt(float(surface_tolerance) ** 2 + float(noise_factor) ** 2 * own)
     _absorb_kernel(
         dense,
         scan.endpoints,
         scan.directions,
-        ray_sigmas,
+        np.ascontiguousarray(sigmas, dtype=np.float64),
         scan.valid,
         scan.height,
         scan.width,
@@ -627,5 +901,189 @@ def absorb_rays(
         means,
         tolerances,
         bool(wrap_columns),
+        np.empty(len(dense), np.int64),
     )
     return np.where(dense >= 0, labels[np.maximum(dense, 0)], -1)
+
+
+_work_memory = threading.local()
+
+
+def _reusable(name: str, size: int, dtype) -> np.ndarray:
+    """A 1-D array of ``size`` elements from this thread's work memory of the consolidation (kept for
+    the next call: fresh memory costs a page fault per 4 KiB page when first touched, about 0.5 ms per
+    MB here). Each thread keeps its own buffers; a larger request replaces the buffer."""
+    buffers = getattr(_work_memory, 'buffers', None)
+    if buffers is None:
+        buffers = _work_memory.buffers = {}
+    buffer = buffers.get(name)
+    if buffer is None or len(buffer) < size or buffer.dtype != dtype:
+        buffer = buffers[name] = np.empty(size, dtype)
+    return buffer[:size]
+
+
+def release_work_memory() -> None:
+    """Free the work memory :func:`consolidated_surfaces` keeps between calls in the calling thread
+    (about 40 bytes per ray of the largest scan so far)."""
+    _work_memory.buffers = {}
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _dense_moments_kernel(ids, rank, dense, endpoints, sigmas):
+    """_dense_ids_kernel and _piece_moments in one: rank (len > ids.max()) and dense (len(ids)) are
+    filled in place; returns (labels (K,), moments (K, 11)). Non-finite sigmas count as 0."""
+    rank[:] = -1
+    for k in range(len(ids)):
+        if ids[k] >= 0:
+            rank[ids[k]] = 0
+    n_labels = 0
+    for g in range(len(rank)):
+        if rank[g] == 0:
+            rank[g] = n_labels
+            n_labels += 1
+    labels = np.empty(n_labels, np.int64)
+    for g in range(len(rank)):
+        if rank[g] >= 0:
+            labels[rank[g]] = g
+    mom = np.zeros((n_labels, 11))
+    for k in range(len(ids)):
+        g = rank[ids[k]] if ids[k] >= 0 else -1
+        dense[k] = g
+        if g < 0:
+            continue
+        x = endpoints[k, 0]
+        y = endpoints[k, 1]
+        z = endpoints[k, 2]
+        sigma = sigmas[k] if np.isfinite(sigmas[k]) else 0.0
+        mom[g, 0] += 1.0
+        mom[g, 1] += x
+        mom[g, 2] += y
+        mom[g, 3] += z
+        mom[g, 4] += x * x
+        mom[g, 5] += x * y
+        mom[g, 6] += x * z
+        mom[g, 7] += y * y
+        mom[g, 8] += y * z
+        mom[g, 9] += z * z
+        mom[g, 10] += sigma * sigma
+    return labels, mom
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _without_small(dense, small, out):
+    """out[k] = dense[k], or -1 where it is a small piece's (small[dense[k]])."""
+    for k in range(len(dense)):
+        out[k] = -1 if dense[k] >= 0 and small[dense[k]] else dense[k]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _surface_moments_kernel(dense, roots, endpoints, sigmas, min_points, surface):
+    """Each pixel's surface (the consolidation's root of its piece), numbered 0..S-1 by ascending root,
+    into surface (-1: none, or a surface of fewer than min_points rays); returns the surfaces' (S, 11)
+    moments, summed over their pixels in pixel order (non-finite sigmas count as 0)."""
+    index = np.full(len(roots), -1, np.int64)
+    for k in range(len(dense)):
+        if dense[k] >= 0:
+            index[roots[dense[k]]] = 0
+    n_surfaces = 0
+    for r in range(len(roots)):
+        if index[r] == 0:
+            index[r] = n_surfaces
+            n_surfaces += 1
+    mom = np.zeros((n_surfaces, 11))
+    for k in range(len(dense)):
+        if dense[k] < 0:
+            surface[k] = -1
+            continue
+        g = index[roots[dense[k]]]
+        surface[k] = g
+        x = endpoints[k, 0]
+        y = endpoints[k, 1]
+        z = endpoints[k, 2]
+        sigma = sigmas[k] if np.isfinite(sigmas[k]) else 0.0
+        mom[g, 0] += 1.0
+        mom[g, 1] += x
+        mom[g, 2] += y
+        mom[g, 3] += z
+        mom[g, 4] += x * x
+        mom[g, 5] += x * y
+        mom[g, 6] += x * z
+        mom[g, 7] += y * y
+        mom[g, 8] += y * z
+        mom[g, 9] += z * z
+        mom[g, 10] += sigma * sigma
+    for k in range(len(dense)):
+        if surface[k] >= 0 and mom[surface[k], 0] < min_points:
+            surface[k] = -1
+    return mom
+
+
+def consolidated_surfaces(
+    scan: RayScan,
+    piece_ids: np.ndarray,
+    sigmas: np.ndarray,
+    surface_tolerance: float,
+    *,
+    noise_factor: float = 0.0,
+    connected_only: bool = False,
+    min_points: int = 1,
+    wrap_columns: bool = False,
+) -> np.ndarray:
+    """``absorb_rays(scan, consolidate_pieces(scan, piece_ids, ...), ...)`` with the surfaces numbered
+    0..S-1 (by their smallest piece id) instead of by that id: the same rays in the same surfaces,
+    with the work arrays in this thread's work memory (:func:`release_work_memory`).
+
+    Returns ``(H*W,)`` surface of each pixel (-1: none); the array is work memory, overwritten by
+    this thread's next call (copy it to keep it).
+    """
+    tau = float(surface_tolerance)
+    factor = float(noise_factor)
+    if not (np.isfinite(tau) and tau > 0.0):
+        raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
+    if not (np.isfinite(factor) and factor >= 0.0):
+        raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
+    ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
+    if ids.shape != (scan.size,):
+        raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
+    sigmas = np.ascontiguousarray(sigmas, dtype=np.float64)
+    surface = _reusable('surface', scan.size, np.int64)
+    if ids.size == 0 or ids.max() < 0:
+        surface[:] = -1
+        return surface
+    bound = int(ids.max()) + 1
+    dense = _reusable('dense', scan.size, np.int64)
+    if bound <= 4 * ids.size + 16:
+        labels, moments = _dense_moments_kernel(ids, _reusable('rank', bound, np.int64), dense, scan.endpoints, sigmas)
+    else:
+        labels, dense[:] = _dense_ids(ids)
+        moments = _piece_moments(dense, scan.endpoints, np.where(np.isfinite(sigmas), sigmas, 0.0), len(labels))
+    roots = np.arange(len(labels))
+    if len(labels) >= 2:
+        small = moments[:, 0] < 3
+        normals, means, _ = _piece_planes(np.where(small[:, None], np.ones(11), moments))
+        pair_ids = _reusable('pair_ids', scan.size, np.int64)
+        _without_small(dense, small, pair_ids)
+        pairs = _parallel_candidate_pairs(pair_ids, scan, sigmas, normals, means, tau, DEFAULT_MAX_GAP, connected_only)
+        if wrap_columns:
+            pairs = np.concatenate([pairs, _seam_pairs(pair_ids, scan.height, scan.width)])
+        pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))
+        plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
+        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
+    surface_moments = _surface_moments_kernel(dense, roots, scan.endpoints, sigmas, max(int(min_points), 3), surface)
+    small = surface_moments[:, 0] < max(int(min_points), 3)
+    normals, means, own = _piece_planes(np.where(small[:, None], np.ones(11), surface_moments))
+    _absorb_kernel(
+        surface,
+        scan.endpoints,
+        scan.directions,
+        sigmas,
+        scan.valid,
+        scan.height,
+        scan.width,
+        normals,
+        means,
+        np.sqrt(tau**2 + factor**2 * own),
+        bool(wrap_columns),
+        dense,  # the queue: dense is no longer needed
+    )
+    return surface

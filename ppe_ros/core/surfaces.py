@@ -11,10 +11,11 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
+import numba as nb
 import numpy as np
 
-from ppe_ros.core.consolidation import absorb_rays, columns_wrap, consolidate_pieces, rows_wrap
-from ppe_ros.core.fitting import fit_pixel_groups
+from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
+from ppe_ros.core.fitting import fit_pixel_groups, fit_weighted_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.quadrants import quadrant_jackknife as quadrant_jackknife_covariances
 from ppe_ros.core.scan import RayScan
@@ -40,34 +41,30 @@ def whole_surfaces(
     ids = hierarchy.plane_ids(steps)
     scan = hierarchy.scan
     sigmas = hierarchy.sigmas
-    unit_scan = (
-        scan
-        if sigmas is None
-        else replace(scan, directions=scan.directions / np.where(scan.valid, sigmas, 1.0)[:, None])
-    )
+    unit_scan = scan if sigmas is None else replace(scan, directions=_unit_directions(scan, sigmas))
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
         noise_factor = 0.0 if profile is None else profile.noise_factor
         ids = _consolidate(
             unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points
         )
-    planes, _ = fit_pixel_groups(
-        scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
-    )
+    if sigmas is None:
+        planes, _ = fit_pixel_groups(
+            scan, ids, min_plane_points=min_plane_points, residuals=False, actions=steps, **cut
+        )
+    else:
+        planes = fit_weighted_pixel_groups(
+            scan, ids, min_plane_points=min_plane_points, sigmas=sigmas, actions=steps, **cut
+        )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
         planes = _drop_non_planar(
             unit_scan,
-            scan,
             planes,
             ray_sigmas,
             surface_tolerance or 0.0,
             profile.noise_factor,
             factor,
-            sigmas,
-            min_plane_points,
-            steps,
-            cut,
             profile.flatness_length,
         )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
@@ -83,6 +80,22 @@ def whole_surfaces(
             ),
         )
     return planes
+
+
+def _unit_directions(scan: RayScan, sigmas: np.ndarray) -> np.ndarray:
+    """``scan.directions / sigma_k`` (the greedy's scaled directions made unit again; invalid rays as
+    they are), in the consolidation's work memory (valid until this thread's next whole_surfaces)."""
+    out = _reusable('unit_directions', 3 * scan.size, np.float64).reshape(scan.size, 3)
+    _unit_directions_kernel(scan.directions, scan.valid, np.ascontiguousarray(sigmas, dtype=np.float64), out)
+    return out
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _unit_directions_kernel(directions, valid, sigmas, out):
+    for k in range(len(valid)):
+        scale = sigmas[k] if valid[k] else 1.0
+        for c in range(3):
+            out[k, c] = directions[k, c] / scale
 
 
 def _consolidate(
@@ -111,10 +124,18 @@ def _consolidate(
             valid=unit_scan.valid[order],
         )
         ids, ray_sigmas, wrap = ids[order], ray_sigmas[order], True
-    ids = consolidate_pieces(
-        scan, ids, ray_sigmas, tau, connected_only=connected_only, noise_factor=noise_factor, wrap_columns=wrap
+    # consolidate_pieces then absorb_rays, the surfaces numbered 0..S-1 (fit_pixel_groups numbers
+    # planes by size and first pixel: the ids' values do not matter), in work memory
+    ids = consolidated_surfaces(
+        scan,
+        ids,
+        ray_sigmas,
+        tau,
+        connected_only=connected_only,
+        noise_factor=noise_factor,
+        min_points=min_points,
+        wrap_columns=wrap,
     )
-    ids = absorb_rays(scan, ids, ray_sigmas, tau, noise_factor=noise_factor, min_points=min_points, wrap_columns=wrap)
     if order is None:
         return ids
     back = np.empty_like(ids)
@@ -135,18 +156,77 @@ def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: Sen
     return np.fmin(ray_sigmas, model)
 
 
-def _plane_scatter(points: np.ndarray, j: np.ndarray, count: np.ndarray, n_planes: int):
-    """Centroid (J, 3) and per-point scatter matrix (J, 3, 3) of each plane's points (plane j[i] of points[i])."""
-    centroid = np.stack([np.bincount(j, weights=points[:, a], minlength=n_planes) for a in range(3)], 1)
-    centroid /= count[:, None]
-    rel = points - centroid[j]
-    scatter = np.empty((n_planes, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            scatter[:, a, b] = scatter[:, b, a] = (
-                np.bincount(j, weights=rel[:, a] * rel[:, b], minlength=n_planes) / count
-            )
-    return centroid, scatter
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _plane_sums_kernel(labels, endpoints, center, directions, ray_sigmas, normals, offsets, count):
+    """Per-plane sums over the rays of every plane (label j + 1 > 0; pixel order, as np.bincount adds).
+
+    Returns (J, 12): centroid (3, m; endpoints + center), per-point scatter xx xy xz yy yz zz about it
+    (6, m^2), mean squared distance from the plane (m^2), mean (sigma_k n . v_k)^2 (m^2), mean sigma_k^2
+    (m^2), each divided by count[j]. Two passes: the sums of the points, then of the products of their
+    offsets from the centroid.
+    """
+    n_planes = len(count)
+    out = np.zeros((n_planes, 12))
+    for k in range(len(labels)):
+        g = labels[k] - 1
+        if g < 0:
+            continue
+        x = endpoints[k, 0] + center[0]
+        y = endpoints[k, 1] + center[1]
+        z = endpoints[k, 2] + center[2]
+        out[g, 0] += x
+        out[g, 1] += y
+        out[g, 2] += z
+        # dot products summed as (0 + 2) + 1, the order of np.einsum's two-lane sum of three terms,
+        # which the numpy passes this kernel replaces used
+        distance = (x * normals[g, 0] + z * normals[g, 2]) + y * normals[g, 1] - offsets[g]
+        along = (
+            (directions[k, 0] * normals[g, 0] + directions[k, 2] * normals[g, 2]) + directions[k, 1] * normals[g, 1]
+        ) * ray_sigmas[k]
+        out[g, 9] += distance * distance
+        out[g, 10] += along * along
+        out[g, 11] += ray_sigmas[k] * ray_sigmas[k]
+    for g in range(n_planes):
+        for a in (0, 1, 2, 9, 10, 11):
+            out[g, a] /= count[g]
+    for k in range(len(labels)):
+        g = labels[k] - 1
+        if g < 0:
+            continue
+        rx = endpoints[k, 0] + center[0] - out[g, 0]
+        ry = endpoints[k, 1] + center[1] - out[g, 1]
+        rz = endpoints[k, 2] + center[2] - out[g, 2]
+        out[g, 3] += rx * rx
+        out[g, 4] += rx * ry
+        out[g, 5] += rx * rz
+        out[g, 6] += ry * ry
+        out[g, 7] += ry * rz
+        out[g, 8] += rz * rz
+    for g in range(n_planes):
+        for a in range(3, 9):
+            out[g, a] /= count[g]
+    return out
+
+
+def _plane_sums(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, count: np.ndarray):
+    """Per-plane means over each plane's rays (see _plane_sums_kernel): centroid (J, 3), scatter
+    (J, 3, 3), mean squared distance from the plane, mean (sigma_k n . v_k)^2 and mean sigma_k^2 (J,)."""
+    sums = _plane_sums_kernel(
+        np.ascontiguousarray(planes.labels.reshape(-1)),
+        np.ascontiguousarray(scan.endpoints, dtype=np.float64),
+        np.ascontiguousarray(scan.center, dtype=np.float64),
+        np.ascontiguousarray(scan.directions, dtype=np.float64),
+        np.ascontiguousarray(ray_sigmas, dtype=np.float64),
+        np.ascontiguousarray(planes.normals, dtype=np.float64),
+        np.ascontiguousarray(planes.offsets, dtype=np.float64),
+        np.ascontiguousarray(count, dtype=np.float64),
+    )
+    scatter = sums[:, _SCATTER_INDEX]
+    return sums[:, :3], scatter, sums[:, 9], sums[:, 10], sums[:, 11]
+
+
+#: Columns of _plane_sums_kernel's xx xy xz yy yz zz as a symmetric (3, 3) matrix.
+_SCATTER_INDEX = np.array([[3, 4, 5], [4, 6, 7], [5, 7, 8]])
 
 
 def systematic_covariances(
@@ -172,18 +252,10 @@ def systematic_covariances(
     with each variance raised to the independent-patch model's where that is larger. The result is
     mapped to d n to first order.
     """
-    labels = planes.labels.reshape(-1)
-    on = np.flatnonzero(labels > 0)
-    j = labels[on] - 1
     count = planes.point_counts.astype(np.float64)
-    points = scan.endpoints[on] + scan.center
     n_planes = planes.num_planes
-    centroid, scatter = _plane_scatter(points, j, count, n_planes)
+    centroid, scatter, residual2, noise2, _ = _plane_sums(scan, planes, ray_sigmas, count)
     normals, offsets = planes.normals, planes.offsets
-    distance = np.einsum('ij,ij->i', points, normals[j]) - offsets[j]
-    along = np.einsum('ij,ij->i', scan.directions[on], normals[j]) * ray_sigmas[on]
-    residual2 = np.bincount(j, weights=distance**2, minlength=n_planes) / count
-    noise2 = np.bincount(j, weights=along**2, minlength=n_planes) / count
     systematic2 = np.maximum(residual2 - noise2, 0.0)
     values, vectors = np.linalg.eigh(scatter)  # ascending: the two largest span the plane
     lam1, lam2 = np.maximum(values[:, 2], 1e-12), np.maximum(values[:, 1], 1e-12)
@@ -213,16 +285,11 @@ def systematic_covariances(
 
 def _drop_non_planar(
     scan: RayScan,
-    fit_scan: RayScan,
     planes: PlaneSet,
     ray_sigmas: np.ndarray,
     tau: float,
     noise_factor: float,
     factor: float,
-    sigmas: np.ndarray | None,
-    min_plane_points: int,
-    steps: int,
-    cut: dict,
     flatness_length: float | None = None,
 ) -> PlaneSet:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
@@ -231,32 +298,39 @@ def _drop_non_planar(
     flatness_length) for a plane of size D (the square root of its area, 12 sqrt(l1 l2) from the
     scatter's two largest eigenvalues): a surface's deviation from flatness grows with its size, so
     a small patch must be flat to the noise, which a tree's or a car's pieces are not; None: tau_D =
-    tau. scan has unit directions; the kept planes are refitted on fit_scan (the greedy's, directions
-    scaled by sigmas).
+    tau. scan has unit directions. The kept planes are renumbered (:func:`_kept_planes`: what a refit
+    of their pixels gives).
     """
-    labels = planes.labels.reshape(-1)
-    on = np.flatnonzero(labels > 0)
-    j = labels[on] - 1
-    normals_internal = planes.normals[j]
-    points = scan.endpoints[on] + scan.center
-    distance = np.einsum('ij,ij->i', points, normals_internal) - planes.offsets[j]
-    along = np.abs(np.einsum('ij,ij->i', scan.directions[on], normals_internal)) * ray_sigmas[on]
     count = np.maximum(planes.point_counts, 1)
-    mean_d2 = np.bincount(j, weights=distance**2, minlength=planes.num_planes) / count
-    noise2 = np.bincount(j, weights=along**2, minlength=planes.num_planes) / count
-    sigma2 = np.bincount(j, weights=ray_sigmas[on] ** 2, minlength=planes.num_planes) / count
+    _, scatter, mean_d2, noise2, sigma2 = _plane_sums(scan, planes, ray_sigmas, count)
     tau2 = np.full(planes.num_planes, tau**2)
     if flatness_length is not None:
-        _, scatter = _plane_scatter(points, j, count.astype(np.float64), planes.num_planes)
         values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
         size = np.sqrt(12.0 * np.sqrt(np.maximum(values[:, 2], 0.0) * np.maximum(values[:, 1], 0.0)))
         tau2 *= np.minimum(1.0, size / float(flatness_length)) ** 2
     planar = mean_d2 <= factor**2 * (tau2 + noise_factor**2 * sigma2 + noise2)
     if planar.all():
         return planes
-    keep = np.concatenate([[False], planar])
-    ids = np.where(keep[labels], labels, -1).astype(np.int64)
-    refit, _ = fit_pixel_groups(
-        fit_scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
+    return _kept_planes(planes, planar)
+
+
+def _kept_planes(planes: PlaneSet, keep: np.ndarray) -> PlaneSet:
+    """The planes with keep[j] True, renumbered 1..J' in their order, the others no plane.
+
+    It is what fit_pixel_groups gives for the kept planes' pixels: each group is fitted on its own
+    rays in pixel order, and the order by size, then first pixel, is kept by any subset.
+    """
+    kept = np.flatnonzero(keep)
+    relabel = np.zeros(planes.num_planes + 1, np.int32)
+    relabel[kept + 1] = np.arange(1, len(kept) + 1, dtype=np.int32)
+    return replace(
+        planes,
+        labels=relabel[planes.labels],
+        normals=planes.normals[kept],
+        offsets=planes.offsets[kept],
+        centroids=planes.centroids[kept],
+        point_counts=planes.point_counts[kept],
+        sse=planes.sse[kept],
+        rmse=planes.rmse[kept],
+        covariances=planes.covariances[kept],
     )
-    return refit

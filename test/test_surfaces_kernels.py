@@ -1,0 +1,252 @@
+"""The fast kernels of the whole-surface pass against slow, obviously correct numpy references."""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+
+import numpy as np
+import pytest
+
+from ppe_ros.core import consolidation
+from ppe_ros.core.consolidation import (
+    _candidate_pairs,
+    _dense_ids,
+    _heap_pop,
+    _heap_push,
+    _parallel_candidate_pairs,
+    _piece_planes,
+    _unique_pairs,
+    consolidate_pieces,
+)
+from ppe_ros.core.fitting import fit_pixel_groups, fit_weighted_pixel_groups
+from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.scan import make_ray_scan
+from ppe_ros.core.sensor import LIDAR_NOISE
+from ppe_ros.core.surfaces import _kept_planes, _plane_sums
+
+
+def _scene(seed: int, rows: int = 48, cols: int = 160):
+    """A noisy organized scan of a floor, two walls and a box, with gaps; piece ids of 8 x 8 blocks."""
+    rng = np.random.default_rng(seed)
+    az = np.linspace(-np.pi, np.pi, cols, endpoint=False)
+    el = np.linspace(-0.4, 0.3, rows)
+    v = np.stack([np.cos(el)[:, None] * np.cos(az), np.cos(el)[:, None] * np.sin(az), np.sin(el)[:, None] + 0 * az], -1)
+    with np.errstate(divide='ignore'):
+        floor = np.where(v[..., 2] < -1e-3, -1.5 / v[..., 2], np.inf)
+        wall = np.where(np.abs(v[..., 0]) > 1e-3, 6.0 / np.abs(v[..., 0]), np.inf)
+    r = np.minimum(floor, wall)
+    box = (slice(20, 30), slice(40, 55))
+    r[box] = np.minimum(r[box], 3.0)
+    r = r + rng.normal(0.0, 0.01, r.shape)
+    r[rng.random(r.shape) < 0.05] = np.nan
+    r[r > 40] = np.nan
+    points = v * r[..., None]
+    scan = make_ray_scan(points)
+    ids = (np.arange(rows)[:, None] // 8) * 1000 + np.arange(cols)[None, :] // 8
+    ids = np.where(scan.valid.reshape(rows, cols), ids, -1).reshape(-1).astype(np.int64)
+    ids[rng.random(ids.size) < 0.05] = -1
+    sigmas = np.where(scan.valid, LIDAR_NOISE.sigmas(np.nan_to_num(scan.ranges, nan=1.0), scan.directions), np.nan)
+    return scan, ids, sigmas
+
+
+def _reference_sums(scan, planes: PlaneSet, ray_sigmas, count):
+    """The numpy passes _plane_sums replaced (np.bincount in pixel order)."""
+    labels = planes.labels.reshape(-1)
+    on = np.flatnonzero(labels > 0)
+    j = labels[on] - 1
+    n = planes.num_planes
+    points = scan.endpoints[on] + scan.center
+    centroid = np.stack([np.bincount(j, weights=points[:, a], minlength=n) for a in range(3)], 1) / count[:, None]
+    rel = points - centroid[j]
+    scatter = np.empty((n, 3, 3))
+    for a in range(3):
+        for b in range(3):
+            scatter[:, a, b] = np.bincount(j, weights=rel[:, a] * rel[:, b], minlength=n) / count
+    distance = np.einsum('ij,ij->i', points, planes.normals[j]) - planes.offsets[j]
+    along = np.einsum('ij,ij->i', scan.directions[on], planes.normals[j]) * ray_sigmas[on]
+    mean = [np.bincount(j, weights=w, minlength=n) / count for w in (distance**2, along**2, ray_sigmas[on] ** 2)]
+    return centroid, scatter, *mean
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_plane_sums_equal_the_numpy_passes(seed):
+    scan, ids, sigmas = _scene(seed)
+    planes, _ = fit_pixel_groups(scan, ids, min_plane_points=4, residuals=False)
+    count = planes.point_counts.astype(np.float64)
+    got = _plane_sums(scan, planes, sigmas, count)
+    want = _reference_sums(scan, planes, sigmas, count)
+    assert planes.num_planes > 20
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-15)
+
+
+def test_dropping_planes_from_a_fit_equals_refitting_the_kept_ones():
+    scan, ids, _ = _scene(2)
+    planes, _ = fit_pixel_groups(scan, ids, min_plane_points=4, residuals=False, actions=7)
+    keep = np.random.default_rng(0).random(planes.num_planes) < 0.6
+    kept = _kept_planes(planes, keep)
+    ids_kept = np.where(np.r_[False, keep][planes.labels.reshape(-1)], planes.labels.reshape(-1), -1)
+    refit, _ = fit_pixel_groups(scan, ids_kept, min_plane_points=4, residuals=False, actions=7)
+    assert 0 < kept.num_planes == keep.sum() < planes.num_planes
+    for name in ('labels', 'normals', 'offsets', 'centroids', 'point_counts', 'sse', 'rmse', 'covariances'):
+        np.testing.assert_array_equal(getattr(kept, name), getattr(refit, name), err_msg=name)
+    assert kept.labels.dtype == refit.labels.dtype and kept.actions == refit.actions
+
+
+@pytest.mark.parametrize('seed', [0, 3])
+def test_weighted_group_fits_equal_fit_pixel_groups_with_sigmas(seed):
+    scan0, ids, sigmas = _scene(seed)
+    scan = dataclasses.replace(scan0, directions=scan0.directions * np.nan_to_num(sigmas)[:, None])
+    want, _ = fit_pixel_groups(scan, ids, min_plane_points=5, residuals=False, sigmas=sigmas, max_error_increment=2.0)
+    got = fit_weighted_pixel_groups(scan, ids, min_plane_points=5, sigmas=sigmas, max_error_increment=2.0)
+    assert got.num_planes > 20 and got.max_error_increment == 2.0
+    for name in ('labels', 'normals', 'offsets', 'centroids', 'point_counts', 'covariances'):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    np.testing.assert_allclose(got.sse, want.sse, rtol=1e-12)  # bit for bit where np.einsum sums as assumed
+    np.testing.assert_allclose(got.rmse, want.rmse, rtol=1e-12)
+    empty = fit_weighted_pixel_groups(scan, np.full(scan.size, -1), min_plane_points=5, sigmas=sigmas)
+    assert empty.num_planes == 0 and empty.labels.shape == (scan.height, scan.width)
+
+
+@pytest.mark.parametrize('scale', [1, 10**9])  # ids below the pixel count (the kernel) and far beyond (np.unique)
+def test_dense_ids_equal_numpy_unique(scale):
+    rng = np.random.default_rng(4)
+    ids = rng.integers(-3, 500, 4000) * scale
+    ids[ids < 0] = rng.integers(-5, 0, (ids < 0).sum())
+    labels, dense = _dense_ids(ids)
+    uniq = np.unique(ids[ids >= 0])
+    np.testing.assert_array_equal(labels, uniq)
+    np.testing.assert_array_equal(dense, np.where(ids >= 0, np.searchsorted(uniq, ids), -1))
+    assert _dense_ids(np.full(5, -1, np.int64))[0].size == 0
+
+
+def test_unique_pairs_equal_numpy_unique_rows():
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 300, 5000)
+    pairs = np.stack([a, a + rng.integers(1, 40, 5000)], 1).astype(np.int64)
+    want = np.unique(pairs, axis=0)
+    np.testing.assert_array_equal(_unique_pairs(pairs, 340), want)
+    assert _unique_pairs(np.zeros((0, 2), np.int64), 3).shape == (0, 2)
+
+
+def test_the_heap_pops_in_the_order_of_heapq():
+    rng = np.random.default_rng(6)
+    hkey, hint, size = np.empty(4), np.empty((4, 4), np.int64), 0
+    reference, popped, want = [], [], []
+    for _ in range(3000):
+        if size and rng.random() < 0.4:
+            a, b, va, vb, size = _heap_pop(hkey, hint, size)
+            popped.append((a, b, va, vb))
+            want.append(heapq.heappop(reference)[1:])
+        else:  # few distinct costs and ids: ties decided by the ids and versions
+            entry = (float(rng.integers(0, 5)) / 4, *(int(x) for x in rng.integers(0, 3, 4)))
+            hkey, hint, size = _heap_push(hkey, hint, size, *entry)
+            heapq.heappush(reference, entry)
+    while size:
+        a, b, va, vb, size = _heap_pop(hkey, hint, size)
+        popped.append((a, b, va, vb))
+        want.append(heapq.heappop(reference)[1:])
+    assert popped == want and len(popped) > 1000
+
+
+@pytest.mark.parametrize('connected_only', [False, True])
+def test_candidate_pairs_in_row_blocks_equal_one_pass(monkeypatch, connected_only):
+    import numba
+
+    scan, ids, sigmas = _scene(7, rows=64)
+    labels, dense = _dense_ids(ids)
+    moments = consolidation._piece_moments(dense, scan.endpoints, np.nan_to_num(sigmas), len(labels))
+    normals, means, _ = _piece_planes(moments)
+    args = (np.ascontiguousarray(sigmas), normals, means, 0.05, 16, connected_only)
+    whole = _candidate_pairs(
+        dense, scan.endpoints, scan.directions, scan.ranges, args[0], scan.height, scan.width, *args[1:], 0, scan.size
+    )
+    monkeypatch.setattr(consolidation, 'PARALLEL_MIN_PIXELS', 1)
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        blocks = _parallel_candidate_pairs(dense, scan, *args)
+    finally:
+        numba.set_num_threads(previous)
+    assert len(whole) > 100
+    np.testing.assert_array_equal(np.unique(blocks, axis=0), np.unique(whole, axis=0))
+    np.testing.assert_array_equal(np.sort(blocks, axis=0), np.sort(whole, axis=0))  # the same repeats too
+
+
+def test_consolidation_of_the_scene_is_independent_of_the_thread_count(monkeypatch):
+    import numba
+
+    scan, ids, sigmas = _scene(8, rows=64)
+    one = consolidate_pieces(scan, ids, sigmas, 0.05, noise_factor=1.0, wrap_columns=True)
+    monkeypatch.setattr(consolidation, 'PARALLEL_MIN_PIXELS', 1)
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        two = consolidate_pieces(scan, ids, sigmas, 0.05, noise_factor=1.0, wrap_columns=True)
+    finally:
+        numba.set_num_threads(previous)
+    assert len(np.unique(one[one >= 0])) < len(np.unique(ids[ids >= 0]))
+    np.testing.assert_array_equal(one, two)
+
+
+def _groups(ids: np.ndarray) -> np.ndarray:
+    """Each pixel's group numbered by its first pixel (-1: none): equal for equal partitions."""
+    out = np.full(ids.shape, -1, np.int64)
+    on = ids >= 0
+    _, first, inverse = np.unique(ids[on], return_index=True, return_inverse=True)
+    out[on] = np.flatnonzero(on)[first][inverse]
+    return out
+
+
+@pytest.mark.parametrize(('seed', 'connected_only', 'wrap'), [(9, False, True), (10, True, False), (11, False, False)])
+def test_consolidated_surfaces_group_the_rays_as_consolidate_then_absorb(seed, connected_only, wrap):
+    scan, ids, sigmas = _scene(seed, rows=40)
+    ids = ids.copy()
+    ids[::97] = np.where(ids[::97] >= 0, 10**6 + np.arange(len(ids[::97])), -1)  # pieces of one ray
+    kw = {'noise_factor': 1.0, 'connected_only': connected_only, 'wrap_columns': wrap}
+    merged = consolidation.consolidate_pieces(scan, ids, sigmas, 0.05, **kw)
+    want = consolidation.absorb_rays(scan, merged, sigmas, 0.05, noise_factor=1.0, min_points=6, wrap_columns=wrap)
+    got = consolidation.consolidated_surfaces(scan, ids, sigmas, 0.05, min_points=6, **kw).copy()
+    assert 3 < len(np.unique(want[want >= 0])) < len(np.unique(ids[ids >= 0]))
+    np.testing.assert_array_equal(_groups(got), _groups(want))
+    big = consolidation.consolidated_surfaces(
+        scan, np.where(ids >= 0, ids * 10**9, -1), sigmas, 0.05, min_points=6, **kw
+    )
+    np.testing.assert_array_equal(_groups(big), _groups(want))  # ids far beyond the pixel count (np.unique)
+    none = consolidation.consolidated_surfaces(scan, np.full(scan.size, -1), sigmas, 0.05)
+    assert (none == -1).all()
+
+
+def _reference_columns_wrap(valid: np.ndarray, directions: np.ndarray) -> bool:
+    """The numpy test that _last_next_to_first replaced."""
+    both = valid[:, 1:] & valid[:, :-1]
+    seam_both = valid[:, -1] & valid[:, 0]
+    if np.count_nonzero(both) < 4 or not seam_both.any():
+        return False
+    steps = np.einsum('ijk,ijk->ij', directions[:, 1:], directions[:, :-1])[both]
+    seam = np.einsum('ik,ik->i', directions[:, -1], directions[:, 0])[seam_both]
+    step_angle = np.median(np.arccos(np.clip(steps, -1.0, 1.0)))
+    return float(np.median(np.arccos(np.clip(seam, -1.0, 1.0)))) <= 2.0 * float(step_angle)
+
+
+def test_the_seam_test_equals_the_numpy_medians():
+    rng = np.random.default_rng(12)
+    for trial in range(40):
+        rows, cols = int(rng.integers(1, 6)), int(rng.integers(8, 40))
+        span = rng.uniform(1.5, 2.2) * np.pi  # around a full revolution: the seam step near the others
+        az = np.linspace(0.0, span, cols, endpoint=False) + rng.normal(0, 0.01, cols)
+        el = rng.uniform(-0.3, 0.3, (rows, 1))
+        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0 * az], -1)
+        valid = rng.random((rows, cols)) < (0.5 if trial % 3 else 0.95)
+        want = _reference_columns_wrap(valid, d)
+        assert consolidation._last_next_to_first(valid, d) == want
+        steps = consolidation._reusable('t', rows * (cols - 1), np.float64)
+        seam = consolidation._reusable('u', rows, np.float64)
+        n_steps, n_seam = consolidation._neighbour_dots(valid, d, steps, seam)
+        both = valid[:, 1:] & valid[:, :-1]
+        assert n_seam == np.count_nonzero(valid[:, -1] & valid[:, 0])
+        np.testing.assert_allclose(steps[:n_steps], np.einsum('ijk,ijk->ij', d[:, 1:], d[:, :-1])[both], rtol=1e-15)
+        if n_steps:
+            want_median = np.median(np.arccos(np.clip(steps[:n_steps], -1.0, 1.0)))
+            assert consolidation._median_angle(steps[:n_steps].copy()) == want_median
