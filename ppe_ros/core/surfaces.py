@@ -266,8 +266,10 @@ def systematic_covariances(
     u_axis, v_axis = vectors[:, :, 2], vectors[:, :, 1]
     local = np.zeros((n_planes, 3, 3))
     if quadrant_jackknife:
+        on = np.flatnonzero(planes.labels.reshape(-1) > 0)
         axes = np.stack([u_axis, v_axis, normals], axis=1)
-        local = quadrant_jackknife_covariances(points, j, centroid, axes)
+        points = scan.endpoints[on] + scan.center
+        local = quadrant_jackknife_covariances(points, planes.labels.reshape(-1)[on] - 1, centroid, axes)
     diagonal = np.arange(3)
     local[:, diagonal, diagonal] = np.maximum(local[:, diagonal, diagonal], model)
     # d n of the plane w = a + b u + c v (w along the normal from the centroid), to first order
