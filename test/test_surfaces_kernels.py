@@ -250,3 +250,18 @@ def test_the_seam_test_equals_the_numpy_medians():
         if n_steps:
             want_median = np.median(np.arccos(np.clip(steps[:n_steps], -1.0, 1.0)))
             assert consolidation._median_angle(steps[:n_steps].copy()) == want_median
+
+
+def test_the_public_release_frees_the_whole_surface_work_memory_too():
+    from scenes import cast_scan, plane
+
+    from ppe_ros import extract_planes, release_work_memory
+
+    scan = cast_scan(
+        [plane([-1, 0, 0], -4.0)], rows=30, cols=40, position=(0, 0, 0), azimuth_fov_deg=40, elevation_fov_deg=30,
+        noise=0.01, seed=0,
+    )  # fmt: skip
+    extract_planes(scan.points, sensor='lidar')
+    assert getattr(consolidation._work_memory, 'buffers', {})  # the pass kept its arrays
+    release_work_memory()
+    assert consolidation._work_memory.buffers == {}

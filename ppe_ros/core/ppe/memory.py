@@ -30,9 +30,13 @@ def release_work_memory() -> None:
 
     The extractor reuses its work buffers (about 1.2 KB per ray of the largest scan so far, of which
     the touched part stays resident) so that repeated calls, like a node's frames, do not pay for
-    fresh memory; call this after a large one-off extraction to give the memory back.
+    fresh memory; call this after a large one-off extraction to give the memory back. The
+    whole-surface pass's work memory (ppe_ros.core.consolidation) is freed too.
     """
+    from ppe_ros.core.consolidation import release_work_memory as release_surface_memory
+
     _work_memory.buffers = {}
+    release_surface_memory()
 
 
 def _work_buffers(n_f: int, n_i: int, n_i32: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
