@@ -48,9 +48,25 @@ def quadrant_jackknife(
         raise ValueError('centroids must be (J, 3) and axes (J, 3, 3)')
     if len(plane_index) and (plane_index.min() < 0 or plane_index.max() >= n_planes):
         raise ValueError(f'plane_index must be in 0..{n_planes - 1}')
-    order = np.argsort(plane_index, kind='stable')
-    starts = np.searchsorted(plane_index[order], np.arange(n_planes + 1))
+    order, starts = _members_by_plane(plane_index, n_planes)
     return _jackknife_kernel(points, order, starts, centroids, axes)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _members_by_plane(plane_index, n_planes):
+    """A counting sort: the points' indices grouped by plane (in order within a plane) and where
+    each plane's group starts (n_planes + 1)."""
+    starts = np.zeros(n_planes + 1, dtype=np.int64)
+    for p in plane_index:
+        starts[p + 1] += 1
+    for j in range(n_planes):
+        starts[j + 1] += starts[j]
+    fill = starts[:-1].copy()
+    order = np.empty(len(plane_index), dtype=np.int64)
+    for i in range(len(plane_index)):
+        order[fill[plane_index[i]]] = i
+        fill[plane_index[i]] += 1
+    return order, starts
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
