@@ -150,3 +150,14 @@ def test_concurrent_tiled_extractions_with_different_thread_counts_match_sequent
     assert errors == []
     assert sorted(results) == [1, 2, 3, 4]
     assert all(log == expected for logs in results.values() for log in logs)
+
+
+def test_strips_with_the_most_seeds_are_taken_first():
+    import numpy as np
+
+    from ppe_ros.core.ppe.tiles import _largest_first
+
+    seed_key = np.full((4, 12), np.inf)
+    seed_key[:, 4:8] = 1.0  # strip 1 (columns 4-7) has 16 seeds
+    seed_key[0, 0] = seed_key[1, 9] = 2.0  # strips 0 and 2 one each: ties by index
+    assert _largest_first(seed_key.reshape(-1), 4, 12, [0, 4, 8, 12]) == [1, 0, 2]

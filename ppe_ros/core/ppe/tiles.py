@@ -89,6 +89,13 @@ def _tile_inputs(inputs: tuple, height: int, width: int, c0: int, c1: int) -> tu
     return tuple(out)
 
 
+def _largest_first(seed_key: np.ndarray, height: int, width: int, bounds: list[int]) -> list[int]:
+    """Strip indices by decreasing number of seeds the greedy may create (finite keys); ties by index."""
+    finite = np.isfinite(seed_key.reshape(height, width))
+    seeds = [int(np.count_nonzero(finite[:, bounds[t] : bounds[t + 1]])) for t in range(len(bounds) - 1)]
+    return sorted(range(len(seeds)), key=lambda t: (-seeds[t], t))
+
+
 def _tiled_greedy(
     inputs: tuple,
     height: int,
@@ -123,7 +130,9 @@ def _tiled_greedy(
     if threads == 1:
         results = [run(t) for t in range(n_tiles)]
     else:
-        tickets = iter(range(n_tiles))  # next() on a range iterator is atomic under the GIL
+        # the strips with the most valid seeds first (about the most work), so that no large strip is
+        # left for one thread at the end; next() on a list iterator is atomic under the GIL
+        tickets = iter(_largest_first(inputs[7], height, width, bounds))
         ticket_lock = threading.Lock()
 
         def drain() -> list:
