@@ -47,7 +47,6 @@ TIMED = (
     ('surfaces:consolidate_pieces', '    consolidate_pieces'),
     ('surfaces:absorb_rays', '    absorb_rays'),
     ('surfaces:fit_pixel_groups', '  fit_pixel_groups (all calls)'),
-    ('surfaces:fit_weighted_pixel_groups', '  fit_weighted_pixel_groups'),
     ('surfaces:_drop_non_planar', '  _drop_non_planar'),
     ('surfaces:_independent_sigmas', '  _independent_sigmas'),
     ('surfaces:systematic_covariances', '  systematic_covariances'),

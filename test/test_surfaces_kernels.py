@@ -19,7 +19,7 @@ from ppe_ros.core.consolidation import (
     _unique_pairs,
     consolidate_pieces,
 )
-from ppe_ros.core.fitting import fit_pixel_groups, fit_weighted_pixel_groups
+from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import make_ray_scan
 from ppe_ros.core.sensor import LIDAR_NOISE
@@ -95,17 +95,24 @@ def test_dropping_planes_from_a_fit_equals_refitting_the_kept_ones():
 
 
 @pytest.mark.parametrize('seed', [0, 3])
-def test_weighted_group_fits_equal_fit_pixel_groups_with_sigmas(seed):
+def test_weighted_group_fits_sum_the_sse_as_the_residual_image_does(seed):
+    """With sigmas and no residual image, fit_pixel_groups sums the sse in metres in one kernel pass
+    (_weighted_group_sse); with the image, from the image (the numpy reference): the same planes."""
     scan0, ids, sigmas = _scene(seed)
     scan = dataclasses.replace(scan0, directions=scan0.directions * np.nan_to_num(sigmas)[:, None])
-    want, _ = fit_pixel_groups(scan, ids, min_plane_points=5, residuals=False, sigmas=sigmas, max_error_increment=2.0)
-    got = fit_weighted_pixel_groups(scan, ids, min_plane_points=5, sigmas=sigmas, max_error_increment=2.0)
+    want, image = fit_pixel_groups(
+        scan, ids, min_plane_points=5, residuals=True, sigmas=sigmas, max_error_increment=2.0
+    )
+    got, no_image = fit_pixel_groups(
+        scan, ids, min_plane_points=5, residuals=False, sigmas=sigmas, max_error_increment=2.0
+    )
+    assert image is not None and no_image is None
     assert got.num_planes > 20 and got.max_error_increment == 2.0
     for name in ('labels', 'normals', 'offsets', 'centroids', 'point_counts', 'covariances'):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
     np.testing.assert_allclose(got.sse, want.sse, rtol=1e-12)  # bit for bit where np.einsum sums as assumed
     np.testing.assert_allclose(got.rmse, want.rmse, rtol=1e-12)
-    empty = fit_weighted_pixel_groups(scan, np.full(scan.size, -1), min_plane_points=5, sigmas=sigmas)
+    empty, _ = fit_pixel_groups(scan, np.full(scan.size, -1), min_plane_points=5, residuals=False, sigmas=sigmas)
     assert empty.num_planes == 0 and empty.labels.shape == (scan.height, scan.width)
 
 

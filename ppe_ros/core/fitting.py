@@ -469,7 +469,7 @@ def fit_pixel_groups(
     covariances = np.full((n_planes, 3, 3), np.nan)
     plane_fitted = np.isfinite(out_w).all(axis=1)
     fitted = np.flatnonzero(plane_fitted)
-    residual_image = np.full(scan.size, np.nan) if residuals or sigmas is not None else None
+    residual_image = np.full(scan.size, np.nan) if residuals else None
     if len(fitted):
         w = out_w[fitted]
         normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
@@ -485,13 +485,15 @@ def fit_pixel_groups(
                 'ij,ij->i', scan.directions[idx], w_of_pixel
             )
     sse = out_sse.copy()
-    if sigmas is not None:  # residuals in metres again
+    if sigmas is not None and residual_image is None:  # the sse in metres again, in one pass
+        _weighted_group_sse(
+            scan.endpoints, scan.directions, np.ascontiguousarray(sigmas, dtype=np.float64), labels, out_w, sse
+        )
+    elif sigmas is not None:  # residuals in metres again
         residual_image *= sigmas
         on_plane = np.flatnonzero(labels > 0)
         metric = np.bincount(labels[on_plane] - 1, weights=residual_image[on_plane] ** 2, minlength=n_planes)
         sse = np.where(plane_fitted, metric, out_sse)
-        if not residuals:
-            residual_image = None
     planes = PlaneSet(
         labels=labels.reshape(height, width),
         normals=normals,
@@ -587,7 +589,7 @@ def fit_labeled_planes(
 
 
 # --------------------------------------------------------------------------------------------
-# noise-weighted group fits without a residual image (the whole-surface pass, ppe_ros.core.surfaces)
+# the sse in metres of noise-weighted group fits without a residual image (fit_pixel_groups)
 # --------------------------------------------------------------------------------------------
 
 
@@ -613,70 +615,3 @@ def _weighted_group_sse(endpoints, directions, sigmas, labels, w, out_sse):
         along_v = (directions[k, 0] * w[j, 0] + directions[k, 2] * w[j, 2]) + directions[k, 1] * w[j, 1]
         residual = (along_p - 1.0) / along_v * sigmas[k]
         out_sse[j] += residual * residual
-
-
-def fit_weighted_pixel_groups(
-    scan: RayScan, plane_ids: np.ndarray, *, min_plane_points: int, sigmas: np.ndarray, **meta
-) -> PlaneSet:
-    """``fit_pixel_groups(scan, plane_ids, min_plane_points=..., residuals=False, sigmas=sigmas, **meta)[0]``
-    (the same PlaneSet, bit for bit) without the residual image: the sse in metres is summed by one
-    kernel pass instead of full-size numpy temporaries. ``scan``'s directions are scaled by
-    ``sigmas`` (m, the rays' range noise), as in fit_pixel_groups.
-    """
-    height, width = scan.height, scan.width
-    ids = np.where(scan.valid, plane_ids, -1).astype(np.int64, copy=False)
-    if ids.size and ids.max() >= scan.size:  # ids beyond the pixel count (labels): renumber them
-        labelled = ids >= 0
-        ids[labelled] = np.unique(ids[labelled], return_inverse=True)[1]
-    counts, first_pixel = _id_counts(ids)
-    kept = np.flatnonzero(counts >= max(int(min_plane_points), 1))
-    order = kept[np.lexsort((first_pixel[kept], -counts[kept]))]  # size desc, then first pixel asc
-    n_planes = len(order)
-    if n_planes == 0:
-        return PlaneSet.empty((height, width), **meta)
-    rank = np.full(scan.size, -1, np.int64)
-    rank[order] = np.arange(n_planes)
-    point_counts = counts[order]
-    starts = np.zeros(n_planes + 1, np.int64)
-    starts[1:] = np.cumsum(point_counts)
-    members = np.empty(starts[-1], np.int64)
-    labels = np.empty(scan.size, np.int32)
-    sums = np.empty((n_planes, 3))
-    _group_members(ids, rank, starts, scan.endpoints, members, labels, sums)
-    out_w, out_sse, out_info = np.empty((n_planes, 3)), np.empty(n_planes), np.empty((n_planes, 6))
-    _fit_groups(
-        scan.endpoints,
-        scan.directions,
-        members,
-        starts,
-        FIT_MAX_ITERATIONS,
-        FIT_RELATIVE_TOLERANCE,
-        out_w,
-        out_sse,
-        out_info,
-    )
-    normals = np.full((n_planes, 3), np.nan)
-    offsets = np.full(n_planes, np.nan)
-    covariances = np.full((n_planes, 3, 3), np.nan)
-    fitted = np.flatnonzero(np.isfinite(out_w).all(axis=1))
-    if len(fitted):
-        w = out_w[fitted]
-        normals[fitted], offsets[fitted] = _planes_from_w(w, scan.center)
-        covariances[fitted] = _closest_point_covariances(
-            w, scan.center, out_info[fitted], out_sse[fitted], point_counts[fitted]
-        )
-    sse = out_sse.copy()
-    _weighted_group_sse(
-        scan.endpoints, scan.directions, np.ascontiguousarray(sigmas, dtype=np.float64), labels, out_w, sse
-    )
-    return PlaneSet(
-        labels=labels.reshape(height, width),
-        normals=normals,
-        offsets=offsets,
-        centroids=sums / point_counts[:, None] + scan.center,
-        point_counts=point_counts,
-        sse=sse,
-        rmse=np.sqrt(sse / point_counts),
-        covariances=covariances,
-        **meta,
-    )

@@ -15,7 +15,7 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
-from ppe_ros.core.fitting import fit_pixel_groups, fit_weighted_pixel_groups
+from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.quadrants import quadrant_jackknife as quadrant_jackknife_covariances
 from ppe_ros.core.scan import RayScan
@@ -48,14 +48,9 @@ def whole_surfaces(
         ids = _consolidate(
             unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points
         )
-    if sigmas is None:
-        planes, _ = fit_pixel_groups(
-            scan, ids, min_plane_points=min_plane_points, residuals=False, actions=steps, **cut
-        )
-    else:
-        planes = fit_weighted_pixel_groups(
-            scan, ids, min_plane_points=min_plane_points, sigmas=sigmas, actions=steps, **cut
-        )
+    planes, _ = fit_pixel_groups(
+        scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
+    )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     if np.isfinite(factor) and planes.num_planes:
         planes = _drop_non_planar(
