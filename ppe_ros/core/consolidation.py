@@ -53,6 +53,25 @@ from ppe_ros.core.scan import RayScan
 DEFAULT_MAX_GAP = 64
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _add_ray(mom, g, endpoints, k, sigma):
+    """Add ray k to row g of (K, 11) moments: count, x y z, xx xy xz yy yz zz of its endpoint, sigma^2."""
+    x = endpoints[k, 0]
+    y = endpoints[k, 1]
+    z = endpoints[k, 2]
+    mom[g, 0] += 1.0
+    mom[g, 1] += x
+    mom[g, 2] += y
+    mom[g, 3] += z
+    mom[g, 4] += x * x
+    mom[g, 5] += x * y
+    mom[g, 6] += x * z
+    mom[g, 7] += y * y
+    mom[g, 8] += y * z
+    mom[g, 9] += z * z
+    mom[g, 10] += sigma * sigma
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _piece_moments(ids, endpoints, sigmas, n_pieces):
     """(K, 11) moments of each piece: count, sum x y z, sum xx xy xz yy yz zz (internal frame, m), sum sigma^2."""
@@ -61,20 +80,7 @@ def _piece_moments(ids, endpoints, sigmas, n_pieces):
         g = ids[k]
         if g < 0:
             continue
-        x = endpoints[k, 0]
-        y = endpoints[k, 1]
-        z = endpoints[k, 2]
-        mom[g, 0] += 1.0
-        mom[g, 1] += x
-        mom[g, 2] += y
-        mom[g, 3] += z
-        mom[g, 4] += x * x
-        mom[g, 5] += x * y
-        mom[g, 6] += x * z
-        mom[g, 7] += y * y
-        mom[g, 8] += y * z
-        mom[g, 9] += z * z
-        mom[g, 10] += sigmas[k] * sigmas[k]
+        _add_ray(mom, g, endpoints, k, sigmas[k])
     return mom
 
 
@@ -951,21 +957,7 @@ def _dense_moments_kernel(ids, rank, dense, endpoints, sigmas):
         dense[k] = g
         if g < 0:
             continue
-        x = endpoints[k, 0]
-        y = endpoints[k, 1]
-        z = endpoints[k, 2]
-        sigma = sigmas[k] if np.isfinite(sigmas[k]) else 0.0
-        mom[g, 0] += 1.0
-        mom[g, 1] += x
-        mom[g, 2] += y
-        mom[g, 3] += z
-        mom[g, 4] += x * x
-        mom[g, 5] += x * y
-        mom[g, 6] += x * z
-        mom[g, 7] += y * y
-        mom[g, 8] += y * z
-        mom[g, 9] += z * z
-        mom[g, 10] += sigma * sigma
+        _add_ray(mom, g, endpoints, k, sigmas[k] if np.isfinite(sigmas[k]) else 0.0)
     return labels, mom
 
 
@@ -997,21 +989,7 @@ def _surface_moments_kernel(dense, roots, endpoints, sigmas, min_points, surface
             continue
         g = index[roots[dense[k]]]
         surface[k] = g
-        x = endpoints[k, 0]
-        y = endpoints[k, 1]
-        z = endpoints[k, 2]
-        sigma = sigmas[k] if np.isfinite(sigmas[k]) else 0.0
-        mom[g, 0] += 1.0
-        mom[g, 1] += x
-        mom[g, 2] += y
-        mom[g, 3] += z
-        mom[g, 4] += x * x
-        mom[g, 5] += x * y
-        mom[g, 6] += x * z
-        mom[g, 7] += y * y
-        mom[g, 8] += y * z
-        mom[g, 9] += z * z
-        mom[g, 10] += sigma * sigma
+        _add_ray(mom, g, endpoints, k, sigmas[k] if np.isfinite(sigmas[k]) else 0.0)
     for k in range(len(dense)):
         if surface[k] >= 0 and mom[surface[k], 0] < min_points:
             surface[k] = -1
