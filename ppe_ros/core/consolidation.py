@@ -48,6 +48,7 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.scan import RayScan
+from ppe_ros.core.work_memory import WorkMemory
 
 #: Largest gap (pixels along a row or column) an occluder may cover between two pieces of a surface.
 DEFAULT_MAX_GAP = 64
@@ -912,26 +913,15 @@ def absorb_rays(
     return np.where(dense >= 0, labels[np.maximum(dense, 0)], -1)
 
 
-_work_memory = threading.local()
-
-
-def _reusable(name: str, size: int, dtype) -> np.ndarray:
-    """A 1-D array of ``size`` elements from this thread's work memory of the consolidation (kept for
-    the next call: fresh memory costs a page fault per 4 KiB page when first touched, about 0.5 ms per
-    MB here). Each thread keeps its own buffers; a larger request replaces the buffer."""
-    buffers = getattr(_work_memory, 'buffers', None)
-    if buffers is None:
-        buffers = _work_memory.buffers = {}
-    buffer = buffers.get(name)
-    if buffer is None or len(buffer) < size or buffer.dtype != dtype:
-        buffer = buffers[name] = np.empty(size, dtype)
-    return buffer[:size]
+#: The whole-surface pass's work memory (consolidated_surfaces, the seam test, unit directions).
+_work_memory = WorkMemory()
+_reusable = _work_memory.array
 
 
 def release_work_memory() -> None:
     """Free the work memory :func:`consolidated_surfaces` keeps between calls in the calling thread
     (about 40 bytes per ray of the largest scan so far)."""
-    _work_memory.buffers = {}
+    _work_memory.release()
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)

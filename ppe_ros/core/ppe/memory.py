@@ -2,27 +2,13 @@
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 
-_work_memory = threading.local()
+from ppe_ros.core.work_memory import WorkMemory
 
-
-def _reusable(name: str, size: int, dtype) -> np.ndarray:
-    """A 1-D array of ``size`` elements from this thread's work memory (kept for the next call).
-
-    Fresh memory costs a page fault per 4 KiB page when first touched: tens of thousands per
-    500 x 500 scan, a noticeable share of a small scan's extraction. Each thread keeps its own
-    buffers (calls from several threads never share one); a larger request replaces the buffer.
-    """
-    buffers = getattr(_work_memory, 'buffers', None)
-    if buffers is None:
-        buffers = _work_memory.buffers = {}
-    buffer = buffers.get(name)
-    if buffer is None or len(buffer) < size or buffer.dtype != dtype:
-        buffer = buffers[name] = np.empty(size, dtype)
-    return buffer[:size]
+#: The greedy's work memory (seeds, tiles, the kernel's pools).
+_work_memory = WorkMemory()
+_reusable = _work_memory.array
 
 
 def release_work_memory() -> None:
@@ -35,7 +21,7 @@ def release_work_memory() -> None:
     """
     from ppe_ros.core.consolidation import release_work_memory as release_surface_memory
 
-    _work_memory.buffers = {}
+    _work_memory.release()
     release_surface_memory()
 
 
