@@ -161,3 +161,28 @@ def test_strips_with_the_most_seeds_are_taken_first():
     seed_key[:, 4:8] = 1.0  # strip 1 (columns 4-7) has 16 seeds
     seed_key[0, 0] = seed_key[1, 9] = 2.0  # strips 0 and 2 one each: ties by index
     assert _largest_first(seed_key.reshape(-1), 4, 12, [0, 4, 8, 12]) == [1, 0, 2]
+
+
+def test_run_tasks_returns_the_results_in_task_order_from_any_number_of_threads():
+    from ppe_ros.core.thread_pool import SharedThreadPool, run_tasks
+
+    pool = SharedThreadPool('ppe-test')
+    ran_on = {}
+
+    def square(i):
+        time.sleep(0.002 * (i % 3))  # uneven tasks: the threads interleave
+        ran_on[i] = threading.current_thread().name
+        return i * i
+
+    for threads in (1, 2, 4):
+        assert run_tasks(square, [5, 1, 4, 0, 3, 2], threads, pool) == [0, 1, 4, 9, 16, 25]
+    assert pool.executor(1) is pool.executor(3)  # grown once to 3 workers, then reused
+    assert any(name.startswith('ppe-test') for name in ran_on.values())
+
+    def fails(i):
+        if i == 2:
+            raise ValueError('task 2')
+        return i
+
+    with pytest.raises(ValueError, match='task 2'):
+        run_tasks(fails, range(4), 2, pool)

@@ -42,12 +42,11 @@ kernel is tested against.
 
 from __future__ import annotations
 
-import threading
-
 import numba as nb
 import numpy as np
 
 from ppe_ros.core.scan import RayScan
+from ppe_ros.core.thread_pool import SharedThreadPool, run_tasks
 from ppe_ros.core.work_memory import WorkMemory
 
 #: Largest gap (pixels along a row or column) an occluder may cover between two pieces of a surface.
@@ -687,19 +686,7 @@ PARALLEL_MIN_PIXELS = 32768
 #: Row blocks per thread of the candidate pairs (the cost per row varies: no returns, occluders).
 BLOCKS_PER_THREAD = 4
 
-_pool_lock = threading.Lock()
-_pool: list = []
-
-
-def _executor(workers: int):
-    """A process-wide pool of at least ``workers`` threads for the consolidation's nogil kernels."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    with _pool_lock:
-        if not _pool or _pool[0]._max_workers < workers:
-            # a smaller pool is replaced, not shut down: a caller may still use it
-            _pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-surfaces')]
-        return _pool[0]
+_pool = SharedThreadPool('ppe-surfaces')
 
 
 def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, max_gap, connected_only) -> np.ndarray:
@@ -730,23 +717,7 @@ def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, m
 
     if n_blocks == 1:
         return block(0)
-    tickets = iter(range(n_blocks))  # next() on a range iterator is atomic under the GIL
-    ticket_lock = threading.Lock()
-
-    def drain() -> list:
-        done = []
-        while True:
-            with ticket_lock:
-                i = next(tickets, None)
-            if i is None:
-                return done
-            done.append((i, block(i)))
-
-    futures = [_executor(threads - 1).submit(drain) for _ in range(threads - 1)]
-    results = drain()
-    for future in futures:
-        results += future.result()
-    return np.concatenate([pairs for _, pairs in sorted(results, key=lambda item: item[0])])
+    return np.concatenate(run_tasks(block, range(n_blocks), threads, _pool))
 
 
 def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import threading
-
 import numba as nb
 import numpy as np
 
 from ppe_ros.core.ppe.greedy import _greedy
 from ppe_ros.core.ppe.layout import _ST_HEAP_PEAK, KIND_CREATE
 from ppe_ros.core.ppe.memory import _reusable
+from ppe_ros.core.thread_pool import SharedThreadPool, run_tasks
 
 #: Columns per tile of tiles='auto' on a sweep (a grid at least 4 times as wide as high: 45 deg sectors
 #: of a 1024-column spinning lidar); images get twice as wide strips (measured: 128-column strips of
@@ -61,20 +60,8 @@ def _placed_borders(bounds: list[int], ok_right: np.ndarray, height: int, width:
     return [*placed, width]
 
 
-_tile_pool_lock = threading.Lock()
-_tile_pool: list = []
-
-
-def _tile_executor(workers: int):
-    """A process-wide pool of at least ``workers`` threads for tiles (its threads keep their work memory)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    with _tile_pool_lock:
-        if not _tile_pool or _tile_pool[0]._max_workers < workers:
-            # a smaller pool is replaced, not shut down: a caller may still submit to it; its idle
-            # threads end when it is no longer referenced
-            _tile_pool[:] = [ThreadPoolExecutor(max_workers=workers, thread_name_prefix='ppe-tile')]
-        return _tile_pool[0]
+#: Its threads keep their work memory (ppe.memory) from tile to tile and call to call.
+_tile_pool = SharedThreadPool('ppe-tile')
 
 
 def _tile_inputs(inputs: tuple, height: int, width: int, c0: int, c1: int) -> tuple:
@@ -127,29 +114,10 @@ def _tiled_greedy(
         return kinds, a_ids, b_ids, incs, stats
 
     threads = min(nb.get_num_threads() if threads is None else int(threads), n_tiles)
-    if threads == 1:
-        results = [run(t) for t in range(n_tiles)]
-    else:
-        # the strips with the most valid seeds first (about the most work), so that no large strip is
-        # left for one thread at the end; next() on a list iterator is atomic under the GIL
-        tickets = iter(_largest_first(inputs[7], height, width, bounds))
-        ticket_lock = threading.Lock()
-
-        def drain() -> list:
-            done = []
-            while True:
-                with ticket_lock:
-                    t = next(tickets, None)
-                if t is None:
-                    return done
-                done.append((t, run(t)))
-
-        pool = _tile_executor(threads - 1)
-        futures = [pool.submit(drain) for _ in range(threads - 1)]
-        pairs = drain()
-        for future in futures:
-            pairs += future.result()
-        results = [r for _, r in sorted(pairs, key=lambda pair: pair[0])]
+    # the strips with the most valid seeds first (about the most work), so that no large strip is
+    # left for one thread at the end
+    strip_order = _largest_first(inputs[7], height, width, bounds) if threads > 1 else range(n_tiles)
+    results = run_tasks(run, strip_order, threads, _tile_pool)
     kinds = np.concatenate([r[0] for r in results])
     running_max = np.concatenate([np.maximum.accumulate(r[3]) if len(r[3]) else r[3] for r in results])
     order = np.argsort(running_max, kind='stable')
