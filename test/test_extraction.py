@@ -34,7 +34,7 @@ from ppe_ros.core.fitting import fit_plane, fit_rays
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.ppe.layout import _FIT_ITERATIONS, _FIT_TOLERANCE, _NPF, _NPI, _PCOUNT, _PE, _PW
 from ppe_ros.core.ppe.memory import _work_memory
-from ppe_ros.core.ppe.seeds import _edge_masks, _ray_columns, _seed_errors, _seed_exceeds
+from ppe_ros.core.ppe.seeds import SEED_SHAPES, _edge_masks, _ray_columns, _seed_errors, _seed_exceeds, _seed_stage
 from ppe_ros.core.ppe.state import (
     _hybrid_merge,
     _keep_refined_merge,
@@ -44,6 +44,7 @@ from ppe_ros.core.ppe.state import (
     _union_fit,
 )
 from ppe_ros.core.scan import make_ray_scan
+from ppe_ros.core.sensor import SensorProfile
 from ppe_ros.core.synthetic import ScanGrid, generate_scan, plane_scan
 
 # A hang inside a numba kernel cannot be interrupted by a signal: the thread method ends the run
@@ -816,6 +817,7 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
         scan.height,
         scan.width,
         TETROMINO_OFFSETS,
+        SEED_SHAPES['all'],
         fast,
         best_config,
         best_key,
@@ -828,6 +830,42 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
     assert none.sum() > 10
     np.testing.assert_array_equal(best_config, np.where(none, -1, np.argmin(slow, axis=1)))
     np.testing.assert_array_equal(best_key, slow.min(axis=1))
+
+
+def test_square_seeds_are_the_full_tables_square_column():
+    """seed_shapes 'square': the O's column of the full table, inf for the other 16 configs, and each
+    anchor's initial seed the O where it is valid."""
+    scan_in = scenes.room_scan(rows=30, cols=40, noise=0.02, seed=3)
+    points = scan_in.points.copy()
+    points[5:9, 7:12] = np.nan
+    scan = make_ray_scan(points, scan_in.origins)
+    ok_right, ok_down = _edge_masks(scan, 0.3)
+    full, _, _ = (x.copy() for x in _seed_stage(scan, ok_right, ok_down, np.inf, 'all'))
+    square, best, key = (x.copy() for x in _seed_stage(scan, ok_right, ok_down, np.inf, 'square'))
+    assert np.isfinite(full[:, 0]).sum() > 500 and np.isfinite(full[:, 1:]).sum() > 5000
+    np.testing.assert_array_equal(square[:, 0], full[:, 0])
+    assert np.isinf(square[:, 1:]).all()
+    np.testing.assert_array_equal(best, np.where(np.isfinite(full[:, 0]), 0, -1))
+    np.testing.assert_array_equal(key, full[:, 0])
+
+
+def test_square_seeds_create_only_squares():
+    """A run with GreedyOptions(seed_shapes='square') creates every plane from config 0; the default creates
+    from several configs."""
+    scan_in = scenes.room_scan(rows=30, cols=40, noise=0.02, seed=3)
+    logs = {
+        shapes: extract_plane_hierarchy(
+            scan_in.points, origins=scan_in.origins, max_error_increment=0.01, options=GreedyOptions(seed_shapes=shapes)
+        ).actions
+        for shapes in ('all', 'square')
+    }
+    creates = {shapes: log['b'][log['kind'] == 0] for shapes, log in logs.items()}
+    assert len(creates['square']) > 10 and (creates['square'] == 0).all()
+    assert len(np.unique(creates['all'])) > 3
+    with pytest.raises(ValueError, match='seed_shapes'):
+        GreedyOptions(seed_shapes='triangle')
+    with pytest.raises(ValueError, match='seed_shapes'):
+        SensorProfile(name='mine', seed_shapes='triangle')
 
 
 def test_seeds_left_to_the_general_fit_above_the_cutoff_are_not_fitted():
@@ -856,6 +894,7 @@ def test_seeds_left_to_the_general_fit_above_the_cutoff_are_not_fitted():
             scan.height,
             scan.width,
             TETROMINO_OFFSETS,
+            SEED_SHAPES['all'],
             table,
             best_config,
             best_key,

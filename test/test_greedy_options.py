@@ -21,6 +21,7 @@ def test_the_defaults_are_the_documented_ones():
         'refined_merge_growth': REFINED_MERGE_GROWTH,
         'merge_loop_growth': MERGE_LOOP_GROWTH,
         'defer_merges': True,
+        'seed_shapes': 'all',
         'pool_capacity': None,
     }
     assert (DEFAULT_EXACT_PLANE_SIZE, REFINED_MERGE_GROWTH, MERGE_LOOP_GROWTH) == (32, 0.125, 1 / 512)

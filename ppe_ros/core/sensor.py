@@ -152,6 +152,8 @@ class SensorProfile:
         flatness_length: D0 (m): the planarity test's tolerance of a plane of size D is
             tau min(1, D / D0) (a small patch must be flat to the noise; surfaces.whole_surfaces);
             None = tau for every plane.
+        seed_shapes: the tetrominoes that seed the greedy's planes: 'all' (the paper's 17) or 'square'
+            (the 2 x 2 square alone: a 17th of the seed work; ppe_ros.core.ppe.GreedyOptions).
         noise_scale_bounds: (low, high): scale the noise model to each scan by
             :func:`estimate_noise_scale`, clamped to these bounds; None = use the model as it is.
     """
@@ -169,12 +171,15 @@ class SensorProfile:
     noise_scale_bounds: tuple[float, float] | None = None
     flatness_length: float | None = None
     quadrant_jackknife: bool = False
+    seed_shapes: str = 'all'
 
     def __post_init__(self) -> None:
         if self.noise_scale_bounds is not None:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
                 raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
+        if self.seed_shapes not in ('all', 'square'):
+            raise ValueError(f"seed_shapes must be 'all' or 'square'; got {self.seed_shapes!r}")
         if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
             raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
 
@@ -234,6 +239,7 @@ PROFILES: dict[str, SensorProfile] = {
         correlation_length=1.0,
         flatness_length=4.0,
         quadrant_jackknife=True,
+        seed_shapes='square',
     ),
     'depth_camera': SensorProfile(
         name='depth_camera',

@@ -206,7 +206,7 @@ def extract_plane_hierarchy(
     for column in tile_columns[1:-1]:  # no seed or join crosses a tile border
         ok_right[column - 1 :: scan.width] = False
     seed_sse, seed_best, seed_key = _seed_stage(
-        scan, ok_right, ok_down, _run_cutoff(stop_increment, stop_count, scan.size)
+        scan, ok_right, ok_down, _run_cutoff(stop_increment, stop_count, scan.size), options.seed_shapes
     )
     inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, seed_sse, seed_best, seed_key)
     if len(tile_columns) == 2:
@@ -391,6 +391,9 @@ def extract_planes(
         noise=noise,
         tiles=tiles,
         threads=threads,
+        options=None
+        if profile is None or profile.seed_shapes == 'all'
+        else GreedyOptions(seed_shapes=profile.seed_shapes),
     )
     cut_kwargs = [{'max_error_increment': e} for e in e_list or []] + [{'max_planes': n} for n in n_list or []]
     if surface_tolerance is None and profile is None:

@@ -15,6 +15,7 @@ from ppe_ros.core.ppe.layout import (
     REFINED_MERGE_GROWTH,
     RELINEARISATION_DRIFT,
 )
+from ppe_ros.core.ppe.seeds import SEED_SHAPES
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,9 @@ class GreedyOptions:
         defer_merges: keep merges whose key exceeds the changed plane's proxy key off the queue until
             they are due (False queues every merge at once: the same action log, more heap work;
             for tests).
+        seed_shapes: the tetrominoes that seed a plane (create actions): 'all' the paper's 17 (every
+            tetromino but the straight I), 'square' the 2 x 2 square alone (a 17th of the seed fits and of
+            the seeds the greedy re-queues; the sensor profiles' choice for spinning lidars).
         pool_capacity: initial rows (>= 1) of each of the greedy's work pools (None: from the scan size).
             A pool that runs out is enlarged and the greedy run again, so the result does not
             depend on it (tests use small values to exercise that path).
@@ -52,6 +56,7 @@ class GreedyOptions:
     refined_merge_growth: float = REFINED_MERGE_GROWTH
     merge_loop_growth: float = MERGE_LOOP_GROWTH
     defer_merges: bool = True
+    seed_shapes: str = 'all'
     pool_capacity: int | None = None
 
     def __post_init__(self) -> None:
@@ -69,6 +74,9 @@ class GreedyOptions:
             raise ValueError(f'pool_capacity must be a whole number >= 1 or None; got {self.pool_capacity!r}')
         if self.pool_capacity is not None and int(self.pool_capacity) < 1:
             raise ValueError(f'pool_capacity must be >= 1 (None: from the scan size); got {self.pool_capacity!r}')
+        if self.seed_shapes not in SEED_SHAPES:
+            choices = ', '.join(repr(k) for k in SEED_SHAPES)
+            raise ValueError(f'seed_shapes must be one of {choices}; got {self.seed_shapes!r}')
         if not float(self.relinearisation_drift) >= 0.0:
             drift = self.relinearisation_drift
             raise ValueError(f'relinearisation_drift must be >= 0 (inf: only on doubling); got {drift!r}')
@@ -83,6 +91,7 @@ class GreedyOptions:
             'refined_merge_growth': float(self.refined_merge_growth),
             'merge_loop_growth': float(self.merge_loop_growth),
             'defer_merges': bool(self.defer_merges),
+            'seed_shapes': str(self.seed_shapes),
             'pool_capacity': None if self.pool_capacity is None else int(self.pool_capacity),
         }
         for name, value in normalised.items():

@@ -25,6 +25,10 @@ def _seed_rays(idx, anchor, o0, o1, o2, o3):
     idx[3] = anchor + o3
 
 
+#: The tetromino configs (rows of TETROMINO_OFFSETS) that seed planes, by GreedyOptions.seed_shapes: 'all'
+#: the paper's 17 (every tetromino but the straight I), 'square' the O alone (config 0).
+SEED_SHAPES = {'all': np.arange(17, dtype=np.int64), 'square': np.zeros(1, dtype=np.int64)}
+
 #: Anchors per block of the vectorised seed loop, and the valid seeds a block needs for it (the
 #: vectorised fit of 16 anchors costs about as much as two general fits).
 _SEED_BLOCK = 16
@@ -136,9 +140,23 @@ def _seed_exceeds(endpoints, directions, idx, cutoff):
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
 def _seed_errors(
-    endpoints, directions, P, V, ok_right, ok_down, height, width, offsets, out, best_config, best_key, cutoff=np.inf
+    endpoints,
+    directions,
+    P,
+    V,
+    ok_right,
+    ok_down,
+    height,
+    width,
+    offsets,
+    configs,
+    out,
+    best_config,
+    best_key,
+    cutoff=np.inf,
 ):
-    """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
+    """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid or its
+    config is not in ``configs`` (the tetromino ids 0..16 that seed planes, GreedyOptions.seed_shapes).
 
     P, V: the endpoints and directions as (3, n) arrays (_ray_columns), which the vectorised
     fits read with unit stride across anchors.
@@ -164,7 +182,7 @@ def _seed_errors(
         # the row's errors by config, copied into out's rows at the end (writing a column of out
         # touches a cache line per anchor)
         errors = np.full((17, width), np.inf)
-        for c in range(17):
+        for c in configs:
             di_min = min(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             di_max = max(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             if i + di_min < 0 or i + di_max >= height:
@@ -218,17 +236,24 @@ def _seed_errors(
                         endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS, _FIT_TOLERANCE
                     )
                 errors[c, j] = sse if np.isfinite(sse) else np.inf
-        for j in range(width):
-            best = -1
-            least = np.inf
-            for c in range(17):
-                e = errors[c, j]
-                out[base + j, c] = e
-                if e < least:
-                    best = c
-                    least = e
-            best_config[base + j] = best
-            best_key[base + j] = least
+        _store_row(errors, base, width, out, best_config, best_key)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _store_row(errors, base, width, out, best_config, best_key):
+    """Copy one grid row's (17, width) seed errors into out's rows base..base+width-1, and each anchor's first
+    config of least SSE (-1: none valid) and that SSE into best_config and best_key."""
+    for j in range(width):
+        best = -1
+        least = np.inf
+        for c in range(17):
+            e = errors[c, j]
+            out[base + j, c] = e
+            if e < least:
+                best = c
+                least = e
+        best_config[base + j] = best
+        best_key[base + j] = least
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
@@ -316,9 +341,12 @@ def _distance(endpoints, a, b):
     return np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
 
 
-def _seed_stage(scan: RayScan, ok_right: np.ndarray, ok_down: np.ndarray, cutoff: float):
+def _seed_stage(
+    scan: RayScan, ok_right: np.ndarray, ok_down: np.ndarray, cutoff: float, seed_shapes: str = 'all'
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every anchor's tetromino seed errors, its best config and key (reused work memory); seeds above
-    ``cutoff`` (the greedy's, :func:`_run_cutoff`) are never created."""
+    ``cutoff`` (the greedy's, :func:`_run_cutoff`) are never created; only the configs of ``seed_shapes``
+    (SEED_SHAPES) are evaluated, the others are inf."""
     seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
     seed_best = _reusable('seed_best', scan.size, np.int32)
     seed_key = _reusable('seed_key', scan.size, np.float64)
@@ -334,6 +362,7 @@ def _seed_stage(scan: RayScan, ok_right: np.ndarray, ok_down: np.ndarray, cutoff
         scan.height,
         scan.width,
         TETROMINO_OFFSETS,
+        SEED_SHAPES[seed_shapes],
         seed_sse,
         seed_best,
         seed_key,
