@@ -980,6 +980,31 @@ def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, 
 
 
 @pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_signals_after_the_command_line_run_are_ignored_until_exit(tmp_path, monkeypatch, signum):
+    """main() of the process's own command line (argv None) leaves handlers that ignore a late signal (one
+    that would otherwise kill the exiting process and replace its exit code); main(argv) restores them."""
+    source = write_rosbag2(
+        tmp_path / 'in',
+        [
+            (
+                bag_time(0),
+                serialized(JAZZY, cloud(JAZZY, 0, plane_scan(3, rows=16, cols=32, radial_sigma=0.005, seed=0).points)),
+            )
+        ],
+    )
+    before = signal.getsignal(signum)
+    try:
+        monkeypatch.setattr(sys, 'argv', ['process_bag', str(source), str(tmp_path / 'out'), '--no-progress'])
+        assert main() == 0
+        assert signal.getsignal(signum) is not before
+        os.kill(os.getpid(), signum)  # ignored: no KeyboardInterrupt, no kill
+        assert run_cli([source, tmp_path / 'again']) == 0
+        assert signal.getsignal(signum) is not before  # main(argv) restored what it found
+    finally:
+        signal.signal(signum, before)
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
 def test_repeated_signals_during_inline_frames(tmp_path, signum):
     """The real thing: signals every 20 ms into ``process_bag --jobs 1`` on 64 x 512 clouds (each frame
     runs several numba kernels, so a second signal lands between two of them)."""

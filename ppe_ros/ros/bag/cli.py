@@ -257,14 +257,21 @@ def read_params_file(path: str | os.PathLike[str]) -> tuple[ExtractorParams, lis
     return params, unknown
 
 
-def run(args: argparse.Namespace, prog: str = 'process_bag') -> int:
-    """Run from parsed arguments; print the plan, warnings, summary and errors; return the exit code."""
+def run(args: argparse.Namespace, prog: str = 'process_bag', *, keep_signal_handlers: bool = False) -> int:
+    """Run from parsed arguments; print the plan, warnings, summary and errors; return the exit code.
+
+    keep_signal_handlers: leave the command's SIGINT / SIGTERM handlers in place after the run, where
+    they ignore further signals (for the process's own command line: a signal that arrives while
+    Python exits would otherwise kill the process and replace the exit code 128 + signal).
+    """
     signals = CommandSignals()
     signals.install()
     try:
         return _run_command(args, prog, signals)
     finally:
-        signals.restore()
+        signals.done = True
+        if not keep_signal_handlers:
+            signals.restore()
 
 
 def _run_command(args: argparse.Namespace, prog: str, signals: CommandSignals) -> int:
@@ -317,4 +324,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     arguments = list(sys.argv[1:] if argv is None else argv)
     if '--ros-args' in arguments:  # ros2 launch appends ROS arguments; they mean nothing here
         arguments = arguments[: arguments.index('--ros-args')]
-    return run(build_parser().parse_args(arguments))
+    # the process's own command line: signals after the run are ignored until it has exited
+    return run(build_parser().parse_args(arguments), keep_signal_handlers=argv is None)
