@@ -6,7 +6,9 @@ against PPE at the node's settings without a profile and Open3D's RANSAC loop, o
 
 Seeds 1000-1999 are the test split of `ppe dataset make --kind lidar|depth_camera` (SENSOR_SEED_SPLITS):
 the profiles' defaults were chosen on seeds below 1000. Prints one markdown table per sensor kind (f and k
-pooled over the seeds as in ppe eval: f = correct / GT regions, k = mean over scans) and the machine.
+pooled over the seeds as in ppe eval: f = correct / GT regions, k = mean over scans), for PPE the covariance
+calibration against the generated true planes (ppe_ros.benchmark.real.truth_mahalanobis: the median
+Mahalanobis² of the planes of >= 1000 points, with their count), and the machine.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_real
 
 from ppe_ros import extract_planes
+from ppe_ros.benchmark.real import CHI2_3_MEDIAN, truth_mahalanobis
 from ppe_ros.benchmark.report import machine_description
 from ppe_ros.core.evaluation import score_segmentation
 from ppe_ros.core.synthetic_real import generate_depth_scan, generate_lidar_scan
@@ -33,10 +36,10 @@ GENERATORS = {'lidar': generate_lidar_scan, 'depth_camera': generate_depth_scan}
 def methods(kind: str, with_ransac: bool):
     """(name, function points, origins -> labels) of the compared methods."""
     out = [
-        (f'PPE sensor={kind}', lambda p, o: extract_planes(p, origins=o, sensor=kind).labels),
+        (f'PPE sensor={kind}', lambda p, o: extract_planes(p, origins=o, sensor=kind)),
         (
             'PPE e 0.01, lmax inf, 20 points (no profile)',
-            lambda p, o: extract_planes(p, origins=o, max_error_increment=0.01, min_plane_points=20).labels,
+            lambda p, o: extract_planes(p, origins=o, max_error_increment=0.01, min_plane_points=20),
         ),
     ]
     o3d = bench_real.open3d_or_none() if with_ransac else None
@@ -51,16 +54,27 @@ def run(kinds: list[str], seeds: list[int], with_ransac: bool) -> None:
         scans = [GENERATORS[kind](seed=seed) for seed in seeds]
         rows = []
         for name, method in methods(kind, with_ransac):
-            scores, seconds = [], []
+            scores, seconds, calibration = [], [], []
             for scan in scans:
                 start = time.perf_counter()
-                labels = method(scan.points, getattr(scan, 'origins', None))
+                result = method(scan.points, getattr(scan, 'origins', None))
                 seconds.append(time.perf_counter() - start)
+                labels = getattr(result, 'labels', result)
                 scores.append(score_segmentation(labels, scan.labels))
+                if hasattr(result, 'covariances'):  # PPE's planes: their covariances against the true planes
+                    calibration.extend(
+                        truth_mahalanobis(
+                            labels, result.offsets, result.normals, result.covariances, scan.labels, scan.plane_of_label
+                        )
+                    )
             f = sum(s.n_correct for s in scores) / max(sum(s.n_gt for s in scores), 1)
             k = float(np.mean([s.k for s in scores]))
-            rows.append(f'| {name} | {100 * f:.1f} % | {100 * k:.1f} % | {np.median(seconds):.2f} |')
-        print(f'\n### {kind} ({len(seeds)} scans)\n\n| method | f | k | median s per scan |\n|---|---|---|---|')
+            mahalanobis = f'{np.nanmedian(calibration):.2f} ({len(calibration)})' if calibration else ''
+            rows.append(f'| {name} | {100 * f:.1f} % | {100 * k:.1f} % | {mahalanobis} | {np.median(seconds):.2f} |')
+        print(
+            f'\n### {kind} ({len(seeds)} scans)\n\n| method | f | k | median Mahalanobis² vs the true planes '
+            f'(planes >= 1000 points; calibrated {CHI2_3_MEDIAN:.2f}) | median s per scan |\n|---|---|---|---|---|'
+        )
         print('\n'.join(rows))
 
 

@@ -27,6 +27,7 @@ from ppe_ros.benchmark.real import (
     share_in_large_planes,
     summarize_matches,
     transform_planes,
+    truth_mahalanobis,
 )
 
 
@@ -393,3 +394,26 @@ def test_bench_real_ppe_settings_and_bad_arguments(capsys):
     if not bench.has_sensor_argument():
         assert bench.main(['--sensor', 'auto']) == 2
         assert 'no sensor argument' in capsys.readouterr().err
+
+
+def test_truth_mahalanobis_against_known_planes():
+    """Plane 1 lies on surface 10 with its closest point 2 sigma off along the normal: Mahalanobis² 4; plane 2
+    is exact (0); plane 3 is too small, plane 4 straddles two surfaces half and half: both skipped."""
+    labels = np.zeros((40, 100), np.int64)
+    truth = np.zeros((40, 100), np.int64)
+    labels[:20, :60], truth[:20, :] = 1, 10  # 1200 points, all on surface 10
+    labels[20:40, :60], truth[20:40, :] = 2, 11
+    labels[:5, 60:70] = 3  # 50 points
+    labels[10:30, 60:100] = 4  # 800 points, half on surface 10 and half on 11
+    true = {10: (np.array([0.0, 0.0, 1.0]), -2.0), 11: (np.array([1.0, 0.0, 0.0]), -5.0)}
+    sigma = 0.01
+    normals = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    offsets = np.array([-2.0 + 2 * sigma, -5.0, -1.0, -1.0])
+    covariances = np.repeat((sigma**2 * np.eye(3))[None], 4, axis=0)
+    values = truth_mahalanobis(labels, offsets, normals, covariances, truth, true.__getitem__, min_points=500)
+    np.testing.assert_allclose(values, [4.0, 0.0], atol=1e-9)
+    # the sign of a plane's (normal, offset) does not matter: d n is the same point
+    flipped = truth_mahalanobis(labels, -offsets, -normals, covariances, truth, true.__getitem__, min_points=500)
+    np.testing.assert_allclose(flipped, values, atol=1e-9)
+    with pytest.raises(ValueError, match='one shape'):
+        truth_mahalanobis(labels[:10], offsets, normals, covariances, truth, true.__getitem__)

@@ -416,6 +416,44 @@ def mahalanobis_squared(delta: np.ndarray, covariance: np.ndarray) -> float:
     return float(solved @ solved)
 
 
+def truth_mahalanobis(
+    labels: np.ndarray,
+    offsets: np.ndarray,
+    normals: np.ndarray,
+    covariances: np.ndarray,
+    truth_labels: np.ndarray,
+    true_plane,
+    min_points: int = 1000,
+    min_truth_label: int = 10,
+) -> np.ndarray:
+    """Covariance calibration against known planes (generated scans): for every plane of at least
+    ``min_points`` points whose points lie mostly (more than half) on one ground-truth surface, the
+    Mahalanobis² of the difference of its closest point ``offsets[j] * normals[j]`` from that surface's
+    (``true_plane(label) -> (normal, offset)``, the same frame) under ``covariances[j]``.
+
+    ``labels``: the planes' label image (plane j is label j + 1, 0 = none); ``truth_labels`` the same
+    shape, surfaces labelled >= ``min_truth_label``. Returns the values, in plane order.
+    """
+    flat = np.asarray(labels).reshape(-1)
+    truth = np.asarray(truth_labels).reshape(-1)
+    if flat.shape != truth.shape:
+        raise ValueError(
+            f'labels and truth_labels must have one shape; got {np.shape(labels)} and {np.shape(truth_labels)}'
+        )
+    values = []
+    for j in range(len(offsets)):
+        on_plane = truth[flat == j + 1]
+        if len(on_plane) < min_points:
+            continue
+        surfaces, counts = np.unique(on_plane[on_plane >= min_truth_label], return_counts=True)
+        if not len(counts) or 2 * counts.max() <= len(on_plane):
+            continue
+        normal, offset = true_plane(int(surfaces[np.argmax(counts)]))
+        delta = float(offsets[j]) * np.asarray(normals[j], float) - float(offset) * np.asarray(normal, float)
+        values.append(mahalanobis_squared(delta, covariances[j]))
+    return np.asarray(values, dtype=np.float64)
+
+
 # --------------------------------------------------------------------------------------------- matching
 
 
