@@ -356,6 +356,25 @@ def test_summary_medians_count_unmatched_planes_as_iou_zero():
     assert summary.pairs == 2 and summary.median_mahalanobis2 == pytest.approx(3.0)
 
 
+def test_summary_counts_why_planes_were_not_found_again():
+    def match(iou, angle, offset, label_b=1):
+        found = iou >= 0.7 and angle < 2.0 and offset < 0.05
+        return PlaneMatch(1, label_b, 1000, 1000, iou, angle, offset, 1.0, 0.01, found)
+
+    summary = summarize_matches(
+        [
+            match(0.9, 0.1, 0.01),  # found
+            match(0.6, 0.1, 0.01),  # IoU
+            match(0.8, 2.5, 0.01),  # angle
+            match(0.5, 3.0, 0.20),  # all three
+            match(0.0, math.nan, math.nan, label_b=0),  # no match: all three
+            match(0.8, 0.1, 0.05),  # offset at the limit
+        ]
+    )
+    assert summary.found == 1
+    assert (summary.missed_iou, summary.missed_angle, summary.missed_offset) == (3, 3, 3)
+
+
 def test_every_real_scan_has_a_split():
     assert {scan.name for scan in REAL_SCANS} == set(SCAN_SPLIT)
     assert set(SCAN_SPLIT.values()) == {'training', 'reported'}

@@ -682,6 +682,9 @@ class RepeatabilitySummary:
         median_angle_deg: median normal angle over the pairs.
         median_mahalanobis2_with_registration: the median with the registration error estimate added.
         median_gap_at_planes: median :attr:`PlaneMatch.gap_at_planes` (m) over the pairs.
+        missed_iou, missed_angle, missed_offset: of the planes not found again, how many miss each
+            criterion (IoU below MIN_MATCH_IOU, angle of MAX_MATCH_ANGLE_DEG or more, offset gap of
+            MAX_MATCH_OFFSET or more; a plane may miss several; a plane without a match misses all three).
     """
 
     planes: int
@@ -695,6 +698,9 @@ class RepeatabilitySummary:
     median_angle_deg: float
     median_mahalanobis2_with_registration: float = math.nan
     median_gap_at_planes: float = math.nan
+    missed_iou: int = 0
+    missed_angle: int = 0
+    missed_offset: int = 0
 
 
 def _median(values) -> float:
@@ -706,6 +712,7 @@ def summarize_matches(matches: list[PlaneMatch]) -> RepeatabilitySummary:
     """Share found again, median IoU and the covariance calibration of a list of matches."""
     paired = [m for m in matches if m.label_b > 0]
     found = sum(m.found for m in matches)
+    missed = [m for m in matches if not m.found]
     return RepeatabilitySummary(
         planes=len(matches),
         found=found,
@@ -718,6 +725,9 @@ def summarize_matches(matches: list[PlaneMatch]) -> RepeatabilitySummary:
         median_angle_deg=_median([m.angle_deg for m in paired]),
         median_mahalanobis2_with_registration=_median([m.mahalanobis2_with_registration for m in paired]),
         median_gap_at_planes=_median([m.gap_at_planes for m in paired]),
+        missed_iou=sum(not m.iou >= MIN_MATCH_IOU for m in missed),
+        missed_angle=sum(not m.angle_deg < MAX_MATCH_ANGLE_DEG for m in missed),
+        missed_offset=sum(not m.offset_diff < MAX_MATCH_OFFSET for m in missed),
     )
 
 
