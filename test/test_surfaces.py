@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 from reference_consolidation import consolidate_reference, cost
-from scenes import cast_scan, face_from_polygon, plane
+from scenes import cast_scan, face_from_polygon, plane, room_scan
 
 from ppe_ros import extract_planes
 from ppe_ros.core.consolidation import (
@@ -446,3 +446,20 @@ def test_profile_covariances_are_wider_than_the_fit_alone_on_a_biased_scan():
     np.testing.assert_array_equal(with_model.labels, fit_only.labels)
     biggest = 0
     assert np.trace(with_model.covariances[biggest]) > 2 * np.trace(fit_only.covariances[biggest])
+
+
+def test_the_lidar_profile_seeds_with_squares():
+    """extract_planes(sensor='lidar') runs the greedy with the profile's seed_shapes ('square'): the same
+    labels as the profile with seed_shapes='square' given explicitly, other labels with the 17 tetrominoes."""
+    scan = room_scan(rows=60, cols=80, noise=0.02, seed=3)
+    assert PROFILES['lidar'].seed_shapes == 'square' and PROFILES['depth_camera'].seed_shapes == 'all'
+    labels = {
+        shapes: extract_planes(
+            scan.points, origins=scan.origins, sensor=dataclasses.replace(PROFILES['lidar'], seed_shapes=shapes)
+        ).labels
+        for shapes in ('square', 'all')
+    }
+    np.testing.assert_array_equal(
+        extract_planes(scan.points, origins=scan.origins, sensor='lidar').labels, labels['square']
+    )
+    assert (labels['square'] != labels['all']).mean() > 0.01
