@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``ppe`` console script; returns the process exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.own_command_line = argv is None  # the process's own: a subcommand may keep its signal handlers to exit
     try:
         return int(args.func(args) or 0)
     except (OSError, ValueError) as exc:  # ScanFileError is a ValueError: bad input files and arguments

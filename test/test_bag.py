@@ -979,8 +979,9 @@ def test_a_second_signal_inside_a_numba_kernel_drops_the_frame(tmp_path, scans, 
     assert _check_partial(tmp_path / 'out', frames, 1, 2) == 1
 
 
+@pytest.mark.parametrize('entry', ['process_bag', 'ppe bag'])
 @pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
-def test_signals_after_the_command_line_run_are_ignored_until_exit(tmp_path, monkeypatch, signum):
+def test_signals_after_the_command_line_run_are_ignored_until_exit(tmp_path, monkeypatch, signum, entry):
     """main() of the process's own command line (argv None) leaves handlers that ignore a late signal (one
     that would otherwise kill the exiting process and replace its exit code); main(argv) restores them."""
     source = write_rosbag2(
@@ -994,8 +995,9 @@ def test_signals_after_the_command_line_run_are_ignored_until_exit(tmp_path, mon
     )
     before = signal.getsignal(signum)
     try:
-        monkeypatch.setattr(sys, 'argv', ['process_bag', str(source), str(tmp_path / 'out'), '--no-progress'])
-        assert main() == 0
+        command = ['process_bag'] if entry == 'process_bag' else ['ppe', 'bag']
+        monkeypatch.setattr(sys, 'argv', [*command, str(source), str(tmp_path / 'out'), '--no-progress'])
+        assert (main if entry == 'process_bag' else ppe_main)() == 0
         assert signal.getsignal(signum) is not before
         os.kill(os.getpid(), signum)  # ignored: no KeyboardInterrupt, no kill
         assert run_cli([source, tmp_path / 'again']) == 0

@@ -24,4 +24,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    return run(args, prog='ppe bag')
+    # from the process's own command line, signals after the run are ignored until it has exited (as process_bag)
+    return run(args, prog='ppe bag', keep_signal_handlers=getattr(args, 'own_command_line', False))
