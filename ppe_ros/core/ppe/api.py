@@ -391,9 +391,7 @@ def extract_planes(
         noise=noise,
         tiles=tiles,
         threads=threads,
-        options=None
-        if profile is None or profile.seed_shapes == 'all'
-        else GreedyOptions(seed_shapes=profile.seed_shapes),
+        options=None if profile is None else GreedyOptions(seed_shapes=profile.seed_shapes),
     )
     cut_kwargs = [{'max_error_increment': e} for e in e_list or []] + [{'max_planes': n} for n in n_list or []]
     if surface_tolerance is None and profile is None:
