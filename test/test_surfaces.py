@@ -270,6 +270,86 @@ def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_
     assert kept(4.0) == [0, 1]
 
 
+def _curvature_reference(points, labels):
+    """Slow, obviously correct curvature_rms: per plane, np.linalg.lstsq of w on (1, u, v) and on
+    (1, u, v, u^2, uv, v^2) in the frame of its points' principal axes."""
+    out = []
+    for j in range(1, labels.max() + 1):
+        q = points[labels == j]
+        x = q - q.mean(axis=0)
+        vectors = np.linalg.eigh(x.T @ x)[1]
+        u, v, w = x @ vectors[:, 2], x @ vectors[:, 1], x @ vectors[:, 0]
+        sse = []
+        for basis in ([np.ones_like(u), u, v], [np.ones_like(u), u, v, u * u, u * v, v * v]):
+            a = np.stack(basis, axis=1)
+            r = w - a @ np.linalg.lstsq(a, w, rcond=None)[0]
+            sse.append(r @ r)
+        out.append(np.sqrt(max(sse[0] - sse[1], 0.0) / len(q)))
+    return np.array(out)
+
+
+def _pole_and_panel_scan(rng):
+    """A 2 m x 2 m wall 6 m ahead (1 cm noise) with, in front of it, a pole (half a cylinder of radius
+    0.15 m seen from the front, 2 mm noise) and a flat panel whose noise (3.5 cm RMS) is larger than
+    the pole's RMS distance from its best plane. Returns the scan and the ids (0 wall, 1 pole, 2 panel)."""
+    rows, cols = 60, 120
+    y, z = np.meshgrid(np.linspace(-1.0, 1.0, cols), np.linspace(-1.0, 1.0, rows))
+    depth = 6.0 + rng.normal(0.0, 0.01, (rows, cols))
+    ids = np.zeros((rows, cols), np.int64)
+    pole = np.abs(y + 0.5) < 0.14
+    ids[pole] = 1
+    depth[pole] = 5.0 - np.sqrt(0.15**2 - (y[pole] + 0.5) ** 2) + rng.normal(0.0, 0.002, pole.sum())
+    panel = (np.abs(y - 0.5) < 0.3) & (np.abs(z) < 0.5)
+    ids[panel] = 2
+    depth[panel] = 5.0 + rng.normal(0.0, 0.035, panel.sum())
+    # the rays through (6, y, z) of a pinhole at the origin: depth along x
+    points = np.stack([depth, y * depth / 6.0, z * depth / 6.0], axis=-1)
+    return make_ray_scan(points), ids
+
+
+def test_curvature_rms_matches_a_per_plane_least_squares_reference():
+    from ppe_ros.core.fitting import fit_pixel_groups
+    from ppe_ros.core.surfaces import _plane_sums, curvature_rms
+
+    rng = np.random.default_rng(11)
+    scan, ids = _pole_and_panel_scan(rng)
+    ids = ids + 3 * (np.arange(ids.shape[1]) >= 100)  # more groups: wall and panel cut at column 100
+    planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    sigmas = np.where(scan.valid, 0.01, np.nan)
+    centroid, scatter, *_ = _plane_sums(scan, planes, sigmas, planes.point_counts.astype(np.float64))
+    got = curvature_rms(scan, planes, centroid, scatter)
+    points = (scan.endpoints + scan.center).reshape(-1, 3)
+    want = _curvature_reference(points, planes.labels.reshape(-1))
+    assert planes.num_planes >= 4
+    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9)
+    labels = planes.labels.reshape(-1)
+    by_id = {int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()): got[j] for j in range(planes.num_planes)}
+    assert by_id[1] == pytest.approx(0.15 * 0.25, rel=0.35)  # half a cylinder: about R / 4
+    assert by_id[0] < 0.002 and by_id[2] < 0.01  # flat: the noise's share only
+
+
+def test_the_curvature_test_drops_a_pole_but_not_a_noisier_flat_panel():
+    """The RMS test passes the pole (its RMS distance from its plane is below the panel's noise); the
+    curvature test (max_plane_curvature_factor) sees that the pole's deviation is a bend, not noise."""
+    from ppe_ros.core.fitting import fit_pixel_groups
+    from ppe_ros.core.surfaces import _drop_non_planar
+
+    scan, ids = _pole_and_panel_scan(np.random.default_rng(5))
+    planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    sigmas = np.where(scan.valid, 0.035, np.nan)
+
+    def kept(curvature_factor):
+        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, curvature_factor)
+        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+
+    assert kept(np.inf) == [0, 1, 2]
+    assert kept(1.3) == [0, 2]
+    with pytest.raises(ValueError, match='max_plane_curvature_factor'):
+        SensorProfile(name='mine', max_plane_curvature_factor=0.0)
+    with pytest.raises(ValueError, match='max_plane_curvature_factor'):
+        SensorProfile(name='mine', max_plane_curvature_factor=float('nan'))
+
+
 def test_the_depth_profile_scales_its_model_to_a_clean_rendered_frame(shared_data):
     """ICL-NUIM 0 (a training frame: a rendered living room, far cleaner than a Kinect): scaled to the
     frame's own noise, the depth profile keeps pictures and furniture fronts a centimetre or two in

@@ -143,6 +143,10 @@ class SensorProfile:
         max_plane_rmse_factor: a consolidated plane whose RMS point-to-plane distance exceeds this
             multiple of sqrt(tau^2 + its sensor noise^2) is not planar (trees, bushes, curved
             bodies) and is reported as no plane; inf = keep every plane.
+        max_plane_curvature_factor: a consolidated plane whose best quadric surface departs from its
+            plane by an RMS of more than this multiple of its tolerance tau_D (flatness_length) is
+            curved (car bodies, wheels, poles) and is reported as no plane
+            (surfaces.curvature_rms); inf = no curvature test.
         correlation_length: L (m) over which a surface's systematic errors are correlated: the
             covariances add their part, which does not shrink with the number of points
             (surfaces.systematic_covariances); None = the fit's covariance alone (the paper).
@@ -167,6 +171,7 @@ class SensorProfile:
     connected_only: bool = False
     min_plane_points: int = 4
     max_plane_rmse_factor: float = np.inf
+    max_plane_curvature_factor: float = np.inf
     correlation_length: float | None = None
     noise_scale_bounds: tuple[float, float] | None = None
     flatness_length: float | None = None
@@ -180,6 +185,9 @@ class SensorProfile:
                 raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
         if self.seed_shapes not in ('all', 'square'):
             raise ValueError(f"seed_shapes must be 'all' or 'square'; got {self.seed_shapes!r}")
+        if not self.max_plane_curvature_factor > 0:  # NaN too
+            factor = self.max_plane_curvature_factor
+            raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
         if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
             raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
 
@@ -236,6 +244,7 @@ PROFILES: dict[str, SensorProfile] = {
         surface_tolerance=0.05,
         min_plane_points=40,
         max_plane_rmse_factor=1.3,
+        max_plane_curvature_factor=1.3,
         correlation_length=1.0,
         flatness_length=4.0,
         quadrant_jackknife=True,

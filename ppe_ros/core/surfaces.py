@@ -52,7 +52,8 @@ def whole_surfaces(
         scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
     )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
-    if np.isfinite(factor) and planes.num_planes:
+    curvature_factor = np.inf if profile is None else profile.max_plane_curvature_factor
+    if (np.isfinite(factor) or np.isfinite(curvature_factor)) and planes.num_planes:
         planes = _drop_non_planar(
             unit_scan,
             planes,
@@ -61,6 +62,7 @@ def whole_surfaces(
             profile.noise_factor,
             factor,
             profile.flatness_length,
+            curvature_factor,
         )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         planes = replace(
@@ -288,27 +290,92 @@ def _drop_non_planar(
     noise_factor: float,
     factor: float,
     flatness_length: float | None = None,
+    curvature_factor: float = np.inf,
 ) -> PlaneSet:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
-    plus the sensor's noise along the normal (lambda: noise_factor). tau_D = tau min(1, D /
-    flatness_length) for a plane of size D (the square root of its area, 12 sqrt(l1 l2) from the
-    scatter's two largest eigenvalues): a surface's deviation from flatness grows with its size, so
-    a small patch must be flat to the noise, which a tree's or a car's pieces are not; None: tau_D =
-    tau. scan has unit directions. The kept planes are renumbered (:func:`_kept_planes`: what a refit
-    of their pixels gives).
+    plus the sensor's noise along the normal (lambda: noise_factor), or whose best quadric surface
+    departs from its plane by an RMS of more than curvature_factor * tau_D (:func:`curvature_rms`: a
+    wheel, a car body, a pole). tau_D = tau min(1, D / flatness_length) for a plane of size D (the
+    square root of its area, 12 sqrt(l1 l2) from the scatter's two largest eigenvalues): a
+    surface's deviation from flatness grows with its size, so a small patch must be flat to the
+    noise, which a tree's or a car's pieces are not; None: tau_D = tau. scan has unit directions.
+    The kept planes are renumbered (:func:`_kept_planes`: what a refit of their pixels gives).
     """
     count = np.maximum(planes.point_counts, 1)
-    _, scatter, mean_d2, noise2, sigma2 = _plane_sums(scan, planes, ray_sigmas, count)
+    centroid, scatter, mean_d2, noise2, sigma2 = _plane_sums(scan, planes, ray_sigmas, count)
     tau2 = np.full(planes.num_planes, tau**2)
     if flatness_length is not None:
         values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
         size = np.sqrt(12.0 * np.sqrt(np.maximum(values[:, 2], 0.0) * np.maximum(values[:, 1], 0.0)))
         tau2 *= np.minimum(1.0, size / float(flatness_length)) ** 2
     planar = mean_d2 <= factor**2 * (tau2 + noise_factor**2 * sigma2 + noise2)
+    if np.isfinite(curvature_factor):
+        curvature = curvature_rms(scan, planes, centroid, scatter)
+        planar &= curvature**2 <= float(curvature_factor) ** 2 * tau2
     if planar.all():
         return planes
     return _kept_planes(planes, planar)
+
+
+def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter: np.ndarray) -> np.ndarray:
+    """``(J,)`` RMS (m) by which each plane's best quadric surface departs from its best plane.
+
+    In the frame of the plane's points (centroid; u, v along the scatter's two largest axes, w along
+    the smallest), w is fitted by least squares once as a + b u + c v and once as the quadric
+    a + b u + c v + d u^2 + e u v + f v^2; the result is sqrt((SSE_plane - SSE_quadric) / N), the
+    RMS of the quadric's bend over the plane's points (a flat surface: only the noise's share, about
+    sigma sqrt(3 / N); half a cylinder of radius R: about R / 4). ``centroid`` (J, 3) and ``scatter``
+    (J, 3, 3, per point) are :func:`_plane_sums`'; points are ``scan.endpoints + scan.center``.
+    """
+    values, vectors = np.linalg.eigh(scatter)  # ascending: w, v, u
+    scales = np.sqrt(np.where(values > 0.0, values, 1.0))  # u, v in units of their spread
+    normal, rhs = _quadric_moments_kernel(
+        np.ascontiguousarray(planes.labels.reshape(-1)),
+        np.ascontiguousarray(scan.endpoints, dtype=np.float64),
+        np.ascontiguousarray(scan.center, dtype=np.float64),
+        np.ascontiguousarray(centroid, dtype=np.float64),
+        np.ascontiguousarray(vectors, dtype=np.float64),
+        np.ascontiguousarray(scales, dtype=np.float64),
+    )
+    quadric = np.einsum('ja,ja->j', rhs, np.einsum('jab,jb->ja', np.linalg.pinv(normal, hermitian=True), rhs))
+    linear = np.einsum(
+        'ja,ja->j', rhs[:, :3], np.einsum('jab,jb->ja', np.linalg.pinv(normal[:, :3, :3], hermitian=True), rhs[:, :3])
+    )
+    count = np.maximum(planes.point_counts, 1).astype(np.float64)
+    return np.sqrt(np.maximum(quadric - linear, 0.0) / count)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _quadric_moments_kernel(labels, endpoints, center, centroid, vectors, scales):
+    """Per plane (label j + 1 > 0), the normal equations of the quadric fit of curvature_rms in the
+    basis (1, u, v, u^2, u v, v^2) with u, v divided by scales[j, 2], scales[j, 1]: A^T A (J, 6, 6) and
+    A^T w (J, 6), summed in pixel order."""
+    n_planes = len(centroid)
+    normal = np.zeros((n_planes, 6, 6))
+    rhs = np.zeros((n_planes, 6))
+    basis = np.empty(6)
+    for k in range(len(labels)):
+        g = labels[k] - 1
+        if g < 0:
+            continue
+        dx = endpoints[k, 0] + center[0] - centroid[g, 0]
+        dy = endpoints[k, 1] + center[1] - centroid[g, 1]
+        dz = endpoints[k, 2] + center[2] - centroid[g, 2]
+        u = (dx * vectors[g, 0, 2] + dy * vectors[g, 1, 2] + dz * vectors[g, 2, 2]) / scales[g, 2]
+        v = (dx * vectors[g, 0, 1] + dy * vectors[g, 1, 1] + dz * vectors[g, 2, 1]) / scales[g, 1]
+        w = dx * vectors[g, 0, 0] + dy * vectors[g, 1, 0] + dz * vectors[g, 2, 0]
+        basis[0], basis[1], basis[2] = 1.0, u, v
+        basis[3], basis[4], basis[5] = u * u, u * v, v * v
+        for a in range(6):
+            rhs[g, a] += basis[a] * w
+            for b in range(a, 6):
+                normal[g, a, b] += basis[a] * basis[b]
+    for g in range(n_planes):
+        for a in range(6):
+            for b in range(a):
+                normal[g, a, b] = normal[g, b, a]
+    return normal, rhs
 
 
 def _kept_planes(planes: PlaneSet, keep: np.ndarray) -> PlaneSet:
