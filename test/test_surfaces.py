@@ -326,6 +326,20 @@ def test_curvature_rms_matches_a_per_plane_least_squares_reference():
     by_id = {int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()): got[j] for j in range(planes.num_planes)}
     assert by_id[1] == pytest.approx(0.15 * 0.25, rel=0.35)  # half a cylinder: about R / 4
     assert by_id[0] < 0.002 and by_id[2] < 0.01  # flat: the noise's share only
+    # a plane on two rows of a noise-free wall (v takes two values: v^2 depends on 1 and v) and one of
+    # a noise-free bend along the rows only (v^2, uv vanish): the dependent basis functions are skipped
+    y, z = np.meshgrid(np.linspace(-1.0, 1.0, 30), np.linspace(-0.1, 0.1, 2))
+    depth = np.stack([np.full_like(y, 6.0), 6.0 - 0.2 * y**2])
+    points = np.concatenate([np.stack([d, y * d / 6.0, z * d / 6.0], axis=-1) for d in depth])
+    scan = make_ray_scan(points)
+    ids = np.repeat([0, 1], 2)[:, None] * np.ones((1, 30), np.int64)
+    planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    sigmas = np.where(scan.valid, 0.01, np.nan)
+    centroid, scatter, *_ = _plane_sums(scan, planes, sigmas, planes.point_counts.astype(np.float64))
+    got = curvature_rms(scan, planes, centroid, scatter)
+    want = _curvature_reference((scan.endpoints + scan.center).reshape(-1, 3), planes.labels.reshape(-1))
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+    assert sorted(got.round(3).tolist()) == [0.0, pytest.approx(want.max(), abs=1e-3)] and want.max() > 0.01
 
 
 def test_the_curvature_test_drops_a_pole_but_not_a_noisier_flat_panel():

@@ -330,7 +330,7 @@ def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter
     """
     values, vectors = np.linalg.eigh(scatter)  # ascending: w, v, u
     scales = np.sqrt(np.where(values > 0.0, values, 1.0))  # u, v in units of their spread
-    normal, rhs = _quadric_moments_kernel(
+    reduction = _quadric_reduction_kernel(
         np.ascontiguousarray(planes.labels.reshape(-1)),
         np.ascontiguousarray(scan.endpoints, dtype=np.float64),
         np.ascontiguousarray(scan.center, dtype=np.float64),
@@ -338,19 +338,21 @@ def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter
         np.ascontiguousarray(vectors, dtype=np.float64),
         np.ascontiguousarray(scales, dtype=np.float64),
     )
-    quadric = np.einsum('ja,ja->j', rhs, np.einsum('jab,jb->ja', np.linalg.pinv(normal, hermitian=True), rhs))
-    linear = np.einsum(
-        'ja,ja->j', rhs[:, :3], np.einsum('jab,jb->ja', np.linalg.pinv(normal[:, :3, :3], hermitian=True), rhs[:, :3])
-    )
     count = np.maximum(planes.point_counts, 1).astype(np.float64)
-    return np.sqrt(np.maximum(quadric - linear, 0.0) / count)
+    return np.sqrt(reduction / count)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _quadric_moments_kernel(labels, endpoints, center, centroid, vectors, scales):
-    """Per plane (label j + 1 > 0), the normal equations of the quadric fit of curvature_rms in the
-    basis (1, u, v, u^2, u v, v^2) with u, v divided by scales[j, 2], scales[j, 1]: A^T A (J, 6, 6) and
-    A^T w (J, 6), summed in pixel order."""
+def _quadric_reduction_kernel(labels, endpoints, center, centroid, vectors, scales):
+    """Per plane (label j + 1 > 0), SSE_plane - SSE_quadric (m^2) of curvature_rms.
+
+    The normal equations A^T A x = A^T w in the basis (1, u, v, u^2, u v, v^2) (u, v divided by
+    scales[j, 2], scales[j, 1]) are summed in pixel order. With the Cholesky factor L L^T = A^T A and
+    z = L^-1 A^T w, a fit on the first m basis functions has SSE = w^T w - (z_0^2 + ... + z_{m-1}^2)
+    (L's leading block factors the leading block), so the reduction is z_3^2 + z_4^2 + z_5^2. A basis
+    function that depends on the earlier ones (a pivot of at most 1e-12 of its diagonal: points on
+    two lines) adds nothing and is skipped.
+    """
     n_planes = len(centroid)
     normal = np.zeros((n_planes, 6, 6))
     rhs = np.zeros((n_planes, 6))
@@ -369,13 +371,29 @@ def _quadric_moments_kernel(labels, endpoints, center, centroid, vectors, scales
         basis[3], basis[4], basis[5] = u * u, u * v, v * v
         for a in range(6):
             rhs[g, a] += basis[a] * w
-            for b in range(a, 6):
+            for b in range(a + 1):
                 normal[g, a, b] += basis[a] * basis[b]
+    out = np.zeros(n_planes)
+    lower = np.zeros((6, 6))
+    z = np.zeros(6)
     for g in range(n_planes):
-        for a in range(6):
-            for b in range(a):
-                normal[g, a, b] = normal[g, b, a]
-    return normal, rhs
+        for a in range(6):  # Cholesky, row by row, and forward substitution of z
+            for b in range(a + 1):
+                total = normal[g, a, b]
+                for c in range(b):
+                    total -= lower[a, c] * lower[b, c]
+                if b < a:
+                    lower[a, b] = total / lower[b, b] if lower[b, b] > 0.0 else 0.0
+                elif total > 1e-12 * normal[g, a, a]:
+                    lower[a, a] = np.sqrt(total)
+                else:
+                    lower[a, a] = 0.0  # dependent: skipped
+            total = rhs[g, a]
+            for c in range(a):
+                total -= lower[a, c] * z[c]
+            z[a] = total / lower[a, a] if lower[a, a] > 0.0 else 0.0
+        out[g] = z[3] * z[3] + z[4] * z[4] + z[5] * z[5]
+    return out
 
 
 def _kept_planes(planes: PlaneSet, keep: np.ndarray) -> PlaneSet:
