@@ -20,8 +20,9 @@ pieces A and B are the same surface when
   pieces' planes that is small against the noise their points show is not significant, so the
   tolerance grows with the noise, as a depth camera's does with depth; capped by the noise model,
   so that a merged surface does not widen its own tolerance; 0 for a constant tau); and
-* the two pieces' own planes meet: along U's normal, at the midpoint of the pieces' means, they are
-  at most ``t`` apart. Without it a step between two
+* the two pieces' own planes meet: along U's normal, measured at A's mean (B's plane there) or at
+  B's mean (A's plane there), whichever is smaller, they are at most ``t`` apart. Without it a step
+  between two
   side-by-side pieces (a kerb beside the road) would pass, the union's plane tilting to split it.
 
 ``dev(A, U)^2 N_A + dev(B, U)^2 N_B`` is the union's increase of the sum of squared point-to-plane
@@ -186,8 +187,9 @@ def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
     and step^2 / t^2, with t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
     (s_P^2: P's mean squared distance from its own plane; sigma_P^2: the mean range variance of its rays).
 
-    U is the union's LS plane; step is the distance between the planes of A and B along U's normal
-    at the midpoint of their means. m_*: moments; plane_*: their _plane_of rows.
+    U is the union's LS plane; step is the smaller of the two distances along U's normal between the
+    planes of A and B measured at A's mean and at B's mean (each piece's own plane is best known at
+    its mean). m_*: moments; plane_*: their _plane_of rows.
     """
     mean_u, sc = _union_scatter(m_a, m_b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
