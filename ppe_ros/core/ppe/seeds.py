@@ -11,6 +11,7 @@ from ppe_ros.core.ppe.intrinsics import _float_bits
 from ppe_ros.core.ppe.layout import _FIT_ITERATIONS, _FIT_TOLERANCE, TETROMINO_OFFSETS
 from ppe_ros.core.ppe.memory import _reusable
 from ppe_ros.core.scan import RayScan
+from ppe_ros.core.sensor import SEED_SHAPE_NAMES
 
 # seeds
 # --------------------------------------------------------------------------------------------
@@ -27,7 +28,7 @@ def _seed_rays(idx, anchor, o0, o1, o2, o3):
 
 #: The tetromino configs (rows of TETROMINO_OFFSETS) that seed planes, by GreedyOptions.seed_shapes: 'all'
 #: the paper's 17 (every tetromino but the straight I), 'square' the O alone (config 0).
-SEED_SHAPES = {'all': np.arange(17, dtype=np.int64), 'square': np.zeros(1, dtype=np.int64)}
+SEED_SHAPES = dict(zip(SEED_SHAPE_NAMES, (np.arange(17, dtype=np.int64), np.zeros(1, dtype=np.int64)), strict=True))
 
 #: Anchors per block of the vectorised seed loop, and the valid seeds a block needs for it (the
 #: vectorised fit of 16 anchors costs about as much as two general fits).
