@@ -183,9 +183,7 @@ class SensorProfile:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
                 raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
-        if self.seed_shapes not in SEED_SHAPE_NAMES:
-            choices = ' or '.join(repr(k) for k in SEED_SHAPE_NAMES)
-            raise ValueError(f'seed_shapes must be {choices}; got {self.seed_shapes!r}')
+        check_seed_shapes(self.seed_shapes)
         if not self.max_plane_curvature_factor > 0:  # NaN too
             factor = self.max_plane_curvature_factor
             raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
@@ -224,6 +222,15 @@ class SensorProfile:
 #: The names of the greedy's seed shape sets (ppe_ros.core.ppe.seeds.SEED_SHAPES, keyed by these):
 #: 'all' the paper's 17 tetrominoes, 'square' the 2 x 2 square alone.
 SEED_SHAPE_NAMES = ('all', 'square')
+
+
+def check_seed_shapes(seed_shapes: str) -> None:
+    """Raise ValueError unless ``seed_shapes`` is one of SEED_SHAPE_NAMES (SensorProfile's and
+    GreedyOptions' check)."""
+    if seed_shapes not in SEED_SHAPE_NAMES:
+        choices = ' or '.join(repr(k) for k in SEED_SHAPE_NAMES)
+        raise ValueError(f'seed_shapes must be {choices}; got {seed_shapes!r}')
+
 
 #: Spinning lidars (Ouster OS-0/1/2, Velodyne, Hesai): 2 cm range noise, plus 0.1 % of the range.
 LIDAR_NOISE = NoiseModel(constant=0.02, proportional=0.001)

@@ -15,7 +15,7 @@ from ppe_ros.core.ppe.layout import (
     REFINED_MERGE_GROWTH,
     RELINEARISATION_DRIFT,
 )
-from ppe_ros.core.ppe.seeds import SEED_SHAPES
+from ppe_ros.core.sensor import check_seed_shapes
 
 
 @dataclass(frozen=True)
@@ -74,9 +74,7 @@ class GreedyOptions:
             raise ValueError(f'pool_capacity must be a whole number >= 1 or None; got {self.pool_capacity!r}')
         if self.pool_capacity is not None and int(self.pool_capacity) < 1:
             raise ValueError(f'pool_capacity must be >= 1 (None: from the scan size); got {self.pool_capacity!r}')
-        if self.seed_shapes not in SEED_SHAPES:
-            choices = ', '.join(repr(k) for k in SEED_SHAPES)
-            raise ValueError(f'seed_shapes must be one of {choices}; got {self.seed_shapes!r}')
+        check_seed_shapes(self.seed_shapes)
         if not float(self.relinearisation_drift) >= 0.0:
             drift = self.relinearisation_drift
             raise ValueError(f'relinearisation_drift must be >= 0 (inf: only on doubling); got {drift!r}')
