@@ -14,6 +14,7 @@ from ppe_ros.core.consolidation import (
     _dense_ids,
     _heap_pop,
     _heap_push,
+    _no_return_runs,
     _parallel_candidate_pairs,
     _piece_planes,
     _unique_pairs,
@@ -166,8 +167,19 @@ def test_candidate_pairs_in_row_blocks_equal_one_pass(monkeypatch, connected_onl
     moments = consolidation._piece_moments(dense, scan.endpoints, np.nan_to_num(sigmas), len(labels))
     normals, means, _ = _piece_planes(moments)
     args = (np.ascontiguousarray(sigmas), normals, means, 0.05, 16, connected_only)
+    no_return = _no_return_runs(scan.ranges, dense, scan.height, scan.width)
     whole = _candidate_pairs(
-        dense, scan.endpoints, scan.directions, scan.ranges, args[0], scan.height, scan.width, *args[1:], 0, scan.size
+        dense,
+        scan.endpoints,
+        scan.directions,
+        scan.ranges,
+        args[0],
+        no_return,
+        scan.height,
+        scan.width,
+        *args[1:],
+        0,
+        scan.size,
     )
     monkeypatch.setattr(consolidation, 'PARALLEL_MIN_PIXELS', 1)
     previous = numba.get_num_threads()
@@ -272,3 +284,22 @@ def test_the_public_release_frees_the_whole_surface_work_memory_too():
     assert getattr(consolidation._work_memory, 'buffers', {})  # the pass kept its arrays
     release_work_memory()
     assert consolidation._work_memory.buffers == {}
+
+
+def test_no_return_runs_count_the_rays_without_a_return_and_a_piece_back_along_rows_and_columns():
+    rng = np.random.default_rng(3)
+    height, width = 9, 13
+    ranges = np.where(rng.random(height * width) < 0.5, np.nan, 1.0)
+    ids = np.where(rng.random(height * width) < 0.2, 4, -1)
+    runs = _no_return_runs(ranges, ids, height, width)
+    empty = (~np.isfinite(ranges) & (ids < 0)).reshape(height, width)
+    for i in range(height):
+        for j in range(width):
+            left = 0
+            while j - left >= 0 and empty[i, j - left]:
+                left += 1
+            up = 0
+            while i - up >= 0 and empty[i - up, j]:
+                up += 1
+            assert (runs[0, i * width + j], runs[1, i * width + j]) == (left, up)
+    assert runs.max() >= 3

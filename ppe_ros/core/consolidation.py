@@ -253,10 +253,25 @@ def _bridges(ids, endpoints, directions, ranges, sigmas, k, normals, means, g, t
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _candidate_pairs(
-    ids, endpoints, directions, ranges, sigmas, height, width, normals, means, tau, max_gap, connected_only, first, last
+    ids,
+    endpoints,
+    directions,
+    ranges,
+    sigmas,
+    no_return,
+    height,
+    width,
+    normals,
+    means,
+    tau,
+    max_gap,
+    connected_only,
+    first,
+    last,
 ):
     """Candidate pairs (a < b) found from the pixels first..last-1 (the later piece b of a pair is on
-    one of them), as an (m, 2) array, possibly with repeats (see the module docstring)."""
+    one of them), as an (m, 2) array, possibly with repeats (see the module docstring). no_return is
+    :func:`_no_return_runs` of the grid."""
     out = np.empty((2 * (last - first) + 16, 2), np.int64)
     n_out = 0
     for direction in range(2):  # 0: along rows (left), 1: along columns (up)
@@ -285,11 +300,16 @@ def _candidate_pairs(
                 # walk back over rays that bridge to b's plane, to the first ray that does not: a
                 # candidate if it is on a plane and every ray between bridges to that plane too
                 a = -1
-                for g in range(1 if back < 0 else 2, min(max_gap, position) + 1):  # back bridges: tested
+                g = 1 if back < 0 else 2  # back bridges: tested
+                while g <= min(max_gap, position):
                     q = k - g * step
+                    if not connected_only and no_return[direction, q] > 0:
+                        g += no_return[direction, q]  # rays without a return bridge: skip their run
+                        continue
                     if ids[q] == b:
                         break
                     if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, b, tau, connected_only):
+                        g += 1
                         continue
                     if ids[q] >= 0 and _gap_bridges(
                         ids,
@@ -297,6 +317,7 @@ def _candidate_pairs(
                         directions,
                         ranges,
                         sigmas,
+                        no_return[direction],
                         q,
                         k,
                         step,
@@ -326,12 +347,36 @@ def _add_pair(out, n_out, a, b):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _gap_bridges(ids, endpoints, directions, ranges, sigmas, first, last, step, normals, means, g, tau, connected_only):
-    """True if every ray strictly between pixels first and last (a line of the grid) bridges to piece g's plane."""
-    for q in range(first + step, last, step):
+def _gap_bridges(
+    ids, endpoints, directions, ranges, sigmas, no_return, first, last, step, normals, means, g, tau, connected_only
+):
+    """True if every ray strictly between pixels first and last (a line of the grid) bridges to piece g's
+    plane; no_return: the runs of rays without a return and a piece along that line
+    (:func:`_no_return_runs`), which bridge unless connected_only, are skipped."""
+    q = last - step
+    while q > first:
+        if not connected_only and no_return[q] > 0:
+            q -= no_return[q] * step
+            continue
         if not _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, g, tau, connected_only):
             return False
+        q -= step
     return True
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _no_return_runs(ranges, ids, height, width):
+    """``(2, H*W)`` lengths of the runs of rays without a return (range not finite) and without a piece
+    (id < 0) that end at each ray: [0] along its row (it and the rays left of it), [1] along its column
+    (it and the rays above it); 0 for any other ray. Such a ray bridges any two pieces (_bridges)
+    unless connected_only."""
+    runs = np.zeros((2, height * width), np.int32)
+    for k in range(height * width):
+        if np.isfinite(ranges[k]) or ids[k] >= 0:
+            continue
+        runs[0, k] = 1 + (runs[0, k - 1] if k % width > 0 else 0)
+        runs[1, k] = 1 + (runs[1, k - width] if k >= width else 0)
+    return runs
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -698,6 +743,7 @@ def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, m
     threads = max(1, min(nb.get_num_threads(), len(ids) // PARALLEL_MIN_PIXELS))
     n_blocks = min(threads * BLOCKS_PER_THREAD, scan.height) if threads > 1 else 1
     bounds = [scan.width * round(i * scan.height / n_blocks) for i in range(n_blocks + 1)]
+    no_return = _no_return_runs(scan.ranges, ids, scan.height, scan.width)
 
     def block(i: int) -> np.ndarray:
         return _candidate_pairs(
@@ -706,6 +752,7 @@ def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, m
             scan.directions,
             scan.ranges,
             sigmas,
+            no_return,
             scan.height,
             scan.width,
             normals,

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from ppe_ros.core.chunks import group_chunks
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.scan import MAX_RANGE, MIN_RANGE, RayScan, make_ray_scan
 
@@ -285,20 +286,23 @@ def fit4(P, V, k0, k1, k2, k3):
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _fit_groups(endpoints, directions, members, starts, max_iterations, relative_tolerance, out_w, out_sse, out_info):
-    """Fit every group g = members[starts[g]:starts[g+1]] exactly (parallel over groups)."""
-    n_groups = len(starts) - 1
-    for g in nb.prange(n_groups):
-        idx = members[starts[g] : starts[g + 1]]
-        sse, w0, w1, w2, information = fit_with_information(
-            endpoints, directions, idx, len(idx), np.nan, np.nan, np.nan, max_iterations, relative_tolerance
-        )
-        out_sse[g] = sse
-        out_w[g, 0] = w0
-        out_w[g, 1] = w1
-        out_w[g, 2] = w2
-        for i in range(6):
-            out_info[g, i] = information[i]
+def _fit_groups(
+    endpoints, directions, members, starts, bounds, max_iterations, relative_tolerance, out_w, out_sse, out_info
+):
+    """Fit every group g = members[starts[g]:starts[g+1]] exactly; the groups' runs ``bounds``
+    (chunks.group_chunks) in parallel."""
+    for c in nb.prange(len(bounds) - 1):
+        for g in range(bounds[c], bounds[c + 1]):
+            idx = members[starts[g] : starts[g + 1]]
+            sse, w0, w1, w2, information = fit_with_information(
+                endpoints, directions, idx, len(idx), np.nan, np.nan, np.nan, max_iterations, relative_tolerance
+            )
+            out_sse[g] = sse
+            out_w[g, 0] = w0
+            out_w[g, 1] = w1
+            out_w[g, 2] = w2
+            for i in range(6):
+                out_info[g, i] = information[i]
 
 
 # --------------------------------------------------------------------------------------------
@@ -457,6 +461,7 @@ def fit_pixel_groups(
         scan.directions,
         members,
         starts,
+        group_chunks(point_counts),
         FIT_MAX_ITERATIONS,
         FIT_RELATIVE_TOLERANCE,
         out_w,

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ppe_ros.core.chunks import group_chunks
+
 #: Quadrants of the jackknife (2 x 2 blocks in the plane).
 NUM_QUADRANTS = 4
 #: A quadrant needs this many points, else the plane's jackknife is 0 (a tiny plane's spread is noise).
@@ -49,7 +51,7 @@ def quadrant_jackknife(
     if len(plane_index) and (plane_index.min() < 0 or plane_index.max() >= n_planes):
         raise ValueError(f'plane_index must be in 0..{n_planes - 1}')
     order, starts = _members_by_plane(plane_index, n_planes)
-    return _jackknife_kernel(points, order, starts, centroids, axes)
+    return _jackknife_kernel(points, order, starts, group_chunks(np.diff(starts)), centroids, axes)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -69,15 +71,17 @@ def _members_by_plane(plane_index, n_planes):
     return order, starts
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _jackknife_kernel(points, order, starts, centroids, axes):
-    n_planes = len(centroids)
-    out = np.zeros((n_planes, 3, 3))
-    for j in range(n_planes):
-        members = order[starts[j] : starts[j + 1]]
-        if len(members) >= NUM_QUADRANTS * MIN_QUADRANT_POINTS:
-            local = _local_coordinates(points, members, centroids[j], axes[j])
-            out[j] = _plane_jackknife(local, _quadrants(local))
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _jackknife_kernel(points, order, starts, bounds, centroids, axes):
+    """quadrant_jackknife of the planes' members; the planes' runs ``bounds`` (chunks.group_chunks) in
+    parallel."""
+    out = np.zeros((len(centroids), 3, 3))
+    for c in nb.prange(len(bounds) - 1):
+        for j in range(bounds[c], bounds[c + 1]):
+            members = order[starts[j] : starts[j + 1]]
+            if len(members) >= NUM_QUADRANTS * MIN_QUADRANT_POINTS:
+                local = _local_coordinates(points, members, centroids[j], axes[j])
+                out[j] = _plane_jackknife(local, _quadrants(local))
     return out
 
 

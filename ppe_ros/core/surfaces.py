@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numba as nb
 import numpy as np
 
+from ppe_ros.core.chunks import group_chunks
 from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
 from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
@@ -153,20 +154,30 @@ def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: Sen
     return np.fmin(ray_sigmas, model)
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _plane_sums_kernel(labels, endpoints, center, directions, ray_sigmas, normals, offsets, count):
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _plane_sums_kernel(labels, bounds, endpoints, center, directions, ray_sigmas, normals, offsets, count):
     """Per-plane sums over the rays of every plane (label j + 1 > 0; pixel order, as np.bincount adds).
 
     Returns (J, 12): centroid (3, m; endpoints + center), per-point scatter xx xy xz yy yz zz about it
     (6, m^2), mean squared distance from the plane (m^2), mean (sigma_k n . v_k)^2 (m^2), mean sigma_k^2
-    (m^2), each divided by count[j]. Two passes: the sums of the points, then of the products of their
-    offsets from the centroid.
+    (m^2), each divided by count[j]. The planes' runs ``bounds`` (chunks.group_chunks) are summed in
+    parallel, each plane by one thread in pixel order.
     """
-    n_planes = len(count)
-    out = np.zeros((n_planes, 12))
+    out = np.zeros((len(count), 12))
+    for c in nb.prange(len(bounds) - 1):
+        _plane_sums_run(
+            labels, bounds[c], bounds[c + 1], endpoints, center, directions, ray_sigmas, normals, offsets, count, out
+        )
+    return out
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _plane_sums_run(labels, first, stop, endpoints, center, directions, ray_sigmas, normals, offsets, count, out):
+    """_plane_sums_kernel's rows first..stop-1 (planes with labels first + 1 .. stop). Two passes: the
+    sums of the points, then of the products of their offsets from the centroid."""
     for k in range(len(labels)):
         g = labels[k] - 1
-        if g < 0:
+        if g < first or g >= stop:
             continue
         x = endpoints[k, 0] + center[0]
         y = endpoints[k, 1] + center[1]
@@ -183,12 +194,12 @@ def _plane_sums_kernel(labels, endpoints, center, directions, ray_sigmas, normal
         out[g, 9] += distance * distance
         out[g, 10] += along * along
         out[g, 11] += ray_sigmas[k] * ray_sigmas[k]
-    for g in range(n_planes):
+    for g in range(first, stop):
         for a in (0, 1, 2, 9, 10, 11):
             out[g, a] /= count[g]
     for k in range(len(labels)):
         g = labels[k] - 1
-        if g < 0:
+        if g < first or g >= stop:
             continue
         rx = endpoints[k, 0] + center[0] - out[g, 0]
         ry = endpoints[k, 1] + center[1] - out[g, 1]
@@ -199,10 +210,9 @@ def _plane_sums_kernel(labels, endpoints, center, directions, ray_sigmas, normal
         out[g, 6] += ry * ry
         out[g, 7] += ry * rz
         out[g, 8] += rz * rz
-    for g in range(n_planes):
+    for g in range(first, stop):
         for a in range(3, 9):
             out[g, a] /= count[g]
-    return out
 
 
 def _plane_sums(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, count: np.ndarray):
@@ -210,6 +220,7 @@ def _plane_sums(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, count: 
     (J, 3, 3), mean squared distance from the plane, mean (sigma_k n . v_k)^2 and mean sigma_k^2 (J,)."""
     sums = _plane_sums_kernel(
         np.ascontiguousarray(planes.labels.reshape(-1)),
+        group_chunks(planes.point_counts),
         np.ascontiguousarray(scan.endpoints, dtype=np.float64),
         np.ascontiguousarray(scan.center, dtype=np.float64),
         np.ascontiguousarray(scan.directions, dtype=np.float64),
@@ -332,6 +343,7 @@ def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter
     scales = np.sqrt(np.where(values > 0.0, values, 1.0))  # u, v in units of their spread
     reduction = _quadric_reduction_kernel(
         np.ascontiguousarray(planes.labels.reshape(-1)),
+        group_chunks(planes.point_counts),
         np.ascontiguousarray(scan.endpoints, dtype=np.float64),
         np.ascontiguousarray(scan.center, dtype=np.float64),
         np.ascontiguousarray(centroid, dtype=np.float64),
@@ -342,9 +354,19 @@ def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter
     return np.sqrt(reduction / count)
 
 
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _quadric_reduction_kernel(labels, bounds, endpoints, center, centroid, vectors, scales):
+    """Per plane (label j + 1 > 0), SSE_plane - SSE_quadric (m^2) of curvature_rms; the planes' runs
+    ``bounds`` (chunks.group_chunks) in parallel, each plane by one thread in pixel order."""
+    out = np.zeros(len(centroid))
+    for c in nb.prange(len(bounds) - 1):
+        _quadric_reduction_run(labels, bounds[c], bounds[c + 1], endpoints, center, centroid, vectors, scales, out)
+    return out
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _quadric_reduction_kernel(labels, endpoints, center, centroid, vectors, scales):
-    """Per plane (label j + 1 > 0), SSE_plane - SSE_quadric (m^2) of curvature_rms.
+def _quadric_reduction_run(labels, first, stop, endpoints, center, centroid, vectors, scales, out):
+    """_quadric_reduction_kernel's planes first..stop-1.
 
     The normal equations A^T A x = A^T w in the basis (1, u, v, u^2, u v, v^2) (u, v divided by
     scales[j, 2], scales[j, 1]) are summed in pixel order. With the Cholesky factor L L^T = A^T A and
@@ -353,13 +375,12 @@ def _quadric_reduction_kernel(labels, endpoints, center, centroid, vectors, scal
     function that depends on the earlier ones (a pivot of at most 1e-12 of its diagonal: points on
     two lines) adds nothing and is skipped.
     """
-    n_planes = len(centroid)
-    normal = np.zeros((n_planes, 6, 6))
-    rhs = np.zeros((n_planes, 6))
+    normal = np.zeros((stop - first, 6, 6))
+    rhs = np.zeros((stop - first, 6))
     basis = np.empty(6)
     for k in range(len(labels)):
         g = labels[k] - 1
-        if g < 0:
+        if g < first or g >= stop:
             continue
         dx = endpoints[k, 0] + center[0] - centroid[g, 0]
         dy = endpoints[k, 1] + center[1] - centroid[g, 1]
@@ -369,31 +390,30 @@ def _quadric_reduction_kernel(labels, endpoints, center, centroid, vectors, scal
         w = dx * vectors[g, 0, 0] + dy * vectors[g, 1, 0] + dz * vectors[g, 2, 0]
         basis[0], basis[1], basis[2] = 1.0, u, v
         basis[3], basis[4], basis[5] = u * u, u * v, v * v
+        row = g - first
         for a in range(6):
-            rhs[g, a] += basis[a] * w
+            rhs[row, a] += basis[a] * w
             for b in range(a + 1):
-                normal[g, a, b] += basis[a] * basis[b]
-    out = np.zeros(n_planes)
+                normal[row, a, b] += basis[a] * basis[b]
     lower = np.zeros((6, 6))
     z = np.zeros(6)
-    for g in range(n_planes):
+    for row in range(stop - first):
         for a in range(6):  # Cholesky, row by row, and forward substitution of z
             for b in range(a + 1):
-                total = normal[g, a, b]
+                total = normal[row, a, b]
                 for c in range(b):
                     total -= lower[a, c] * lower[b, c]
                 if b < a:
                     lower[a, b] = total / lower[b, b] if lower[b, b] > 0.0 else 0.0
-                elif total > 1e-12 * normal[g, a, a]:
+                elif total > 1e-12 * normal[row, a, a]:
                     lower[a, a] = np.sqrt(total)
                 else:
                     lower[a, a] = 0.0  # dependent: skipped
-            total = rhs[g, a]
+            total = rhs[row, a]
             for c in range(a):
                 total -= lower[a, c] * z[c]
             z[a] = total / lower[a, a] if lower[a, a] > 0.0 else 0.0
-        out[g] = z[3] * z[3] + z[4] * z[4] + z[5] * z[5]
-    return out
+        out[first + row] = z[3] * z[3] + z[4] * z[4] + z[5] * z[5]
 
 
 def _kept_planes(planes: PlaneSet, keep: np.ndarray) -> PlaneSet:
