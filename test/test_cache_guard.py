@@ -110,3 +110,20 @@ def test_a_changed_callee_in_another_module_is_not_served_stale(tmp_path):
     assert float(fresh) == pytest.approx(2 * float(first), rel=1e-12)
     # and the next import with the guard keeps the fresh cache (the stamp now matches)
     assert _run(root, cache, True, _MODEL_MERGE).splitlines()[0] == fresh
+
+
+def test_a_changed_layout_constant_is_not_served_stale(tmp_path):
+    """layout.py defines no kernel, but its constants (here the column of w in the plane rows) are
+    compiled into the kernels that read them: moving w must recompile state._model_merge, which reads it."""
+    root = tmp_path / 'tree'
+    shutil.copytree(PACKAGE, root / 'ppe_ros', ignore=shutil.ignore_patterns('__pycache__', '*.pyc'))
+    cache = tmp_path / 'cache'
+    first = _run(root, cache, True, _MODEL_MERGE).splitlines()[0]
+    assert float(first) > 0.0
+    layout = root / 'ppe_ros' / 'core' / 'ppe' / 'layout.py'
+    source = layout.read_text()
+    assert source.count('\n_PW = 1  #') == 1
+    layout.write_text(source.replace('\n_PW = 1  #', '\n_PW = 13  #'))  # the script writes w there now
+    stale = _run(root, cache, False, _MODEL_MERGE).splitlines()[0]
+    assert float(stale) == 0.0  # numba alone: the cached kernel reads w at the old column (zeros now)
+    assert _run(root, cache, True, _MODEL_MERGE).splitlines()[0] == first

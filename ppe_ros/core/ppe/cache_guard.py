@@ -2,11 +2,12 @@
 
 numba's ``cache=True`` keys a cached kernel on its own source file only: when a function it calls
 (or inlines) in another module changes, the stale machine code is loaded anyway. The kernels of
-``ppe_ros.core.ppe`` call across its modules and into ``ppe_ros.core.fitting``, so at import of the
-package (before any kernel is compiled or loaded) :func:`guard_kernel_cache` hashes the sources of
-its kernel modules and fitting.py; when the hash differs from the stamp kept in the package's numba cache directory
-(``NUMBA_CACHE_DIR`` when set, else numba's own choice: ``__pycache__`` next to the sources or the
-user-wide cache), the package's cache files (``*.nbi``, ``*.nbc``) are deleted and the new stamp is
+``ppe_ros.core.ppe`` call across its modules and into ``ppe_ros.core.fitting``, and numba compiles the
+global constants they read (layout.py's row layouts and fit tolerances) into them. So at import of the
+package (before any kernel is compiled or loaded) :func:`guard_kernel_cache` hashes the sources of all
+its modules and fitting.py; when the hash differs from the stamp kept in the package's numba cache
+directory (``NUMBA_CACHE_DIR`` when set, else numba's own choice: ``__pycache__`` next to the sources or
+the user-wide cache), the package's cache files (``*.nbi``, ``*.nbc``) are deleted and the new stamp is
 written. Cost: hashing about 150 KB of source per import (well under a millisecond).
 
 Two processes importing at once may both clear and both write the stamp (the same content, written
@@ -34,8 +35,13 @@ def kernel_modules(package_dir: Path = PACKAGE_DIR) -> list[Path]:
 
 
 def kernel_sources(package_dir: Path = PACKAGE_DIR, dependencies=DEPENDENCIES) -> list[Path]:
-    """The package's kernel modules and the dependencies, in a fixed order."""
-    return kernel_modules(package_dir) + [Path(d) for d in dependencies]
+    """Every module of the package and the dependencies, in a fixed order.
+
+    Every module, not only the kernel modules: numba compiles the global constants a kernel reads
+    (the row layouts and fit tolerances of layout.py) into its machine code, so a changed constant
+    needs a recompile as much as a changed callee does.
+    """
+    return sorted(package_dir.glob('*.py')) + [Path(d) for d in dependencies]
 
 
 def sources_digest(paths: list[Path]) -> str:
