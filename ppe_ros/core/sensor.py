@@ -25,6 +25,7 @@ docs/algorithm.md ("Sensor models and whole surfaces").
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -158,6 +159,9 @@ class SensorProfile:
             None = tau for every plane.
         seed_shapes: the tetrominoes that seed the greedy's planes: 'all' (the paper's 17) or 'square'
             (the 2 x 2 square alone: a 17th of the seed work; ppe_ros.core.ppe.GreedyOptions).
+        candidate_fits, fit_tolerance: how the greedy values the extensions of its small planes
+            ('exact' or 'one_step') and the convergence tolerance of their exact fits (None: the exact
+            greedy's; ppe_ros.core.ppe.GreedyOptions).
         noise_scale_bounds: (low, high): scale the noise model to each scan by
             :func:`estimate_noise_scale`, clamped to these bounds; None = use the model as it is.
     """
@@ -177,6 +181,8 @@ class SensorProfile:
     flatness_length: float | None = None
     quadrant_jackknife: bool = False
     seed_shapes: str = 'all'
+    candidate_fits: str = 'exact'
+    fit_tolerance: float | None = None
 
     def __post_init__(self) -> None:
         if self.noise_scale_bounds is not None:
@@ -184,6 +190,9 @@ class SensorProfile:
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
                 raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
         check_seed_shapes(self.seed_shapes)
+        check_candidate_fits(self.candidate_fits)
+        if self.fit_tolerance is not None:
+            check_fit_tolerance(self.fit_tolerance)
         if not self.max_plane_curvature_factor > 0:  # NaN too
             factor = self.max_plane_curvature_factor
             raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
@@ -224,6 +233,25 @@ class SensorProfile:
 SEED_SHAPE_NAMES = ('all', 'square')
 
 
+#: How the greedy values the extension candidates of its small planes (GreedyOptions.candidate_fits).
+CANDIDATE_FITS = ('exact', 'one_step')
+#: The sensor profiles' fit tolerance: increments of a few units of the noise variance need no more.
+PROFILE_FIT_TOLERANCE = 1e-6
+
+
+def check_candidate_fits(candidate_fits: str) -> None:
+    """Raise ValueError unless ``candidate_fits`` is one of CANDIDATE_FITS."""
+    if candidate_fits not in CANDIDATE_FITS:
+        choices = ' or '.join(repr(k) for k in CANDIDATE_FITS)
+        raise ValueError(f'candidate_fits must be {choices}; got {candidate_fits!r}')
+
+
+def check_fit_tolerance(fit_tolerance: float) -> None:
+    """Raise ValueError unless ``fit_tolerance`` is a real number in (0, 1)."""
+    if isinstance(fit_tolerance, bool) or not isinstance(fit_tolerance, numbers.Real) or not 0.0 < fit_tolerance < 1.0:
+        raise ValueError(f'fit_tolerance must be a number in (0, 1); got {fit_tolerance!r}')
+
+
 def check_seed_shapes(seed_shapes: str) -> None:
     """Raise ValueError unless ``seed_shapes`` is one of SEED_SHAPE_NAMES (SensorProfile's and
     GreedyOptions' check)."""
@@ -261,6 +289,8 @@ PROFILES: dict[str, SensorProfile] = {
         flatness_length=4.0,
         quadrant_jackknife=True,
         seed_shapes='square',
+        candidate_fits='one_step',
+        fit_tolerance=PROFILE_FIT_TOLERANCE,
     ),
     'depth_camera': SensorProfile(
         name='depth_camera',

@@ -292,6 +292,12 @@ def _extract_transposed_sweep(points, origins, **options) -> PlaneSet | list[Pla
     return replace(result, labels=np.ascontiguousarray(result.labels.T))
 
 
+def _profile_greedy_options(profile: SensorProfile) -> GreedyOptions:
+    """The GreedyOptions of a sensor profile: its seed shapes and candidate fits, the rest the defaults."""
+    fits = {} if profile.fit_tolerance is None else {'fit_tolerance': profile.fit_tolerance}
+    return GreedyOptions(seed_shapes=profile.seed_shapes, candidate_fits=profile.candidate_fits, **fits)
+
+
 def extract_planes(
     points: np.ndarray,
     *,
@@ -391,7 +397,7 @@ def extract_planes(
         noise=noise,
         tiles=tiles,
         threads=threads,
-        options=None if profile is None else GreedyOptions(seed_shapes=profile.seed_shapes),
+        options=None if profile is None else _profile_greedy_options(profile),
     )
     cut_kwargs = [{'max_error_increment': e} for e in e_list or []] + [{'max_planes': n} for n in n_list or []]
     if surface_tolerance is None and profile is None:

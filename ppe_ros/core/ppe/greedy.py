@@ -191,6 +191,8 @@ Knobs = namedtuple(
         'refined_growth',
         'merge_loop_growth',
         'defer_merges',
+        'one_step_candidates',
+        'fit_tolerance',
         'cutoff',
         'model_cutoff',
         'gcap',
@@ -325,7 +327,19 @@ def _revalue_candidate(g, kn, px, pl, pools, p, root, hfree):
     small = pi[p, _PCOUNT] + 1 <= kn.exact_plane_size
     n = _gather(pi, px.nextpix, p, px.buf, g.endpoints, g.directions) if small else 0
     inc = _candidate_increment(
-        g.endpoints, g.directions, pf, p, small, px.buf, n, k, pi[p, _PVER], pl.ecache_i, pl.ecache_f
+        g.endpoints,
+        g.directions,
+        pf,
+        p,
+        small,
+        px.buf,
+        n,
+        k,
+        pi[p, _PVER],
+        pl.ecache_i,
+        pl.ecache_f,
+        kn.one_step_candidates,
+        kn.fit_tolerance,
     )
     if inc < 0.0:
         inc = 0.0
@@ -505,7 +519,7 @@ def _next_action(g, kn, px, pl, q, pools, sd, log, gsize, hused, hfree, seed_ptr
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _create(g, px, pl, p, c):
+def _create(g, kn, px, pl, p, c):
     """Create plane p (its anchor's id) from the tetromino of config c at p; its cells go into px.buf2."""
     pf, pi, cell, endpoints = pl.pf, pl.pi, px.cell, g.endpoints
     i = p // g.width
@@ -533,7 +547,7 @@ def _create(g, px, pl, p, c):
     pi[p, _PTAIL] = cell[3]
     pi[p, _PCOUNT] = 4
     pf[p, _PCOUNTLIN] = 4
-    _set_exact_state(endpoints, g.directions, pf, cell, 4, p, np.nan, np.nan, np.nan)
+    _set_exact_state(endpoints, g.directions, pf, cell, 4, p, np.nan, np.nan, np.nan, kn.fit_tolerance)
     rmax = 0.0
     for t in range(4):
         k = cell[t]
@@ -559,14 +573,18 @@ def _extend(g, kn, px, pl, p, k, key):
     pf[p, _PRMAX] = max(pf[p, _PRMAX], r)
     px.buf2[0] = k
     if count + 1 <= kn.exact_plane_size:
+        w0, w1, w2 = pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2]
         if pl.ecache_i[p, _EC_RAY] == k and pl.ecache_i[p, _EC_VER] == pi[p, _PVER]:
-            # the candidate's own fit (the least of this version's): no fit again
-            sse, w0, w1, w2, info = _get_fit(pl.ecache_f, p)
-            _store_state(pf, p, sse, w0, w1, w2, info)
-            pf[p, _PCOUNTLIN] = count + 1
-            return -1
+            # the candidate's own fit (the least of this version's)
+            sse, c0, c1, c2, info = _get_fit(pl.ecache_f, p)
+            if not kn.one_step_candidates or np.isfinite(info[0]):
+                # exact: no fit again
+                _store_state(pf, p, sse, c0, c1, c2, info)
+                pf[p, _PCOUNTLIN] = count + 1
+                return -1
+            w0, w1, w2 = c0, c1, c2  # one step: the exact fit starts from its w
         n = _gather(pi, px.nextpix, p, px.buf, endpoints, g.directions)
-        _set_exact_state(endpoints, g.directions, pf, px.buf, n, p, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2])
+        _set_exact_state(endpoints, g.directions, pf, px.buf, n, p, w0, w1, w2, kn.fit_tolerance)
         pf[p, _PCOUNTLIN] = n
         return n
     # a large plane: rank-one update of its model
@@ -634,7 +652,7 @@ def _merge(g, kn, px, pl, pools, a, b, aused):
     lin = max(pf[a, _PCOUNTLIN], pf[b, _PCOUNTLIN])
     if total <= kn.exact_plane_size:
         n = _gather(pi, px.nextpix, s, px.buf, g.endpoints, g.directions)
-        _set_exact_state(g.endpoints, g.directions, pf, px.buf, n, s, w0, w1, w2)
+        _set_exact_state(g.endpoints, g.directions, pf, px.buf, n, s, w0, w1, w2, kn.fit_tolerance)
         pf[s, _PCOUNTLIN] = n
     else:
         pf[s, _PE] = value
@@ -717,7 +735,19 @@ def _add_candidate(g, kn, px, pl, pools, log, p, q, n_gathered, hused, hfree):
     if small and n_gathered < 0:
         n_gathered = _gather(pi, px.nextpix, p, px.buf, g.endpoints, g.directions)
     inc = _candidate_increment(
-        g.endpoints, g.directions, pf, p, small, px.buf, n_gathered, q, pi[p, _PVER], pl.ecache_i, pl.ecache_f
+        g.endpoints,
+        g.directions,
+        pf,
+        p,
+        small,
+        px.buf,
+        n_gathered,
+        q,
+        pi[p, _PVER],
+        pl.ecache_i,
+        pl.ecache_f,
+        kn.one_step_candidates,
+        kn.fit_tolerance,
     )
     if not np.isfinite(inc):
         return n_gathered, hused, hfree
@@ -902,7 +932,7 @@ def _greedy_loop(g, kn, px, pl, q, pools, sd, log, n_valid):
         in_buf = -1  # the changed plane's rays when the execution left them in buf (-1: not)
         if kind == _G_SEED:
             log.kind[n_actions] = KIND_CREATE
-            _create(g, px, pl, a, b)
+            _create(g, kn, px, pl, a, b)
             p, new_pixels, plane_count = a, 4, plane_count - 3
         elif kind == _G_EXTEND:
             log.kind[n_actions] = KIND_EXTEND
@@ -1098,6 +1128,8 @@ def _ppe_kernel(
     refined_growth,
     merge_loop_growth,
     defer_merges,
+    one_step_candidates,
+    fit_tolerance,
     gcap,
     hcap,
     acap,
@@ -1108,7 +1140,8 @@ def _ppe_kernel(
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
-    refined_growth, merge_loop_growth: GreedyOptions's refined_merge_growth and merge_loop_growth (0: off).
+    refined_growth, merge_loop_growth: GreedyOptions's refined_merge_growth and merge_loop_growth (0: off);
+    one_step_candidates: its candidate_fits is 'one_step'; fit_tolerance: its fit_tolerance.
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
     The work pools have fixed capacities (queue gcap, candidate nodes hcap, adjacency nodes acap) so
     that no array is reassigned inside the loops: numba then keeps reference counting (atomic
@@ -1141,6 +1174,8 @@ def _ppe_kernel(
         refined_growth,
         merge_loop_growth,
         defer_merges,
+        one_step_candidates,
+        fit_tolerance,
         cutoff,
         MODEL_CUTOFF_FACTOR * cutoff,
         gcap,
@@ -1221,6 +1256,8 @@ def _greedy(inputs: tuple, height: int, width: int, options, stop_increment: flo
             options.refined_merge_growth,
             options.merge_loop_growth,
             options.defer_merges,
+            options.candidate_fits == 'one_step',
+            options.fit_tolerance,
             int(capacity[0]),
             int(capacity[1]),
             int(capacity[2]),

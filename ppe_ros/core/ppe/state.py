@@ -85,10 +85,11 @@ def _store_state(pf, p, sse, w0, w1, w2, information):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2):
-    """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin."""
+def _set_exact_state(endpoints, directions, pf, idx, count, p, w0, w1, w2, tolerance=_FIT_TOLERANCE):
+    """Fit plane p exactly on idx[:count] from (w0, w1, w2) and store E, w, information, w_lin
+    (tolerance: the fit's relative convergence tolerance, GreedyOptions.fit_tolerance)."""
     sse, w0, w1, w2, information = fit_with_information(
-        endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS, _FIT_TOLERANCE
+        endpoints, directions, idx, count, w0, w1, w2, _FIT_ITERATIONS, tolerance
     )
     _store_state(pf, p, sse, w0, w1, w2, information)
 
@@ -124,26 +125,61 @@ def _get_fit(fits, r):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _candidate_increment(endpoints, directions, pf, p, small, idx, n, k, version, ecache_i, ecache_f):
+def _candidate_increment(
+    endpoints, directions, pf, p, small, idx, n, k, version, ecache_i, ecache_f, one_step, tolerance
+):
     """Increment (m^2) of extending plane p (at its current version) by ray k.
 
-    A small plane (small: it has at most exact_plane_size rays with k) is fitted exactly from its w
-    on its rays idx[:n] (the caller gathers them) plus k, written to idx[n]; the least-SSE candidate
-    fit of p's current version is kept in (ecache_i, ecache_f)[p] (ray, version; SSE, w,
-    information), so that executing that extension needs no fit: it is the same fit (same rays in
-    the same order, same start) that _set_exact_state would make. A large plane uses its model.
+    A small plane (small: it has at most exact_plane_size rays with k) is fitted on its rays idx[:n]
+    (the caller gathers them) plus k, written to idx[n]; the least-SSE candidate fit of p's current
+    version is kept in (ecache_i, ecache_f)[p] (ray, version; SSE, w, information). Exactly (one_step
+    False; tolerance: the fit's relative convergence tolerance): executing that extension needs no fit,
+    it is the same fit (same rays in the same order, same start) that _set_exact_state would make. With
+    one_step, :func:`_one_step_sse` instead (its w kept, information NaN: the execution fits from
+    there). A large plane uses its model.
     """
     if not small:
         return _model_extension(endpoints, directions, pf, p, k)[0]
     idx[n] = k
-    sse, w0, w1, w2, information = fit_with_information(
-        endpoints, directions, idx, n + 1, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
-    )
+    sse = np.inf
+    if one_step:
+        sse, w0, w1, w2 = _one_step_sse(endpoints, directions, pf, p, idx, n + 1, k)
+        information = (np.nan, np.nan, np.nan, np.nan, np.nan, np.nan)
+    if not np.isfinite(sse):  # exact, or the one-step model is singular
+        sse, w0, w1, w2, information = fit_with_information(
+            endpoints, directions, idx, n + 1, pf[p, _PW], pf[p, _PW + 1], pf[p, _PW + 2], _FIT_ITERATIONS, tolerance
+        )
     if ecache_i[p, _EC_VER] != version or sse < ecache_f[p, _FIT_VALUE]:
         ecache_i[p, _EC_RAY] = k
         ecache_i[p, _EC_VER] = version
         _put_fit(ecache_f, p, sse, w0, w1, w2, information)
     return sse - pf[p, _PE]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _one_step_sse(endpoints, directions, pf, p, idx, count, k):
+    """The SSE (m^2) of rays idx[:count] (plane p's rays and ray k) at w' = w - H'^-1 f g: one Gauss-Newton
+    step from p's fit (w, information H, a minimum: zero gradient) with k's residual f and gradient g
+    added (H' = H + g g^T). An upper bound of their exact fit's SSE, and close to it: the step is the
+    one the rank-one model of a large plane takes, the SSE is exact at w'. Returns (sse, w'); sse inf
+    when H' is singular or a residual is not finite."""
+    inc, x0, x1, x2, f, g0, g1, g2 = _model_extension(endpoints, directions, pf, p, k)
+    if not np.isfinite(inc):
+        return np.inf, np.nan, np.nan, np.nan
+    scale = f / (1.0 + g0 * x0 + g1 * x1 + g2 * x2)
+    w0 = pf[p, _PW] - x0 * scale
+    w1 = pf[p, _PW + 1] - x1 * scale
+    w2 = pf[p, _PW + 2] - x2 * scale
+    sse = 0.0
+    for t in range(count):
+        q = idx[t]
+        residual = (w0 * endpoints[q, 0] + w1 * endpoints[q, 1] + w2 * endpoints[q, 2] - 1.0) / (
+            w0 * directions[q, 0] + w1 * directions[q, 1] + w2 * directions[q, 2]
+        )
+        sse += residual * residual
+    if not np.isfinite(sse):
+        return np.inf, np.nan, np.nan, np.nan
+    return sse, w0, w1, w2
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
