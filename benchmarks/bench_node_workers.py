@@ -11,7 +11,7 @@ many it drops, its mean time per frame (from taking a cloud to publishing it), t
 kept the input order.
 
 ``--sensor lidar`` runs the node with the lidar profile (the real-sensor path); ``--compare-tiles``
-runs every worker count twice, alternated: with the exact greedy of the whole sweep (one tile, the
+runs every worker count twice, alternated: with one greedy over the whole sweep (one tile, the
 path before the tiles) and with extract_planes's default tiles, so that both are measured under the
 same load.
 
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         '--compare-tiles',
         action='store_true',
-        help='each worker count with one tile (the exact greedy) and with the default tiles',
+        help='each worker count with one tile (one greedy over the whole sweep) and with the default tiles',
     )
     args = parser.parse_args(argv)
     if not all((OUSTER / name).is_file() for name in FRAMES):
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     auto_columns = extraction_tiles.AUTO_TILE_COLUMNS
     for workers in args.workers:
         for one_tile in (True, False) if args.compare_tiles else (False,):
-            # one tile: 'auto' then means one strip of the whole width (the exact greedy)
+            # one tile: 'auto' then means one strip of the whole width (one greedy over the whole sweep)
             extraction_tiles.AUTO_TILE_COLUMNS = 2**31 if one_tile else auto_columns
             try:
                 r = run(workers, args.seconds, args.rate, clouds, args.sensor)

@@ -1,10 +1,10 @@
-"""Tiles: the real-sensor extraction with 1 and 2 threads, the exact greedy (1 tile) against tiles, and accuracy.
+"""Tiles: the real-sensor extraction with 1 and 2 threads, one greedy over the sweep (1 tile) against tiles, accuracy.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_tiles.py [--repeats 9] [--accuracy-scans 4] [--quick]
 
 ``extract_planes(points, origins=..., sensor='lidar')`` on real Ouster sweeps (../shared/data/ouster, with
 their beam origins), four ways, alternated in one process so that the machine's load hits all of them alike:
-``tiles=1`` (the exact greedy of the whole sweep, what the lidar profile ran before the tiles) and
+``tiles=1`` (one greedy over the whole sweep, what the lidar profile ran before the tiles) and
 ``tiles='auto'`` (one strip per 128 columns), each with 1 and 2 threads (numba's threads for the seeds and
 the strips' greedies). The row ``sensor=None`` (the node's defaults without a profile, code the tiles do not
 touch) is the machine's calibration: ratios to it do not depend on how fast or loaded the VM is. Times are
