@@ -20,7 +20,7 @@ from ppe_ros.core.ppe.layout import (
     MERGE_LOOP_GROWTH,
     REFINED_MERGE_GROWTH,
 )
-from ppe_ros.core.ppe.state import _candidate_increment, _one_step_sse, _set_exact_state
+from ppe_ros.core.ppe.state import _candidate_increment, _hybrid_merge, _one_step_sse, _set_exact_state, _union_fit
 from ppe_ros.core.sensor import LIDAR_NOISE, PROFILES, SensorProfile
 from ppe_ros.core.synthetic import plane_scan
 
@@ -204,3 +204,21 @@ def test_the_profiles_greedy_options():
         SensorProfile(name='mine', candidate_fits='fast')
     with pytest.raises(ValueError, match='fit_tolerance'):
         SensorProfile(name='mine', fit_tolerance=-1.0)
+
+
+def test_fit_tolerance_reaches_the_union_fit_and_the_hybrid_merge():
+    """A loose tolerance stops the union fit and the hybrid merge earlier: a higher (not lower) SSE than at
+    the exact greedy's 1e-13, and already close to it."""
+    endpoints, directions, pf, idx = _small_plane(11, count=24)
+    pf = np.vstack([pf, pf])
+    first = np.arange(12, dtype=np.int64)
+    _set_exact_state(endpoints, directions, pf, first, 12, 0, np.nan, np.nan, np.nan)
+    _set_exact_state(endpoints, directions, pf, np.arange(12, 24, dtype=np.int64), 12, 1, np.nan, np.nan, np.nan)
+    tight = _union_fit(endpoints, directions, pf, idx, 24, 0, 1, 1e-13)
+    loose = _union_fit(endpoints, directions, pf, idx, 24, 0, 1, 0.5)
+    assert tight[0] < loose[0] <= tight[0] * 1.01
+    start = pf[0, _PW : _PW + 3] * 1.01
+    rays = np.arange(12, 24, dtype=np.int64)
+    tight = _hybrid_merge(endpoints, directions, pf, 0, rays, 12, *start, 1e-13)
+    loose = _hybrid_merge(endpoints, directions, pf, 0, rays, 12, *start, 0.5)
+    assert tight[0] < loose[0] <= tight[0] * 1.01

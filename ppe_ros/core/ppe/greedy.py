@@ -24,7 +24,6 @@ from ppe_ros.core.ppe.layout import (
     _EC_RAY,
     _EC_VER,
     _FIT_ITERATIONS,
-    _FIT_TOLERANCE,
     _G_EXTEND,
     _G_MERGE_EXACT,
     _G_MERGE_MODEL,
@@ -436,7 +435,7 @@ def _refined_increment(g, kn, px, pl, log, a, b):
     if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= kn.exact_plane_size:
         n1 = _gather(pi, px.nextpix, a, buf, endpoints, directions)
         n2 = _gather(pi, px.nextpix, b, buf, endpoints, directions, n1)
-        sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
+        sse, u0, u1, u2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b, kn.fit_tolerance)
         zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         _cache_merge(pl.mcache_i, pl.mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], sse, u0, u1, u2, zero)
         return sse - pf[a, _PE] - pf[b, _PE]
@@ -451,9 +450,9 @@ def _refined_increment(g, kn, px, pl, log, a, b):
         e_small = pf[small, _PE]  # a small plane's E is its exact fit's
     else:
         w0, w1, w2 = pf[small, _PW], pf[small, _PW + 1], pf[small, _PW + 2]
-        e_small, _, _, _ = fit_rays(endpoints, directions, buf, n, w0, w1, w2, _FIT_ITERATIONS, _FIT_TOLERANCE)
+        e_small, _, _, _ = fit_rays(endpoints, directions, buf, n, w0, w1, w2, _FIT_ITERATIONS, kn.fit_tolerance)
     _, m0, m1, m2 = _model_merge(pf, a, b)
-    value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+    value, m0, m1, m2, info, grad = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2, kn.fit_tolerance)
     _cache_merge(pl.mcache_i, pl.mcache_f, a, b, pi[a, _PVER], pi[b, _PVER], value, m0, m1, m2, info)
     if kn.refined_growth > 0.0:
         _keep_refined_merge(pl.rcache_i, pl.rcache_f, pf, pi, big, small, e_small, value, m0, m1, m2, info, grad)
@@ -619,13 +618,13 @@ def _merged_fit(g, kn, px, pl, a, b):
         # exact merged state from the best of the union's starting points
         n1 = _gather(pi, px.nextpix, a, buf, endpoints, directions)
         n2 = _gather(pi, px.nextpix, b, buf, endpoints, directions, n1)
-        _, w0, w1, w2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b)
+        _, w0, w1, w2 = _union_fit(endpoints, directions, pf, buf, n1 + n2, a, b, kn.fit_tolerance)
         return 0.0, w0, w1, w2, info
     big = a if na >= nbn else b
     small = b if big == a else a
     n = _gather(pi, px.nextpix, small, buf, endpoints, directions)
     _, m0, m1, m2 = _model_merge(pf, a, b)
-    value, w0, w1, w2, info, _ = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2)
+    value, w0, w1, w2, info, _ = _hybrid_merge(endpoints, directions, pf, big, buf, n, m0, m1, m2, kn.fit_tolerance)
     return value, w0, w1, w2, info
 
 
@@ -810,7 +809,7 @@ def _merge_key(g, kn, px, pl, p, q):
     if pi[a, _PCOUNT] + pi[b, _PCOUNT] <= kn.exact_merge_size:
         n1 = _gather(pi, px.nextpix, a, px.buf, g.endpoints, g.directions)
         n2 = _gather(pi, px.nextpix, b, px.buf, g.endpoints, g.directions, n1)
-        sse, _, _, _ = _union_fit(g.endpoints, g.directions, pf, px.buf, n1 + n2, a, b)
+        sse, _, _, _ = _union_fit(g.endpoints, g.directions, pf, px.buf, n1 + n2, a, b, kn.fit_tolerance)
         return sse - pf[a, _PE] - pf[b, _PE], _G_MERGE_EXACT, False
     if (
         pf[q, _PRPARTNER] == p

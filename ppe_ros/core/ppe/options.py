@@ -48,10 +48,10 @@ class GreedyOptions:
             (relative) on an OS-1-128 sweep, at about a third of the cost. The extension that is
             executed is then fitted exactly, so plane states stay exact; the action order may differ
             from the exact greedy's where increments are that close (the sensor profiles' choice).
-        fit_tolerance: relative convergence tolerance of the greedy's exact fits of small planes (their
-            state and exact candidates): a fit stops when the Gauss-Newton predicted decrease is at most
-            this fraction of its SSE (the default, 1e-13, is the exact greedy's; the sensor profiles use
-            1e-6, far below their increments' resolution).
+        fit_tolerance: relative convergence tolerance of the greedy's exact fits (small planes' states
+            and exact candidates, union fits, merge refinements): a fit stops when the Gauss-Newton
+            predicted decrease is at most this fraction of its SSE (the default, 1e-13, is the exact
+            greedy's; the lidar profile uses 1e-6, far below its increments' resolution).
         seed_shapes: the tetrominoes that seed a plane (create actions): 'all' the paper's 17 (every
             tetromino but the straight I), 'square' the 2 x 2 square alone (a 17th of the seed fits and of
             the seeds the greedy re-queues; the sensor profiles' choice for spinning lidars).

@@ -330,8 +330,9 @@ def _hybrid_pass(endpoints, directions, pf, big, idx, count, w0, w1, w2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
-    """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving).
+def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2, tolerance=_FIT_TOLERANCE):
+    """min over w of model_big(w) + exact SSE of rays idx[:count] (Gauss-Newton with step halving, to the
+    relative tolerance GreedyOptions.fit_tolerance).
 
     One pass over the rays per iteration (the pass at a trial point gives its value and, when
     accepted, the next system). Returns (value, w0, w1, w2, info6, r3) where info6 is the information
@@ -342,7 +343,7 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
         d0, d1, d2, ok = solve_sym3(info[0], info[1], info[2], info[3], info[4], info[5], r0, r1, r2)
         if not ok:
             break
-        if not (d0 * r0 + d1 * r1 + d2 * r2) > _FIT_TOLERANCE * value:
+        if not (d0 * r0 + d1 * r1 + d2 * r2) > tolerance * value:
             break
         step = 1.0
         improved = False
@@ -360,7 +361,7 @@ def _hybrid_merge(endpoints, directions, pf, big, idx, count, w0, w1, w2):
         decrease = value - trial[0]
         w0, w1, w2 = n0, n1, n2
         value, info, r0, r1, r2 = trial
-        if decrease <= _FIT_TOLERANCE * value:
+        if decrease <= tolerance * value:
             break
     return value, w0, w1, w2, info, (r0, r1, r2)
 
@@ -428,8 +429,9 @@ def _refined_merge_increment(pf, big, rcache_f, small):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _union_fit(endpoints, directions, pf, idx, count, a, b):
-    """Exact fit of the union of planes a and b (rays idx[:count]); both planes' states are exact fits.
+def _union_fit(endpoints, directions, pf, idx, count, a, b, tolerance=_FIT_TOLERANCE):
+    """Exact fit of the union of planes a and b (rays idx[:count]; relative tolerance
+    GreedyOptions.fit_tolerance); both planes' states are exact fits.
 
     Starts from the merged w of the two planes' quadratic models. The radial SSE of rays on two
     different surfaces can have several local minima, so when the increment found there disagrees
@@ -444,23 +446,21 @@ def _union_fit(endpoints, directions, pf, idx, count, a, b):
     b1 = np.nan
     b2 = np.nan
     if model_inc < np.inf:
-        best, b0, b1, b2 = fit_rays(endpoints, directions, idx, count, m0, m1, m2, _FIT_ITERATIONS, _FIT_TOLERANCE)
+        best, b0, b1, b2 = fit_rays(endpoints, directions, idx, count, m0, m1, m2, _FIT_ITERATIONS, tolerance)
         inc = best - pf[a, _PE] - pf[b, _PE]
         if best < np.inf and abs(inc - model_inc) <= UNION_MODEL_AGREEMENT * max(inc, model_inc):
             return best, b0, b1, b2
     sse, w0, w1, w2 = fit_rays(
-        endpoints, directions, idx, count, pf[a, _PW], pf[a, _PW + 1], pf[a, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
+        endpoints, directions, idx, count, pf[a, _PW], pf[a, _PW + 1], pf[a, _PW + 2], _FIT_ITERATIONS, tolerance
     )
     if sse < best:
         best, b0, b1, b2 = sse, w0, w1, w2
     sse, w0, w1, w2 = fit_rays(
-        endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1], pf[b, _PW + 2], _FIT_ITERATIONS, _FIT_TOLERANCE
+        endpoints, directions, idx, count, pf[b, _PW], pf[b, _PW + 1], pf[b, _PW + 2], _FIT_ITERATIONS, tolerance
     )
     if sse < best:
         best, b0, b1, b2 = sse, w0, w1, w2
-    sse, w0, w1, w2 = fit_rays(
-        endpoints, directions, idx, count, np.nan, np.nan, np.nan, _FIT_ITERATIONS, _FIT_TOLERANCE
-    )
+    sse, w0, w1, w2 = fit_rays(endpoints, directions, idx, count, np.nan, np.nan, np.nan, _FIT_ITERATIONS, tolerance)
     if sse < best:
         best, b0, b1, b2 = sse, w0, w1, w2
     return best, b0, b1, b2
