@@ -44,10 +44,10 @@ class GreedyOptions:
         candidate_fits: how an extension candidate of a plane of up to exact_plane_size rays is valued:
             'exact' its exact fit (the paper's increment); 'one_step' one Gauss-Newton step from the
             plane's fit with the candidate's ray added (the rank-one model of a large plane) and the
-            exact SSE at that step: an upper bound of the exact increment, within 1.5e-4 of it
-            (relative) on an OS-1-128 sweep, at about a third of the cost. The extension that is
+            exact SSE at that step: an upper bound of the exact increment, within 1.4e-4 of it
+            (relative) on an OS-1-128 sweep, at under a third of the cost. The extension that is
             executed is then fitted exactly, so plane states stay exact; the action order may differ
-            from the exact greedy's where increments are that close (the sensor profiles' choice).
+            from the exact greedy's where increments are that close (the lidar profile's choice).
         fit_tolerance: relative convergence tolerance of the greedy's exact fits (small planes' states
             and exact candidates, union fits, merge refinements): a fit stops when the Gauss-Newton
             predicted decrease is at most this fraction of its SSE (the default, 1e-13, is the exact

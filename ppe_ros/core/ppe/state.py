@@ -172,10 +172,7 @@ def _one_step_sse(endpoints, directions, pf, p, idx, count, k):
     w2 = pf[p, _PW + 2] - x2 * scale
     sse = 0.0
     for t in range(count):
-        q = idx[t]
-        residual = (w0 * endpoints[q, 0] + w1 * endpoints[q, 1] + w2 * endpoints[q, 2] - 1.0) / (
-            w0 * directions[q, 0] + w1 * directions[q, 1] + w2 * directions[q, 2]
-        )
+        residual = ray_terms(endpoints, directions, idx[t], w0, w1, w2)[0]
         sse += residual * residual
     if not np.isfinite(sse):
         return np.inf, np.nan, np.nan, np.nan
