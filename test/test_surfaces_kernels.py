@@ -17,6 +17,7 @@ from ppe_ros.core.consolidation import (
     _no_return_runs,
     _parallel_candidate_pairs,
     _piece_planes,
+    _touching_pairs,
     _unique_pairs,
     consolidate_pieces,
 )
@@ -156,6 +157,31 @@ def test_the_heap_pops_in_the_order_of_heapq():
         popped.append((a, b, va, vb))
         want.append(heapq.heappop(reference)[1:])
     assert popped == want and len(popped) > 1000
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_touching_pairs_are_the_distinct_4_neighbour_pairs(seed):
+    rng = np.random.default_rng(seed)
+    height, width = 23, 31
+    ids = rng.integers(0, 12, (height, width)).repeat(2, axis=1)[:, :width]  # runs: repeated pairs
+    ids[rng.random(ids.shape) < 0.2] = -1
+    flat = np.ascontiguousarray(ids.ravel(), dtype=np.int64)
+    want = set()
+    for i in range(height):
+        for j in range(width):
+            for di, dj in ((0, 1), (1, 0)):
+                if i + di < height and j + dj < width:
+                    a, b = ids[i, j], ids[i + di, j + dj]
+                    if a >= 0 and b >= 0 and a != b:
+                        want.add((min(a, b), max(a, b)))
+    found = _touching_pairs(flat, width, 0, flat.size)
+    assert {tuple(p) for p in found.tolist()} == want and len(want) > 30
+    assert (found[:, 0] < found[:, 1]).all()
+    assert len(found) < 2 * flat.size
+    # row blocks find the same pairs, repeats included: a block starts a row
+    cut = 9 * width
+    blocks = np.concatenate([_touching_pairs(flat, width, 0, cut), _touching_pairs(flat, width, cut, flat.size)])
+    np.testing.assert_array_equal(np.sort(blocks, axis=0), np.sort(found, axis=0))
 
 
 @pytest.mark.parametrize('connected_only', [False, True])

@@ -223,7 +223,9 @@ def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise
     return float(_merge_cost(m_a, m_b, plane_a, plane_b, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+# not inline='always': numba's IR inlining of a function whose arrays stay live across its early
+# returns leaves a reference count increment and decrement of every array argument per call (5x slower)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _bridges(ids, endpoints, directions, ranges, sigmas, k, normals, means, g, tau, connected_only):
     """True if ray k may lie between two pieces of the surface of piece g (plane normals[g], means[g]).
 
@@ -272,8 +274,10 @@ def _candidate_pairs(
     """Candidate pairs (a < b) found from the pixels first..last-1 (the later piece b of a pair is on
     one of them), as an (m, 2) array, possibly with repeats (see the module docstring). no_return is
     :func:`_no_return_runs` of the grid."""
-    out = np.empty((2 * (last - first) + 16, 2), np.int64)
-    n_out = 0
+    touching = _touching_pairs(ids, width, first, last)
+    out = np.empty((len(touching) + 16, 2), np.int64)
+    out[: len(touching)] = touching
+    n_out = len(touching)
     for direction in range(2):  # 0: along rows (left), 1: along columns (up)
         step = 1 if direction == 0 else width
         i = first // width
@@ -292,46 +296,90 @@ def _candidate_pairs(
             back = ids[k - step]
             if back == b:
                 continue
-            if back >= 0:  # pieces that touch are candidates
-                out, n_out = _add_pair(out, n_out, back, b)
-            if back < 0 or _bridges(
+            if back >= 0 and not _bridges(
                 ids, endpoints, directions, ranges, sigmas, k - step, normals, means, b, tau, connected_only
             ):
-                # walk back over rays that bridge to b's plane, to the first ray that does not: a
-                # candidate if it is on a plane and every ray between bridges to that plane too
-                a = -1
-                g = 1 if back < 0 else 2  # back bridges: tested
-                while g <= min(max_gap, position):
-                    q = k - g * step
-                    if not connected_only and no_return[direction, q] > 0:
-                        g += no_return[direction, q]  # rays without a return bridge: skip their run
-                        continue
-                    if ids[q] == b:
-                        break
-                    if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, b, tau, connected_only):
-                        g += 1
-                        continue
-                    if ids[q] >= 0 and _gap_bridges(
-                        ids,
-                        endpoints,
-                        directions,
-                        ranges,
-                        sigmas,
-                        no_return[direction],
-                        q,
-                        k,
-                        step,
-                        normals,
-                        means,
-                        ids[q],
-                        tau,
-                        connected_only,
-                    ):
-                        a = ids[q]
-                    break
-                if a >= 0:
-                    out, n_out = _add_pair(out, n_out, a, b)
+                continue
+            a = _across_gap(
+                ids,
+                endpoints,
+                directions,
+                ranges,
+                sigmas,
+                no_return[direction],
+                k,
+                step,
+                1 if back < 0 else 2,  # back bridges: tested
+                min(max_gap, position),
+                normals,
+                means,
+                tau,
+                connected_only,
+            )
+            if a >= 0:
+                out, n_out = _add_pair(out, n_out, a, b)
     return out[:n_out]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _touching_pairs(ids, width, first, last):
+    """(m, 2) pairs (a < b) of distinct pieces that are 4-neighbours, b on one of the pixels first..last-1
+    and a left of it or above it; a pair that the previous pixel of the same row found is not repeated."""
+    out = np.empty((2 * (last - first), 2), np.int64)
+    n_out = 0
+    for direction in range(2):  # 0: along rows (left), 1: along columns (up)
+        step = 1 if direction == 0 else width
+        i = first // width
+        j = first - i * width - 1
+        last_a = last_b = -1
+        for k in range(first, last):
+            j += 1  # (i, j): the row and column of pixel k
+            if j == width:
+                j = 0
+                i += 1
+            if j == 0:
+                last_a = last_b = -1
+            if (j if direction == 0 else i) == 0:
+                continue
+            b = ids[k]
+            back = ids[k - step]
+            if b < 0 or back < 0 or back == b:
+                continue
+            a, b = min(back, b), max(back, b)
+            if a != last_a or b != last_b:
+                out[n_out, 0] = a
+                out[n_out, 1] = b
+                n_out += 1
+                last_a, last_b = a, b
+    return out[:n_out]
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _across_gap(
+    ids, endpoints, directions, ranges, sigmas, no_return, k, step, g, reach, normals, means, tau, connected_only
+):
+    """The piece that pixel k's piece b is a candidate with across a gap, or -1: walking back from k by
+    step, from the g-th ray back and at most reach rays back, over rays that bridge to b's plane, the
+    first ray that does not bridge, if it is on a piece and every ray between bridges to that piece's
+    plane too. no_return: the runs of rays without a return and a piece along the line (skipped)."""
+    b = ids[k]
+    while g <= reach:
+        q = k - g * step
+        if not connected_only and no_return[q] > 0:
+            g += no_return[q]  # rays without a return bridge: skip their run
+            continue
+        if ids[q] == b:
+            return -1
+        if _bridges(ids, endpoints, directions, ranges, sigmas, q, normals, means, b, tau, connected_only):
+            g += 1
+            continue
+        a = ids[q]
+        if a >= 0 and _gap_bridges(
+            ids, endpoints, directions, ranges, sigmas, no_return, q, k, step, normals, means, a, tau, connected_only
+        ):
+            return a
+        return -1
+    return -1
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
