@@ -12,8 +12,9 @@ from ppe_ros.core import consolidation
 from ppe_ros.core.consolidation import (
     _candidate_pairs,
     _dense_ids,
+    _heap_grown,
+    _heap_insert,
     _heap_pop,
-    _heap_push,
     _no_return_runs,
     _parallel_candidate_pairs,
     _piece_planes,
@@ -150,13 +151,15 @@ def test_the_heap_pops_in_the_order_of_heapq():
             want.append(heapq.heappop(reference)[1:])
         else:  # few distinct costs and ids: ties decided by the ids and versions
             entry = (float(rng.integers(0, 5)) / 4, *(int(x) for x in rng.integers(0, 3, 4)))
-            hkey, hint, size = _heap_push(hkey, hint, size, *entry)
+            if size == len(hkey):
+                hkey, hint = _heap_grown(hkey, hint, size)
+            size = _heap_insert(hkey, hint, size, *entry)
             heapq.heappush(reference, entry)
     while size:
         a, b, va, vb, size = _heap_pop(hkey, hint, size)
         popped.append((a, b, va, vb))
         want.append(heapq.heappop(reference)[1:])
-    assert popped == want and len(popped) > 1000
+    assert popped == want and len(popped) > 1000 and len(hkey) > 4  # grown
 
 
 @pytest.mark.parametrize('seed', [0, 1])

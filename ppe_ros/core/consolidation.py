@@ -140,8 +140,9 @@ def _scatter(m):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _union_scatter(m_a, m_b):
-    """:func:`_scatter` of the moments m_a + m_b, without allocating their sum."""
+def _union_scatter(mom, a, b):
+    """:func:`_scatter` of the moments mom[a] + mom[b] (rows of (K, 11) moments), without allocating their sum."""
+    m_a, m_b = mom[a], mom[b]
     inv = 1.0 / (m_a[0] + m_b[0])
     m0, m1, m2 = (m_a[1] + m_b[1]) * inv, (m_a[2] + m_b[2]) * inv, (m_a[3] + m_b[3]) * inv
     return (m0, m1, m2), (
@@ -182,18 +183,20 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _merge_cost(m_a, m_b, plane_a, plane_b, tau2, noise_factor2):
+def _merge_cost(mom, plane, a, b, tau2, noise_factor2):
     """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
     and step^2 / t^2, with t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
     (s_P^2: P's mean squared distance from its own plane; sigma_P^2: the mean range variance of its rays).
 
     U is the union's LS plane; step is the smaller of the two distances along U's normal between the
     planes of A and B measured at A's mean and at B's mean (each piece's own plane is best known at
-    its mean). m_*: moments; plane_*: their _plane_of rows.
+    its mean). mom: (K, 11) moments; plane: their _plane_of rows (K, 13); a, b: the pieces' rows (indices,
+    not row views: a view of a row per call costs a reference count increment and decrement).
     """
-    mean_u, sc = _union_scatter(m_a, m_b)
+    mean_u, sc = _union_scatter(mom, a, b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
-    scatter = min(max(plane_a[9], plane_b[9]), max(m_a[10] / m_a[0], m_b[10] / m_b[0]))
+    plane_a, plane_b = plane[a], plane[b]
+    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
     allowed_a = allowed_b = tau2 + noise_factor2 * scatter
     cost = max(
         _deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
@@ -215,12 +218,11 @@ def _along_normal(piece, x0, x1, x2, u0, u1, u2):
 
 def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise_factor: float = 0.0) -> float:
     """:func:`_merge_cost` of two pieces given by their (11,) moments (see _piece_moments); <= 1: admissible."""
-    m_a = np.asarray(m_a, np.float64)
-    m_b = np.asarray(m_b, np.float64)
-    plane_a, plane_b = np.empty(13), np.empty(13)
-    _plane_of(m_a, plane_a)
-    _plane_of(m_b, plane_b)
-    return float(_merge_cost(m_a, m_b, plane_a, plane_b, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
+    mom = np.stack([np.asarray(m_a, np.float64), np.asarray(m_b, np.float64)])
+    plane = np.empty((2, 13))
+    _plane_of(mom[0], plane[0])
+    _plane_of(mom[1], plane[1])
+    return float(_merge_cost(mom, plane, 0, 1, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
 
 
 # not inline='always': numba's IR inlining of a function whose arrays stay live across its early
@@ -456,7 +458,7 @@ def _heap_put(hkey, hint, i, key, a, b, va, vb):
     hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3] = a, b, va, vb
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _heap_sift_down(hkey, hint, size, i):
     """Move entry i down the heap hkey[:size], hint[:size] to its place (children moved up into the hole)."""
     key, a, b, va, vb = hkey[i], hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3]
@@ -477,15 +479,19 @@ def _heap_sift_down(hkey, hint, size, i):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _heap_push(hkey, hint, size, cost, a, b, va, vb):
-    """Push (cost, a, b, va, vb) onto the binary min-heap hkey[:size], hint[:size] (grown when full);
-    returns (hkey, hint, size)."""
-    if size == len(hkey):
-        grown_key = np.empty(2 * len(hkey) + 16)
-        grown_int = np.empty((2 * len(hkey) + 16, 4), np.int64)
-        grown_key[:size] = hkey[:size]
-        grown_int[:size] = hint[:size]
-        hkey, hint = grown_key, grown_int
+def _heap_grown(hkey, hint, size):
+    """The heap hkey[:size], hint[:size] copied into arrays of twice the length (plus 16)."""
+    grown_key = np.empty(2 * len(hkey) + 16)
+    grown_int = np.empty((2 * len(hkey) + 16, 4), np.int64)
+    grown_key[:size] = hkey[:size]
+    grown_int[:size] = hint[:size]
+    return grown_key, grown_int
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _heap_insert(hkey, hint, size, cost, a, b, va, vb):
+    """Push (cost, a, b, va, vb) onto the binary min-heap hkey[:size], hint[:size], which must have room
+    (size < len(hkey); else :func:`_heap_grown` first); returns the new size."""
     i = size
     while i > 0:  # parents after the new entry move down into the hole
         parent = (i - 1) // 2
@@ -494,10 +500,10 @@ def _heap_push(hkey, hint, size, cost, a, b, va, vb):
         _heap_put(hkey, hint, i, hkey[parent], hint[parent, 0], hint[parent, 1], hint[parent, 2], hint[parent, 3])
         i = parent
     _heap_put(hkey, hint, i, cost, a, b, va, vb)
-    return hkey, hint, size + 1
+    return size + 1
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _heap_pop(hkey, hint, size):
     """Remove the first entry of the heap hkey[:size], hint[:size]; returns (a, b, va, vb, size)."""
     a, b, va, vb = hint[0, 0], hint[0, 1], hint[0, 2], hint[0, 3]
@@ -521,7 +527,7 @@ def _pair_costs(moments, pairs, tau2, noise_factor2):
     for e in range(pairs.shape[0]):
         a = pairs[e, 0]
         b = pairs[e, 1]
-        costs[e] = _merge_cost(moments[a], moments[b], plane[a], plane[b], tau2, noise_factor2)
+        costs[e] = _merge_cost(moments, plane, a, b, tau2, noise_factor2)
     return plane, costs
 
 
@@ -602,9 +608,11 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2):
                 tail[a] = h
                 lo = min(a, c)
                 hi = max(a, c)
-                value = _merge_cost(mom[lo], mom[hi], plane[lo], plane[hi], tau2, noise_factor2)
+                value = _merge_cost(mom, plane, lo, hi, tau2, noise_factor2)
                 if value <= 1.0:
-                    hkey, hint, size = _heap_push(hkey, hint, size, value, lo, hi, version[lo], version[hi])
+                    if size == len(hkey):
+                        hkey, hint = _heap_grown(hkey, hint, size)
+                    size = _heap_insert(hkey, hint, size, value, lo, hi, version[lo], version[hi])
             h = following
     roots = np.empty(n, np.int64)
     for x in range(n):
