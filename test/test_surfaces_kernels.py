@@ -11,11 +11,13 @@ import pytest
 from ppe_ros.core import consolidation
 from ppe_ros.core.consolidation import (
     _candidate_pairs,
+    _consolidate_kernel,
     _dense_ids,
-    _heap_grown,
     _heap_insert,
     _heap_pop,
+    _merge_pieces,
     _no_return_runs,
+    _pair_costs,
     _parallel_candidate_pairs,
     _piece_planes,
     _touching_pairs,
@@ -142,7 +144,7 @@ def test_unique_pairs_equal_numpy_unique_rows():
 
 def test_the_heap_pops_in_the_order_of_heapq():
     rng = np.random.default_rng(6)
-    hkey, hint, size = np.empty(4), np.empty((4, 4), np.int64), 0
+    hkey, hint, size = np.empty(3000), np.empty((3000, 4), np.int64), 0
     reference, popped, want = [], [], []
     for _ in range(3000):
         if size and rng.random() < 0.4:
@@ -151,15 +153,34 @@ def test_the_heap_pops_in_the_order_of_heapq():
             want.append(heapq.heappop(reference)[1:])
         else:  # few distinct costs and ids: ties decided by the ids and versions
             entry = (float(rng.integers(0, 5)) / 4, *(int(x) for x in rng.integers(0, 3, 4)))
-            if size == len(hkey):
-                hkey, hint = _heap_grown(hkey, hint, size)
             size = _heap_insert(hkey, hint, size, *entry)
             heapq.heappush(reference, entry)
     while size:
         a, b, va, vb, size = _heap_pop(hkey, hint, size)
         popped.append((a, b, va, vb))
         want.append(heapq.heappop(reference)[1:])
-    assert popped == want and len(popped) > 1000 and len(hkey) > 4  # grown
+    assert popped == want and len(popped) > 1000
+
+
+def test_a_full_merge_heap_runs_the_kernel_again_with_a_larger_one():
+    scan, ids, sigmas = _scene(9, rows=64)
+    labels, dense = _dense_ids(ids)
+    sig = np.ascontiguousarray(np.nan_to_num(sigmas))
+    moments = consolidation._piece_moments(dense, scan.endpoints, sig, len(labels))
+    normals, means, _ = _piece_planes(moments)
+    no_return = _no_return_runs(scan.ranges, dense, scan.height, scan.width)
+    found = _candidate_pairs(
+        dense, scan.endpoints, scan.directions, scan.ranges, sig, no_return, scan.height, scan.width,
+        normals, means, 0.05, 16, False, 0, scan.size,
+    )  # fmt: skip
+    pairs = _unique_pairs(found, len(labels))
+    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0)
+    assert len(_consolidate_kernel(moments, pairs, plane_rows, costs, 0.05**2, 1.0, 1)) == 0  # m entries: full
+    roots = _merge_pieces(moments, pairs, plane_rows, costs, 0.05**2, 1.0)
+    np.testing.assert_array_equal(
+        _merge_pieces(moments, pairs, plane_rows, costs, 0.05**2, 1.0, heap_capacity=1), roots
+    )
+    assert len(np.unique(roots)) < len(labels) / 2  # the scene's blocks merge into surfaces
 
 
 @pytest.mark.parametrize('seed', [0, 1])

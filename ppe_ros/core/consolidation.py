@@ -478,20 +478,10 @@ def _heap_sift_down(hkey, hint, size, i):
     _heap_put(hkey, hint, i, key, a, b, va, vb)
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _heap_grown(hkey, hint, size):
-    """The heap hkey[:size], hint[:size] copied into arrays of twice the length (plus 16)."""
-    grown_key = np.empty(2 * len(hkey) + 16)
-    grown_int = np.empty((2 * len(hkey) + 16, 4), np.int64)
-    grown_key[:size] = hkey[:size]
-    grown_int[:size] = hint[:size]
-    return grown_key, grown_int
-
-
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
 def _heap_insert(hkey, hint, size, cost, a, b, va, vb):
     """Push (cost, a, b, va, vb) onto the binary min-heap hkey[:size], hint[:size], which must have room
-    (size < len(hkey); else :func:`_heap_grown` first); returns the new size."""
+    (size < len(hkey)); returns the new size."""
     i = size
     while i > 0:  # parents after the new entry move down into the hole
         parent = (i - 1) // 2
@@ -532,13 +522,15 @@ def _pair_costs(moments, pairs, tau2, noise_factor2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2):
+def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, heap_capacity):
     """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
 
     A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2).
     plane_rows, costs: the pieces' _plane_of rows and the pairs' costs (:func:`_pair_costs`). The queue
     is a binary heap ordered by (cost, a, b, version a, version b): every order of pushes pops the
-    same sequence.
+    same sequence. It holds at most max(heap_capacity, m) entries: when it is full the kernel returns an
+    empty array, and :func:`_merge_pieces` runs it again with a larger heap (a heap array reassigned in
+    the loop would cost a reference count increment and decrement per valuation).
     """
     n = moments.shape[0]
     mom = moments.copy()
@@ -561,8 +553,9 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2):
             else:
                 nxt[tail[u]] = h
             tail[u] = h
-    hkey = np.empty(2 * m + 16)
-    hint = np.empty((2 * m + 16, 4), np.int64)
+    capacity = max(heap_capacity, m)
+    hkey = np.empty(capacity)
+    hint = np.empty((capacity, 4), np.int64)
     size = 0
     for e in range(m):
         if costs[e] <= 1.0:
@@ -611,13 +604,32 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2):
                 value = _merge_cost(mom, plane, lo, hi, tau2, noise_factor2)
                 if value <= 1.0:
                     if size == len(hkey):
-                        hkey, hint = _heap_grown(hkey, hint, size)
+                        return np.empty(0, np.int64)  # the heap is full
                     size = _heap_insert(hkey, hint, size, value, lo, hi, version[lo], version[hi])
             h = following
     roots = np.empty(n, np.int64)
     for x in range(n):
         roots[x] = _find(parent, x)
     return roots
+
+
+def _merge_pieces(
+    moments: np.ndarray,
+    pairs: np.ndarray,
+    plane_rows: np.ndarray,
+    costs: np.ndarray,
+    tau2: float,
+    noise_factor2: float,
+    heap_capacity: int | None = None,
+) -> np.ndarray:
+    """:func:`_consolidate_kernel`'s roots, with a heap of heap_capacity entries (default 4 m + 16: enough
+    for the real scans) doubled until the kernel does not run out of it."""
+    capacity = 4 * len(pairs) + 16 if heap_capacity is None else int(heap_capacity)
+    while True:
+        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, capacity)
+        if len(roots) == len(moments):
+            return roots
+        capacity = 2 * capacity + 16
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -891,7 +903,7 @@ def consolidate_pieces(
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
     plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
-    roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
+    roots = _merge_pieces(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
 
 
@@ -1112,7 +1124,7 @@ def consolidated_surfaces(
             pairs = np.concatenate([pairs, _seam_pairs(pair_ids, scan.height, scan.width)])
         pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))
         plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
-        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
+        roots = _merge_pieces(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
     surface_moments = _surface_moments_kernel(dense, roots, scan.endpoints, sigmas, max(int(min_points), 3), surface)
     small = surface_moments[:, 0] < max(int(min_points), 3)
     normals, means, own = _piece_planes(np.where(small[:, None], np.ones(11), surface_moments))
