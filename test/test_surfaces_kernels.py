@@ -176,10 +176,8 @@ def test_a_full_merge_heap_runs_the_kernel_again_with_a_larger_one():
     pairs = _unique_pairs(found, len(labels))
     plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0)
     assert len(_consolidate_kernel(moments, pairs, plane_rows, costs, 0.05**2, 1.0, 1)) == 0  # m entries: full
-    roots = _merge_pieces(moments, pairs, plane_rows, costs, 0.05**2, 1.0)
-    np.testing.assert_array_equal(
-        _merge_pieces(moments, pairs, plane_rows, costs, 0.05**2, 1.0, heap_capacity=1), roots
-    )
+    roots = _merge_pieces(moments, pairs, 0.05**2, 1.0)
+    np.testing.assert_array_equal(_merge_pieces(moments, pairs, 0.05**2, 1.0, heap_capacity=1), roots)
     assert len(np.unique(roots)) < len(labels) / 2  # the scene's blocks merge into surfaces
 
 

@@ -614,16 +614,12 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
 
 
 def _merge_pieces(
-    moments: np.ndarray,
-    pairs: np.ndarray,
-    plane_rows: np.ndarray,
-    costs: np.ndarray,
-    tau2: float,
-    noise_factor2: float,
-    heap_capacity: int | None = None,
+    moments: np.ndarray, pairs: np.ndarray, tau2: float, noise_factor2: float, heap_capacity: int | None = None
 ) -> np.ndarray:
-    """:func:`_consolidate_kernel`'s roots, with a heap of heap_capacity entries (default 4 m + 16: enough
-    for the real scans) doubled until the kernel does not run out of it."""
+    """The root of each piece after :func:`_consolidate_kernel` merged the pieces (moments (K, 11)) along
+    their unique candidate pairs (m, 2), valued by :func:`_pair_costs`; with a heap of heap_capacity
+    entries (default 4 m + 16: enough for the real scans) doubled until the kernel does not run out of it."""
+    plane_rows, costs = _pair_costs(moments, pairs, tau2, noise_factor2)
     capacity = 4 * len(pairs) + 16 if heap_capacity is None else int(heap_capacity)
     while True:
         roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, capacity)
@@ -902,8 +898,7 @@ def consolidate_pieces(
     factor = float(noise_factor)
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
-    plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
-    roots = _merge_pieces(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
+    roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
 
 
@@ -1123,8 +1118,7 @@ def consolidated_surfaces(
         if wrap_columns:
             pairs = np.concatenate([pairs, _seam_pairs(pair_ids, scan.height, scan.width)])
         pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))
-        plane_rows, costs = _pair_costs(moments, pairs, tau * tau, factor * factor)
-        roots = _merge_pieces(moments, pairs, plane_rows, costs, tau * tau, factor * factor)
+        roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
     surface_moments = _surface_moments_kernel(dense, roots, scan.endpoints, sigmas, max(int(min_points), 3), surface)
     small = surface_moments[:, 0] < max(int(min_points), 3)
     normals, means, own = _piece_planes(np.where(small[:, None], np.ones(11), surface_moments))
