@@ -32,6 +32,7 @@ from ppe_ros.core.extraction import (
 )
 from ppe_ros.core.fitting import fit_plane, fit_rays
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.ppe.greedy import _greedy
 from ppe_ros.core.ppe.layout import _FIT_ITERATIONS, _FIT_TOLERANCE, _NPF, _NPI, _PCOUNT, _PE, _PW
 from ppe_ros.core.ppe.memory import _work_memory
 from ppe_ros.core.ppe.seeds import SEED_SHAPES, _edge_masks, _ray_columns, _seed_errors, _seed_exceeds, _seed_stage
@@ -833,8 +834,8 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
 
 
 def test_square_seeds_are_the_full_tables_square_column():
-    """seed_shapes 'square': the O's column of the full table, inf for the other 16 configs, and each
-    anchor's initial seed the O where it is valid."""
+    """seed_shapes 'square': a one-column table, the O's column of the full table, and each anchor's
+    initial seed the O where it is valid."""
     scan_in = scenes.room_scan(rows=30, cols=40, noise=0.02, seed=3)
     points = scan_in.points.copy()
     points[5:9, 7:12] = np.nan
@@ -843,10 +844,23 @@ def test_square_seeds_are_the_full_tables_square_column():
     full, _, _ = (x.copy() for x in _seed_stage(scan, ok_right, ok_down, np.inf, 'all'))
     square, best, key = (x.copy() for x in _seed_stage(scan, ok_right, ok_down, np.inf, 'square'))
     assert np.isfinite(full[:, 0]).sum() > 500 and np.isfinite(full[:, 1:]).sum() > 5000
+    assert full.shape == (scan.size, 17) and square.shape == (scan.size, 1)
     np.testing.assert_array_equal(square[:, 0], full[:, 0])
-    assert np.isinf(square[:, 1:]).all()
     np.testing.assert_array_equal(best, np.where(np.isfinite(full[:, 0]), 0, -1))
     np.testing.assert_array_equal(key, full[:, 0])
+
+
+def test_the_greedy_rejects_a_seed_table_of_other_shapes():
+    """A seed table of the 17 configs run with square seeds (one column) is an error, not a wrong read."""
+    scan_in = scenes.room_scan(rows=12, cols=16, noise=0.02, seed=3)
+    scan = make_ray_scan(scan_in.points, scan_in.origins)
+    ok_right, ok_down = _edge_masks(scan, np.inf)
+    table, best, key = (x.copy() for x in _seed_stage(scan, ok_right, ok_down, np.inf, 'all'))
+    inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, table, best, key)
+    with pytest.raises(ValueError, match="seed_shapes 'square' needs 1 columns"):
+        _greedy(inputs, scan.height, scan.width, GreedyOptions(seed_shapes='square'), 0.01, -1)
+    kinds, *_ = _greedy(inputs, scan.height, scan.width, GreedyOptions(), 0.01, -1)
+    assert (kinds == 0).sum() > 5
 
 
 def test_square_seeds_create_only_squares():

@@ -100,7 +100,7 @@ from ppe_ros.core.ppe.layout import (
 )
 from ppe_ros.core.ppe.memory import _work_buffers
 from ppe_ros.core.ppe.queue import _g_entry, _g_pop, _h_drop_taken, _h_meld, _q_chunks, _q_load, _q_push, _queue_proxy
-from ppe_ros.core.ppe.seeds import _sort_seed_keys
+from ppe_ros.core.ppe.seeds import SEED_SHAPES, _sort_seed_keys
 from ppe_ros.core.ppe.state import (
     _cache_merge,
     _candidate_increment,
@@ -210,8 +210,9 @@ Queue = namedtuple('Queue', ['gkey', 'gint', 'fkey', 'fint', 'fnext', 'bhead', '
 #: Node pools: the candidate heaps' nodes (hf, hi) and the adjacency segments (anode, its float view
 #: akey, free lists afree).
 Pools = namedtuple('Pools', ['hf', 'hi', 'anode', 'akey', 'afree'])
-#: The initial seeds in (key, anchor) order: each anchor's seed table row, anchors, keys, best configs.
-Seeds = namedtuple('Seeds', ['sse', 'order', 'key', 'best'])
+#: The initial seeds in (key, anchor) order: the seed table (a column per seeding config), the configs
+#: (tetromino ids) of its columns, anchors, keys, best configs.
+Seeds = namedtuple('Seeds', ['sse', 'configs', 'order', 'key', 'best'])
 #: The action log (kind, a, b, increment per action), statistics and the pools' overflow.
 Log = namedtuple('Log', ['kind', 'a', 'b', 'inc', 'stats', 'overflow'])
 
@@ -284,7 +285,7 @@ def _pop_entry(q, sd, pl, pools, px, gsize, seed_ptr):
 def _seed_entry(g, kn, px, q, sd, key, anchor, c, gsize):
     """A popped seed (anchor, config c): True when its cells are all free; else its anchor's next best
     valid seed after (key, c) is queued. Returns (found, gsize)."""
-    owner, offsets, width, seed_sse = px.owner, g.offsets, g.width, sd.sse
+    owner, offsets, width, seed_sse, configs = px.owner, g.offsets, g.width, sd.sse, sd.configs
     i = anchor // width
     j = anchor % width
     ok = True
@@ -295,9 +296,10 @@ def _seed_entry(g, kn, px, q, sd, key, anchor, c, gsize):
     if ok:
         return True, gsize
     # none when the anchor's own ray is taken (every tetromino contains its anchor)
-    best = -1
-    for c2 in range(17 if owner[anchor] < 0 else 0):
-        e2 = seed_sse[anchor, c2]
+    best = -1  # the table's column of the next best seed (configs increase with the column)
+    for column in range(len(configs) if owner[anchor] < 0 else 0):
+        c2 = configs[column]
+        e2 = seed_sse[anchor, column]
         if not np.isfinite(e2):
             continue
         if e2 < key or (e2 == key and c2 <= c):
@@ -310,9 +312,9 @@ def _seed_entry(g, kn, px, q, sd, key, anchor, c, gsize):
         if not ok2:
             continue
         if best < 0 or e2 < seed_sse[anchor, best]:
-            best = c2
+            best = column
     if best >= 0 and seed_sse[anchor, best] <= kn.cutoff:
-        gsize = _push(q, gsize, seed_sse[anchor, best], _G_SEED, anchor, best, 0, 0)
+        gsize = _push(q, gsize, seed_sse[anchor, best], _G_SEED, anchor, configs[best], 0, 0)
     return False, gsize
 
 
@@ -1093,7 +1095,7 @@ def _cache_and_log_views(work_f, work_i, work_i32, n_pixels, of, oi, o32):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _initial_seeds(seed_sse, seed_best, seed_key, cutoff):
+def _initial_seeds(seed_sse, seed_configs, seed_best, seed_key, cutoff):
     """The best valid config of every anchor (seed_best, seed_key from _seed_errors) up to the cutoff, in
     (key, anchor) order (next-best seeds of anchors whose best seed became invalid go through the queue);
     the keys and configs in that order too (seed_key[order[i]] would be a random access)."""
@@ -1101,7 +1103,7 @@ def _initial_seeds(seed_sse, seed_best, seed_key, cutoff):
     best = np.empty(len(order), np.int32)
     for t in range(len(order)):
         best[t] = seed_best[order[t]]
-    return Seeds(seed_sse, order, keys, best)
+    return Seeds(seed_sse, seed_configs, order, keys, best)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -1115,6 +1117,7 @@ def _ppe_kernel(
     width,
     offsets,
     seed_sse,
+    seed_configs,
     seed_best,
     seed_key,
     exact_plane_size,
@@ -1138,7 +1141,8 @@ def _ppe_kernel(
 ):
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
-    seed_sse, seed_best, seed_key: _seed_errors's table and each anchor's best config and key.
+    seed_sse, seed_configs, seed_best, seed_key: _seed_errors's table (a column per config of seed_configs,
+    the seeding tetromino ids) and each anchor's best config and key.
     refined_growth, merge_loop_growth: GreedyOptions's refined_merge_growth and merge_loop_growth (0: off);
     one_step_candidates: its candidate_fits is 'one_step'; fit_tolerance: its fit_tolerance.
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
@@ -1185,7 +1189,9 @@ def _ppe_kernel(
     n_valid = 0
     for k in range(n_pixels):
         n_valid += valid[k]
-    n = _greedy_loop(g, kn, px, pl, q, pools, _initial_seeds(seed_sse, seed_best, seed_key, cutoff), log, n_valid)
+    n = _greedy_loop(
+        g, kn, px, pl, q, pools, _initial_seeds(seed_sse, seed_configs, seed_best, seed_key, cutoff), log, n_valid
+    )
     if n < 0:
         return _empty_log(log.stats, log.overflow)
     log.stats[_ST_HEAP_PEAK] = gcap
@@ -1225,6 +1231,12 @@ def _greedy(inputs: tuple, height: int, width: int, options, stop_increment: flo
     options: the GreedyOptions.
     """
     endpoints, directions, valid, ok_right, ok_down, seed_sse, seed_best, seed_key = inputs
+    seed_configs = SEED_SHAPES[options.seed_shapes]
+    if seed_sse.shape[1:] != (len(seed_configs),):
+        shapes = options.seed_shapes
+        raise ValueError(
+            f'seed table of shape {seed_sse.shape}: seed_shapes {shapes!r} needs {len(seed_configs)} columns'
+        )
     pool_capacity = options.pool_capacity
     n_pixels = height * width
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
@@ -1243,6 +1255,7 @@ def _greedy(inputs: tuple, height: int, width: int, options, stop_increment: flo
             width,
             TETROMINO_OFFSETS,
             seed_sse,
+            seed_configs,
             seed_best,
             seed_key,
             options.exact_plane_size,

@@ -156,13 +156,16 @@ def _seed_errors(
     best_key,
     cutoff=np.inf,
 ):
-    """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid or its
-    config is not in ``configs`` (the tetromino ids 0..16 that seed planes, GreedyOptions.seed_shapes).
+    """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
+
+    configs: the tetromino ids (0..16, increasing) that seed planes (SEED_SHAPES[GreedyOptions.seed_shapes]);
+    out: ``(H*W, len(configs))``, column t the seeds of config configs[t] (one column for square seeds:
+    the table the greedy and the tiles read is no wider than the shapes it holds).
 
     P, V: the endpoints and directions as (3, n) arrays (_ray_columns), which the vectorised
     fits read with unit stride across anchors.
 
-    best_config[anchor] is the anchor's first config of least SSE (-1: no valid seed), best_key
+    best_config[anchor] is the anchor's first config (tetromino id) of least SSE (-1: no valid seed), best_key
     that SSE (inf: none): the greedy's initial seeds.
 
     Per grid row and config, the straight-line four-ray fit runs over all anchors of each block of
@@ -182,8 +185,9 @@ def _seed_errors(
         base = i * width
         # the row's errors by config, copied into out's rows at the end (writing a column of out
         # touches a cache line per anchor)
-        errors = np.full((17, width), np.inf)
-        for c in configs:
+        errors = np.full((len(configs), width), np.inf)
+        for column in range(len(configs)):
+            c = configs[column]
             di_min = min(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             di_max = max(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             if i + di_min < 0 or i + di_max >= height:
@@ -236,22 +240,23 @@ def _seed_errors(
                     sse, _, _, _ = fit_rays(
                         endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS, _FIT_TOLERANCE
                     )
-                errors[c, j] = sse if np.isfinite(sse) else np.inf
-        _store_row(errors, base, width, out, best_config, best_key)
+                errors[column, j] = sse if np.isfinite(sse) else np.inf
+        _store_row(errors, configs, base, width, out, best_config, best_key)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _store_row(errors, base, width, out, best_config, best_key):
-    """Copy one grid row's (17, width) seed errors into out's rows base..base+width-1, and each anchor's first
-    config of least SSE (-1: none valid) and that SSE into best_config and best_key."""
+def _store_row(errors, configs, base, width, out, best_config, best_key):
+    """Copy one grid row's (len(configs), width) seed errors into out's rows base..base+width-1, and each
+    anchor's first config (tetromino id) of least SSE (-1: none valid) and that SSE into best_config and
+    best_key."""
     for j in range(width):
         best = -1
         least = np.inf
-        for c in range(17):
-            e = errors[c, j]
-            out[base + j, c] = e
+        for column in range(len(configs)):
+            e = errors[column, j]
+            out[base + j, column] = e
             if e < least:
-                best = c
+                best = configs[column]
                 least = e
         best_config[base + j] = best
         best_key[base + j] = least
@@ -346,9 +351,10 @@ def _seed_stage(
     scan: RayScan, ok_right: np.ndarray, ok_down: np.ndarray, cutoff: float, seed_shapes: str = 'all'
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every anchor's tetromino seed errors, its best config and key (reused work memory); seeds above
-    ``cutoff`` (the greedy's, :func:`_run_cutoff`) are never created; only the configs of ``seed_shapes``
-    (SEED_SHAPES) are evaluated, the others are inf."""
-    seed_sse = _reusable('seeds', scan.size * 17, np.float64).reshape(scan.size, 17)
+    ``cutoff`` (the greedy's, :func:`_run_cutoff`) are never created. Only the configs of ``seed_shapes``
+    (SEED_SHAPES) are evaluated: the table has a column per config of that set, in its order."""
+    configs = SEED_SHAPES[seed_shapes]
+    seed_sse = _reusable('seeds', scan.size * len(configs), np.float64).reshape(scan.size, len(configs))
     seed_best = _reusable('seed_best', scan.size, np.int32)
     seed_key = _reusable('seed_key', scan.size, np.float64)
     columns = _reusable('ray_columns', scan.size * 6, np.float64).reshape(6, scan.size)
@@ -363,7 +369,7 @@ def _seed_stage(
         scan.height,
         scan.width,
         TETROMINO_OFFSETS,
-        SEED_SHAPES[seed_shapes],
+        configs,
         seed_sse,
         seed_best,
         seed_key,
