@@ -35,13 +35,20 @@ def _random_scan(rng, height, width):
     return points
 
 
-@pytest.mark.parametrize('origin_kind', ['none', 'point', 'per_ray'])
-def test_ray_model_equals_its_numpy_definition(origin_kind):
+@pytest.mark.parametrize(
+    'origin_kind, height, width',
+    [('none', 37, 53), ('point', 37, 53), ('per_ray', 37, 53), ('per_ray', 128, 1024)],
+)
+def test_ray_model_equals_its_numpy_definition(origin_kind, height, width):
+    """Also the mean start of an OS-1-128-sized grid of per-ray starts (numpy adds the valid rows in order,
+    which the kernel does without copying them)."""
     rng = np.random.default_rng(3)
-    points = _random_scan(rng, 37, 53)
-    origins = {'none': None, 'point': np.array([0.3, -0.1, 1.2]), 'per_ray': rng.normal(0.0, 0.05, points.shape)}[
-        origin_kind
-    ]
+    points = _random_scan(rng, height, width)
+    origins = {
+        'none': None,
+        'point': np.array([0.3, -0.1, 1.2]),
+        'per_ray': rng.normal(0.0, 0.05, points.shape) + np.array([0.01, -0.02, 0.036]),
+    }[origin_kind]
     if origins is not None:
         # a zero-length ray (endpoint at its start) is invalid
         start = origins if origins.ndim == 1 else origins[4, 5]
@@ -54,7 +61,7 @@ def test_ray_model_equals_its_numpy_definition(origin_kind):
     np.testing.assert_array_equal(scan.directions, directions)
     np.testing.assert_array_equal(scan.ranges, ranges)
     if origins is not None:
-        assert not scan.valid[4 * 53 + 5]
+        assert not scan.valid[4 * width + 5]
 
 
 def test_ray_model_of_a_scan_without_returns_is_all_invalid():

@@ -104,7 +104,7 @@ def make_ray_scan(points: np.ndarray, origins: np.ndarray | None = None) -> RayS
         # the mean of the valid rays' (equal) starts, summed as numpy sums an (n, 3) array
         center = np.repeat(flat_starts, n_valid, axis=0).mean(axis=0)
     else:
-        center = flat_starts[valid].mean(axis=0)
+        center = _valid_mean(flat_starts, valid, n_valid)
     endpoints = np.empty_like(flat_points)
     directions = np.empty_like(flat_points)
     _rays(flat_points, flat_starts, ranges, valid, center, endpoints, directions)
@@ -135,6 +135,21 @@ def _ranges(points, starts, ranges, valid):
         ok = r >= MIN_RANGE and r <= MAX_RANGE  # False for NaN
         valid[k] = ok
         ranges[k] = r if ok else np.nan
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _valid_mean(starts, valid, n_valid):
+    """``starts[valid].mean(axis=0)`` of (n, 3) starts, bit for bit (numpy adds the rows of an (n, 3)
+    array in order, then divides by the count), without copying the valid rows (numpy's reduction
+    over the rows costs a loop call per row: 5 ms for an OS-1-128 sweep)."""
+    total = np.zeros(3)
+    for k in range(starts.shape[0]):
+        if valid[k]:
+            for c in range(3):
+                total[c] += starts[k, c]
+    for c in range(3):
+        total[c] /= n_valid
+    return total
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
