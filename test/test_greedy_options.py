@@ -37,6 +37,7 @@ def test_the_defaults_are_the_documented_ones():
         'candidate_fits': 'exact',
         'fit_tolerance': 1e-13,
         'seed_shapes': 'all',
+        'block_seeds': False,
         'pool_capacity': None,
     }
     assert (DEFAULT_EXACT_PLANE_SIZE, REFINED_MERGE_GROWTH, MERGE_LOOP_GROWTH) == (32, 0.125, 1 / 512)
@@ -193,10 +194,15 @@ def test_the_one_step_greedy_follows_the_exact_one_until_increments_this_close_r
 
 
 def test_the_profiles_greedy_options():
-    """The lidar profile runs the greedy with squares and one-step candidates at a 1e-6 fit tolerance; the
-    depth camera and the paper's profile with the exact greedy's candidates."""
+    """The lidar profile runs the greedy with squares and one-step candidates at a 1e-6 fit tolerance (block
+    seeds when its copy asks for them); the depth camera and the paper's profile with the exact greedy's
+    candidates."""
     assert _profile_greedy_options(PROFILES['lidar']) == GreedyOptions(
         seed_shapes='square', candidate_fits='one_step', fit_tolerance=1e-6
+    )
+    with_blocks = dataclasses.replace(PROFILES['lidar'], block_seeds=True)
+    assert _profile_greedy_options(with_blocks) == GreedyOptions(
+        seed_shapes='square', candidate_fits='one_step', fit_tolerance=1e-6, block_seeds=True
     )
     assert _profile_greedy_options(PROFILES['depth_camera']) == GreedyOptions()
     assert _profile_greedy_options(PROFILES['paper']) == GreedyOptions()

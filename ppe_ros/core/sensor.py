@@ -159,6 +159,9 @@ class SensorProfile:
             None = tau for every plane.
         seed_shapes: the tetrominoes that seed the greedy's planes: 'all' (the paper's 17) or 'square'
             (the 2 x 2 square alone: a 17th of the seed work; ppe_ros.core.ppe.GreedyOptions).
+        block_seeds: start the greedy with the 4 x 4 blocks of rays that fit one plane within its stop
+            (ppe_ros.core.ppe.GreedyOptions.block_seeds; off in the built-in profiles: see
+            docs/algorithm.md for what it costs in consistency).
         candidate_fits, fit_tolerance: how the greedy values the extensions of its small planes
             ('exact' or 'one_step') and the convergence tolerance of their exact fits (None: the exact
             greedy's; ppe_ros.core.ppe.GreedyOptions).
@@ -183,6 +186,7 @@ class SensorProfile:
     seed_shapes: str = 'all'
     candidate_fits: str = 'exact'
     fit_tolerance: float | None = None
+    block_seeds: bool = False
 
     def __post_init__(self) -> None:
         if self.noise_scale_bounds is not None:

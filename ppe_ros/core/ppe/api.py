@@ -293,9 +293,15 @@ def _extract_transposed_sweep(points, origins, **options) -> PlaneSet | list[Pla
 
 
 def _profile_greedy_options(profile: SensorProfile) -> GreedyOptions:
-    """The GreedyOptions of a sensor profile: its seed shapes and candidate fits, the rest the defaults."""
+    """The GreedyOptions of a sensor profile: its seed shapes, block seeds and candidate fits, the rest the
+    defaults."""
     fits = {} if profile.fit_tolerance is None else {'fit_tolerance': profile.fit_tolerance}
-    return GreedyOptions(seed_shapes=profile.seed_shapes, candidate_fits=profile.candidate_fits, **fits)
+    return GreedyOptions(
+        seed_shapes=profile.seed_shapes,
+        candidate_fits=profile.candidate_fits,
+        block_seeds=bool(profile.block_seeds),
+        **fits,
+    )
 
 
 def extract_planes(

@@ -100,7 +100,7 @@ from ppe_ros.core.ppe.layout import (
 )
 from ppe_ros.core.ppe.memory import _work_buffers
 from ppe_ros.core.ppe.queue import _g_entry, _g_pop, _h_drop_taken, _h_meld, _q_chunks, _q_load, _q_push, _queue_proxy
-from ppe_ros.core.ppe.seeds import SEED_SHAPES, _sort_seed_keys
+from ppe_ros.core.ppe.seeds import BLOCK_SIDE, SEED_SHAPES, _block_seeds, _sort_seed_keys
 from ppe_ros.core.ppe.state import (
     _cache_merge,
     _candidate_increment,
@@ -909,13 +909,105 @@ def _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key,
 # --------------------------------------------------------------------------------------------
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _create_block(g, kn, px, pl, log, p, n_actions):
+    """The block seed at anchor p (GreedyOptions.block_seeds): the create of its top-left 2 x 2 square, then
+    the extensions by its other rays in row order (each joined to an earlier one by an admissible
+    edge), logged with their exact increments. Returns the number of actions logged so far."""
+    pf = pl.pf
+    _create(g, kn, px, pl, p, 0)  # config 0: the 2 x 2 square at its anchor
+    log.kind[n_actions] = KIND_CREATE
+    log.a[n_actions] = p
+    log.b[n_actions] = 0
+    log.inc[n_actions] = pf[p, _PE]
+    n_actions += 1
+    for t in range(BLOCK_SIDE * BLOCK_SIDE):
+        di = t // BLOCK_SIDE
+        dj = t % BLOCK_SIDE
+        if di < 2 and dj < 2:
+            continue  # the square
+        k = p + di * g.width + dj
+        before = pf[p, _PE]
+        _extend(g, kn, px, pl, p, k, 0.0)  # (the key is read only for planes above exact_plane_size)
+        log.kind[n_actions] = KIND_EXTEND
+        log.a[n_actions] = p
+        log.b[n_actions] = k
+        log.inc[n_actions] = max(pf[p, _PE] - before, 0.0)
+        n_actions += 1
+    return n_actions
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _block_bookkeeping(g, kn, px, pl, q, pools, log, p, gsize, hused, hfree, aused, seen_stamp):
+    """After every block is placed: block p's extension candidates, adjacency, proxy and merges, as after
+    a create of its 16 rays. Returns (gsize, hused, hfree, aused); aused -1 when a pool ran out."""
+    for t in range(BLOCK_SIDE * BLOCK_SIDE):
+        px.buf2[t] = p + (t // BLOCK_SIDE) * g.width + t % BLOCK_SIDE
+    if hused + 4 * BLOCK_SIDE * BLOCK_SIDE + 8 >= kn.hcap:
+        log.overflow[1] = 2 * kn.hcap
+        return gsize, hused, hfree, -1
+    hused, hfree, aused = _frontier(g, kn, px, pl, pools, log, p, BLOCK_SIDE * BLOCK_SIDE, -1, hused, hfree, aused)
+    if aused < 0:
+        log.overflow[2] = 2 * kn.acap
+        return gsize, hused, hfree, -1
+    root, hfree = _h_drop_taken(pools.hf, pools.hi, px.owner, pl.pi[p, _PROOT], hfree)
+    pl.pi[p, _PROOT] = root
+    if gsize + q.qstate[_QCOUNT] + 2 + pl.pi[p, _PADJN] >= kn.gcap:
+        log.overflow[0] = 2 * (kn.gcap + pl.pi[p, _PADJN])
+        return gsize, hused, hfree, -1
+    gsize, proxy_key = _queue_proxy(
+        q.gkey,
+        q.gint,
+        gsize,
+        q.fkey,
+        q.fint,
+        q.fnext,
+        q.bhead,
+        q.qstate,
+        pools.hf,
+        pools.hi,
+        pl.pf,
+        pl.pi,
+        p,
+        kn.cutoff,
+    )
+    gsize = _merge_loop(g, kn, px, pl, q, pools, log, p, False, 0, proxy_key, gsize, seen_stamp)
+    return gsize, hused, hfree, aused
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _place_blocks(g, kn, px, pl, q, pools, log, blocks, hfree):
+    """Place the block seeds (anchors, in their order) before the greedy's first action: block t gets version
+    and merge stamp t + 1. Every block is placed before any bookkeeping, so that no block's rays become
+    another's candidates, and each gets its version (and merge version) before any merge loop queues a
+    merge with it. Returns (n_actions, gsize, hused, hfree, aused); aused -1 when a pool ran out."""
+    n_actions = gsize = hused = aused = 0
+    for t in range(len(blocks)):
+        n_actions = _create_block(g, kn, px, pl, log, blocks[t], n_actions)
+    for t in range(len(blocks)):
+        _refresh(g, kn, px, pl, log, blocks[t], True, t + 1)
+        pl.pi[blocks[t], _PMVER] = t + 1
+    for t in range(len(blocks)):
+        gsize, hused, hfree, aused = _block_bookkeeping(
+            g, kn, px, pl, q, pools, log, blocks[t], gsize, hused, hfree, aused, t + 1
+        )
+        if aused < 0:
+            break
+    return n_actions, gsize, hused, hfree, aused
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _greedy_loop(g, kn, px, pl, q, pools, sd, log, n_valid):
-    """The greedy: until no action is left or the stop is reached, the next action, its execution and the
-    bookkeeping of the changed plane. Returns the number of actions (-1: a pool ran out)."""
-    gsize = hused = aused = seed_ptr = n_actions = version = seen_stamp = 0
+def _greedy_loop(g, kn, px, pl, q, pools, sd, log, n_valid, blocks):
+    """The greedy: the block seeds (anchors, in their order), then until no action is left or the stop is
+    reached, the next action, its execution and the bookkeeping of the changed plane. Returns the number of
+    actions (-1: a pool ran out)."""
+    seed_ptr = 0
     hfree = -1
-    plane_count = n_valid
+    n_actions, gsize, hused, hfree, aused = _place_blocks(g, kn, px, pl, q, pools, log, blocks, hfree)
+    if aused < 0:
+        return -1
+    version = seen_stamp = len(blocks)
+    plane_count = n_valid - (BLOCK_SIDE * BLOCK_SIDE - 1) * len(blocks)
     while True:
         outcome, key, kind, a, b, gsize, hfree, seed_ptr = _next_action(
             g, kn, px, pl, q, pools, sd, log, gsize, hused, hfree, seed_ptr
@@ -1120,6 +1212,7 @@ def _ppe_kernel(
     seed_configs,
     seed_best,
     seed_key,
+    blocks,
     exact_plane_size,
     exact_merge_size,
     drift_limit,
@@ -1142,7 +1235,8 @@ def _ppe_kernel(
     """Run the greedy PPE agglomeration; returns the action log (kind, a, b, increment), stats and overflow.
 
     seed_sse, seed_configs, seed_best, seed_key: _seed_errors's table (a column per config of seed_configs,
-    the seeding tetromino ids) and each anchor's best config and key.
+    the seeding tetromino ids) and each anchor's best config and key. blocks: the anchors of the block
+    seeds (_block_seeds; empty without GreedyOptions.block_seeds), placed first in their order.
     refined_growth, merge_loop_growth: GreedyOptions's refined_merge_growth and merge_loop_growth (0: off);
     one_step_candidates: its candidate_fits is 'one_step'; fit_tolerance: its fit_tolerance.
     Runs while a candidate exists and (next increment <= max_increment or plane count > min_count).
@@ -1186,12 +1280,8 @@ def _ppe_kernel(
         acap,
     )
     g = Grid(endpoints, directions, ok_right, ok_down, offsets, height, width)
-    n_valid = 0
-    for k in range(n_pixels):
-        n_valid += valid[k]
-    n = _greedy_loop(
-        g, kn, px, pl, q, pools, _initial_seeds(seed_sse, seed_configs, seed_best, seed_key, cutoff), log, n_valid
-    )
+    seeds = _initial_seeds(seed_sse, seed_configs, seed_best, seed_key, cutoff)
+    n = _greedy_loop(g, kn, px, pl, q, pools, seeds, log, np.count_nonzero(valid), blocks)
     if n < 0:
         return _empty_log(log.stats, log.overflow)
     log.stats[_ST_HEAP_PEAK] = gcap
@@ -1239,6 +1329,12 @@ def _greedy(inputs: tuple, height: int, width: int, options, stop_increment: flo
         )
     pool_capacity = options.pool_capacity
     n_pixels = height * width
+    blocks = np.empty(0, np.int64)
+    if options.block_seeds and np.isfinite(stop_increment) and stop_increment >= 0.0:
+        square_sse = np.ascontiguousarray(seed_sse[:, 0])  # config 0, the square, is every set's first column
+        blocks = _block_seeds(
+            endpoints, directions, ok_right, ok_down, square_sse, height, width, stop_increment, options.fit_tolerance
+        )
     # pools: the queue, extension candidate nodes and adjacency nodes. Runs of the benchmark scans
     # use at most 0.9, 1.12 and 3.1 rows per ray; a pool that runs out is doubled and the greedy run
     # again (np.empty only reserves memory: rows that are never used cost no RAM)
@@ -1258,6 +1354,7 @@ def _greedy(inputs: tuple, height: int, width: int, options, stop_increment: flo
             seed_configs,
             seed_best,
             seed_key,
+            blocks,
             options.exact_plane_size,
             options.exact_merge_size,
             options.relinearisation_drift,

@@ -55,6 +55,16 @@ class GreedyOptions:
         seed_shapes: the tetrominoes that seed a plane (create actions): 'all' the paper's 17 (every
             tetromino but the straight I), 'square' the 2 x 2 square alone (a 17th of the seed fits and of
             the seeds the greedy re-queues; the sensor profiles' choice for spinning lidars).
+        block_seeds: before the greedy, every 4 x 4 block of the grid (aligned to its first row and column)
+            whose 16 rays are joined by admissible edges and whose exact fit has an SSE of at most the
+            run's stop (max_error_increment) becomes a plane at once, blocks of least SSE first, each as
+            the create of its top-left 2 x 2 square and the extensions by its other 12 rays in row order
+            (so the action log and its replay stay those of the paper's actions, with the exact
+            increments, each at most the stop); the greedy goes on from there. Faster where much of
+            the scan is in such blocks (their one-ray-at-a-time growth is most of the greedy's work),
+            but the blocks' fixed grid makes the result depend more on small changes of the grid
+            (docs/algorithm.md); off in the built-in profiles. Needs a finite max_error_increment
+            stop (a run without one has no blocks).
         pool_capacity: initial rows (>= 1) of each of the greedy's work pools (None: from the scan size).
             A pool that runs out is enlarged and the greedy run again, so the result does not
             depend on it (tests use small values to exercise that path).
@@ -71,6 +81,7 @@ class GreedyOptions:
     candidate_fits: str = 'exact'
     fit_tolerance: float = _FIT_TOLERANCE
     seed_shapes: str = 'all'
+    block_seeds: bool = False
     pool_capacity: int | None = None
 
     def __post_init__(self) -> None:
@@ -108,6 +119,7 @@ class GreedyOptions:
             'candidate_fits': str(self.candidate_fits),
             'fit_tolerance': float(self.fit_tolerance),
             'seed_shapes': str(self.seed_shapes),
+            'block_seeds': bool(self.block_seeds),
             'pool_capacity': None if self.pool_capacity is None else int(self.pool_capacity),
         }
         for name, value in normalised.items():

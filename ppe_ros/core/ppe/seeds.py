@@ -186,8 +186,7 @@ def _seed_errors(
         # the row's errors by config, copied into out's rows at the end (writing a column of out
         # touches a cache line per anchor)
         errors = np.full((len(configs), width), np.inf)
-        for column in range(len(configs)):
-            c = configs[column]
+        for column, c in enumerate(configs):
             di_min = min(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             di_max = max(offsets[c, 0, 0], offsets[c, 1, 0], offsets[c, 2, 0], offsets[c, 3, 0])
             if i + di_min < 0 or i + di_max >= height:
@@ -314,6 +313,54 @@ def _sort_seed_keys(seed_key, cutoff=np.inf):
         order, order2 = order2, order
         bits, bits2 = bits2, bits
     return order, seed_key[order]
+
+
+#: Side (rays) of a block seed (GreedyOptions.block_seeds).
+BLOCK_SIDE = 4
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _block_seeds(endpoints, directions, ok_right, ok_down, square_sse, height, width, max_sse, tolerance):
+    """Anchors (top-left pixels) of the BLOCK_SIDE x BLOCK_SIDE blocks at rows and columns 0, 4, 8, ... whose
+    internal 4-neighbour pairs are all admissible edges and whose exact fit (fit_rays at ``tolerance``
+    from the algebraic start, rays in row order) has an SSE of at most max_sse, in (SSE, anchor) order.
+
+    square_sse: each anchor's 2 x 2 square seed SSE (inf: invalid or above the run's cutoff). The four
+    squares of a block are disjoint, so their sum is a lower bound of the block's SSE: a block whose
+    sum exceeds max_sse (by more than rounding) is not fitted.
+    """
+    side = BLOCK_SIDE
+    rows = height // side
+    columns = width // side
+    anchors = np.empty(rows * columns, np.int64)
+    values = np.empty(rows * columns)
+    idx = np.empty(side * side, np.int64)
+    m = 0
+    for bi in range(rows):
+        for bj in range(columns):
+            a = bi * side * width + bj * side
+            joined = True
+            for di in range(side):
+                for dj in range(side):
+                    k = a + di * width + dj
+                    if (dj + 1 < side and not ok_right[k]) or (di + 1 < side and not ok_down[k]):
+                        joined = False
+            if not joined:
+                continue
+            lower = square_sse[a] + square_sse[a + 2] + square_sse[a + 2 * width] + square_sse[a + 2 * width + 2]
+            if not lower <= max_sse * (1.0 + 1e-9):
+                continue
+            for t in range(side * side):
+                idx[t] = a + (t // side) * width + t % side
+            sse, _, _, _ = fit_rays(
+                endpoints, directions, idx, side * side, np.nan, np.nan, np.nan, _FIT_ITERATIONS, tolerance
+            )
+            if sse <= max_sse:
+                anchors[m] = a
+                values[m] = sse
+                m += 1
+    order = np.argsort(values[:m], kind='mergesort')  # stable: ties in anchor order
+    return anchors[:m][order]
 
 
 def _edge_masks(scan: RayScan, max_neighbor_distance: float) -> tuple[np.ndarray, np.ndarray]:
