@@ -938,18 +938,20 @@ def _create_block(g, kn, px, pl, log, p, n_actions):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _block_bookkeeping(g, kn, px, pl, q, pools, log, p, gsize, hused, hfree, aused, seen_stamp):
-    """After every block is placed: block p's extension candidates, adjacency, proxy and merges, as after
-    a create of its 16 rays. Returns (gsize, hused, hfree, aused); aused -1 when a pool ran out."""
-    for t in range(BLOCK_SIDE * BLOCK_SIDE):
-        px.buf2[t] = p + (t // BLOCK_SIDE) * g.width + t % BLOCK_SIDE
-    if hused + 4 * BLOCK_SIDE * BLOCK_SIDE + 8 >= kn.hcap:
+def _after_action(g, kn, px, pl, q, pools, log, p, new_pixels, in_buf, partial, adj_before, state, seen_stamp):
+    """The bookkeeping of plane p after an action (or a block seed) added px.buf2[:new_pixels]: its new
+    extension candidates and neighbours, its proxy, its merges (partial: only its new neighbours').
+    state = (gsize, hused, hfree, aused); returns it, aused -1 when a pool ran out."""
+    gsize, hused, hfree, aused = state
+    # capacity for the candidate nodes this step pushes (adjacency segments check their own)
+    if hused + 4 * new_pixels + 8 >= kn.hcap:
         log.overflow[1] = 2 * kn.hcap
         return gsize, hused, hfree, -1
-    hused, hfree, aused = _frontier(g, kn, px, pl, pools, log, p, BLOCK_SIDE * BLOCK_SIDE, -1, hused, hfree, aused)
+    hused, hfree, aused = _frontier(g, kn, px, pl, pools, log, p, new_pixels, in_buf, hused, hfree, aused)
     if aused < 0:
         log.overflow[2] = 2 * kn.acap
         return gsize, hused, hfree, -1
+    # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
     root, hfree = _h_drop_taken(pools.hf, pools.hi, px.owner, pl.pi[p, _PROOT], hfree)
     pl.pi[p, _PROOT] = root
     if gsize + q.qstate[_QCOUNT] + 2 + pl.pi[p, _PADJN] >= kn.gcap:
@@ -971,7 +973,7 @@ def _block_bookkeeping(g, kn, px, pl, q, pools, log, p, gsize, hused, hfree, aus
         p,
         kn.cutoff,
     )
-    gsize = _merge_loop(g, kn, px, pl, q, pools, log, p, False, 0, proxy_key, gsize, seen_stamp)
+    gsize = _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key, gsize, seen_stamp)
     return gsize, hused, hfree, aused
 
 
@@ -987,13 +989,15 @@ def _place_blocks(g, kn, px, pl, q, pools, log, blocks, hfree):
     for t in range(len(blocks)):
         _refresh(g, kn, px, pl, log, blocks[t], True, t + 1)
         pl.pi[blocks[t], _PMVER] = t + 1
+    state = (gsize, hused, hfree, aused)
     for t in range(len(blocks)):
-        gsize, hused, hfree, aused = _block_bookkeeping(
-            g, kn, px, pl, q, pools, log, blocks[t], gsize, hused, hfree, aused, t + 1
-        )
-        if aused < 0:
+        p = blocks[t]
+        for u in range(BLOCK_SIDE * BLOCK_SIDE):
+            px.buf2[u] = p + (u // BLOCK_SIDE) * g.width + u % BLOCK_SIDE
+        state = _after_action(g, kn, px, pl, q, pools, log, p, BLOCK_SIDE * BLOCK_SIDE, -1, False, 0, state, t + 1)
+        if state[3] < 0:
             break
-    return n_actions, gsize, hused, hfree, aused
+    return n_actions, state[0], state[1], state[2], state[3]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
@@ -1042,40 +1046,14 @@ def _greedy_loop(g, kn, px, pl, q, pools, sd, log, n_valid, blocks):
         n_actions += 1
         version += 1
         partial = _refresh(g, kn, px, pl, log, p, kind == _G_SEED, version)
-        # capacity for the candidate nodes this step pushes (adjacency segments check their own)
-        if hused + 4 * new_pixels + 8 >= kn.hcap:
-            log.overflow[1] = 2 * kn.hcap
-        if _full(log):
-            return -1
-        hused, hfree, aused = _frontier(g, kn, px, pl, pools, log, p, new_pixels, in_buf, hused, hfree, aused)
-        if aused < 0:
-            log.overflow[2] = 2 * kn.acap
-            return -1
-        # proxy of p's extension candidates (rays taken by now, such as the one p just took, dropped)
-        root, hfree = _h_drop_taken(pools.hf, pools.hi, px.owner, pl.pi[p, _PROOT], hfree)
-        pl.pi[p, _PROOT] = root
-        if gsize + q.qstate[_QCOUNT] + 2 + pl.pi[p, _PADJN] >= kn.gcap:
-            log.overflow[0] = 2 * (kn.gcap + pl.pi[p, _PADJN])
-        if _full(log):
-            return -1
-        gsize, proxy_key = _queue_proxy(
-            q.gkey,
-            q.gint,
-            gsize,
-            q.fkey,
-            q.fint,
-            q.fnext,
-            q.bhead,
-            q.qstate,
-            pools.hf,
-            pools.hi,
-            pl.pf,
-            pl.pi,
-            p,
-            kn.cutoff,
-        )
         seen_stamp += 1
-        gsize = _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key, gsize, seen_stamp)
+        state = (gsize, hused, hfree, aused)
+        state = _after_action(
+            g, kn, px, pl, q, pools, log, p, new_pixels, in_buf, partial, adj_before, state, seen_stamp
+        )
+        gsize, hused, hfree, aused = state
+        if aused < 0:
+            return -1
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
