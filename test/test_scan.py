@@ -37,11 +37,11 @@ def _random_scan(rng, height, width):
 
 @pytest.mark.parametrize(
     'origin_kind, height, width',
-    [('none', 37, 53), ('point', 37, 53), ('per_ray', 37, 53), ('per_ray', 128, 1024)],
+    [('none', 37, 53), ('point', 37, 53), ('point', 128, 1024), ('per_ray', 37, 53), ('per_ray', 128, 1024)],
 )
 def test_ray_model_equals_its_numpy_definition(origin_kind, height, width):
-    """Also the mean start of an OS-1-128-sized grid of per-ray starts (numpy adds the valid rows in order,
-    which the kernel does without copying them)."""
+    """Also the mean start of an OS-1-128-sized grid of one start or of per-ray starts (numpy adds the valid
+    rows in order, which the kernel does without copying them)."""
     rng = np.random.default_rng(3)
     points = _random_scan(rng, height, width)
     origins = {

@@ -100,9 +100,6 @@ def make_ray_scan(points: np.ndarray, origins: np.ndarray | None = None) -> RayS
     n_valid = int(np.count_nonzero(valid))
     if n_valid == 0 or origins is None:
         center = np.zeros(3)
-    elif len(flat_starts) == 1:
-        # the mean of the valid rays' (equal) starts, summed as numpy sums an (n, 3) array
-        center = np.repeat(flat_starts, n_valid, axis=0).mean(axis=0)
     else:
         center = _valid_mean(flat_starts, valid, n_valid)
     endpoints = np.empty_like(flat_points)
@@ -139,14 +136,16 @@ def _ranges(points, starts, ranges, valid):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _valid_mean(starts, valid, n_valid):
-    """``starts[valid].mean(axis=0)`` of (n, 3) starts, bit for bit (numpy adds the rows of an (n, 3)
-    array in order, then divides by the count), without copying the valid rows (numpy's reduction
-    over the rows costs a loop call per row: 5 ms for an OS-1-128 sweep)."""
+    """The mean start of the valid rays, bit for bit ``starts[valid].mean(axis=0)`` of (n, 3) starts (numpy
+    adds the rows of an (n, 3) array in order, then divides by the count), without copying the valid
+    rows (numpy's reduction over the rows costs a loop call per row: 5 ms for an OS-1-128 sweep).
+    ``starts`` is ``(n, 3)`` or ``(1, 3)`` (one start for every ray: its value added once per valid ray)."""
+    step = 0 if starts.shape[0] == 1 else 1  # start row of ray k: k * step
     total = np.zeros(3)
-    for k in range(starts.shape[0]):
+    for k in range(valid.shape[0]):
         if valid[k]:
             for c in range(3):
-                total[c] += starts[k, c]
+                total[c] += starts[k * step, c]
     for c in range(3):
         total[c] /= n_valid
     return total
