@@ -229,6 +229,14 @@ def _push(q, gsize, key, kind, a, b, va, vb):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _proxy(q, pools, pl, p, gsize, cutoff):
+    """_queue_proxy of plane p's extension candidates into the queue q; returns (heap size, proxy key)."""
+    return _queue_proxy(
+        q.gkey, q.gint, gsize, q.fkey, q.fint, q.fnext, q.bhead, q.qstate, pools.hf, pools.hi, pl.pf, pl.pi, p, cutoff
+    )
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _full(log):
     """True when a pool ran out (the run stops and is repeated with the capacities in log.overflow)."""
     return log.overflow[0] > 0 or log.overflow[1] > 0 or log.overflow[2] > 0
@@ -385,9 +393,7 @@ def _extend_entry(g, kn, px, pl, q, pools, log, key, p, ray, stamp, gsize, hfree
         else:
             log.stats[_ST_REEVALS] += 1
             hfree = _revalue_candidate(g, kn, px, pl, pools, p, root, hfree)
-    gsize, proxy_key = _queue_proxy(
-        q.gkey, q.gint, gsize, q.fkey, q.fint, q.fnext, q.bhead, q.qstate, hf, hi, pf, pi, p, kn.cutoff
-    )
+    gsize, proxy_key = _proxy(q, pools, pl, p, gsize, kn.cutoff)
     if gsize + q.qstate[_QCOUNT] + pi[p, _PADJN] + 8 >= kn.gcap:
         log.overflow[0] = 2 * (kn.gcap + pi[p, _PADJN])
         return _OVERFLOW, key, ray, gsize, hfree
@@ -957,33 +963,19 @@ def _after_action(g, kn, px, pl, q, pools, log, p, new_pixels, in_buf, partial, 
     if gsize + q.qstate[_QCOUNT] + 2 + pl.pi[p, _PADJN] >= kn.gcap:
         log.overflow[0] = 2 * (kn.gcap + pl.pi[p, _PADJN])
         return gsize, hused, hfree, -1
-    gsize, proxy_key = _queue_proxy(
-        q.gkey,
-        q.gint,
-        gsize,
-        q.fkey,
-        q.fint,
-        q.fnext,
-        q.bhead,
-        q.qstate,
-        pools.hf,
-        pools.hi,
-        pl.pf,
-        pl.pi,
-        p,
-        kn.cutoff,
-    )
+    gsize, proxy_key = _proxy(q, pools, pl, p, gsize, kn.cutoff)
     gsize = _merge_loop(g, kn, px, pl, q, pools, log, p, partial, adj_before, proxy_key, gsize, seen_stamp)
     return gsize, hused, hfree, aused
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _place_blocks(g, kn, px, pl, q, pools, log, blocks, hfree):
+def _place_blocks(g, kn, px, pl, q, pools, log, blocks):
     """Place the block seeds (anchors, in their order) before the greedy's first action: block t gets version
     and merge stamp t + 1. Every block is placed before any bookkeeping, so that no block's rays become
     another's candidates, and each gets its version (and merge version) before any merge loop queues a
     merge with it. Returns (n_actions, gsize, hused, hfree, aused); aused -1 when a pool ran out."""
     n_actions = gsize = hused = aused = 0
+    hfree = -1  # the free list of candidate nodes: empty
     for t in range(len(blocks)):
         n_actions = _create_block(g, kn, px, pl, log, blocks[t], n_actions)
     for t in range(len(blocks)):
@@ -1006,8 +998,7 @@ def _greedy_loop(g, kn, px, pl, q, pools, sd, log, n_valid, blocks):
     reached, the next action, its execution and the bookkeeping of the changed plane. Returns the number of
     actions (-1: a pool ran out)."""
     seed_ptr = 0
-    hfree = -1
-    n_actions, gsize, hused, hfree, aused = _place_blocks(g, kn, px, pl, q, pools, log, blocks, hfree)
+    n_actions, gsize, hused, hfree, aused = _place_blocks(g, kn, px, pl, q, pools, log, blocks)
     if aused < 0:
         return -1
     version = seen_stamp = len(blocks)
