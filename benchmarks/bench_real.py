@@ -201,6 +201,16 @@ def run_ransac(o3d, points, kind):
     return parts, time.perf_counter() - start
 
 
+def peac_binary():
+    """(the PEAC driver named by PEAC_BIN, None) or (None, a note saying why PEAC is skipped)."""
+    binary = os.environ.get('PEAC_BIN')
+    if not binary:
+        return None, 'peac skipped: set PEAC_BIN to a PEAC driver (docs/benchmarks.md: Methods)'
+    if not os.access(binary, os.X_OK) or not os.path.isfile(binary):
+        return None, f'peac skipped: PEAC_BIN={binary} is not an executable file'
+    return binary, ''
+
+
 def run_peac(binary, points, settings):
     """PEAC through an external driver: ``$PEAC_BIN IN.bin OUT.bin key=value...`` (docs/benchmarks.md: Methods)."""
     height, width = points.shape[:2]
@@ -591,11 +601,9 @@ def available_methods(methods):
             else:
                 handles[name] = o3d
         elif name == 'peac':
-            binary = os.environ.get('PEAC_BIN')
-            if not binary:
-                notes.append('peac skipped: set PEAC_BIN to a PEAC driver (docs/benchmarks.md: Methods)')
-            elif not os.access(binary, os.X_OK):
-                notes.append(f'peac skipped: PEAC_BIN={binary} is not an executable file')
+            binary, note = peac_binary()
+            if binary is None:
+                notes.append(note)
             else:
                 handles[name] = binary
     return handles, notes

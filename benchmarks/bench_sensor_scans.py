@@ -1,8 +1,12 @@
 """Generated scans with real sensor errors (ppe_ros.core.synthetic_real): f and k of the sensor profiles
-against PPE at the node's settings without a profile and Open3D's RANSAC loop, on held-out scene seeds.
+against PPE at the node's settings without a profile, Open3D's RANSAC loop and PEAC, on held-out scene seeds.
 
     .venv/bin/python benchmarks/bench_sensor_scans.py [--seeds 1000 1001 1002] [--kinds lidar depth_camera]
-                                                       [--no-ransac]
+                                                       [--no-ransac] [--no-peac]
+
+PEAC runs through the external driver named by PEAC_BIN, as in bench_real.py (docs/benchmarks.md: Methods),
+with bench_real's settings: its Ouster settings for the lidar sweeps, its Kinect settings for the depth
+frames; without PEAC_BIN it is skipped with a note.
 
 Seeds 1000-1999 are the test split of `ppe dataset make --kind lidar|depth_camera` (SENSOR_SEED_SPLITS):
 the profiles' defaults were chosen on seeds below 1000. Prints one markdown table per sensor kind (f and k
@@ -33,8 +37,37 @@ from ppe_ros.core.synthetic_real import generate_depth_scan, generate_lidar_scan
 GENERATORS = {'lidar': generate_lidar_scan, 'depth_camera': generate_depth_scan}
 
 
-def methods(kind: str, with_ransac: bool):
-    """(name, function points, origins -> labels) of the compared methods."""
+#: PEAC's settings per sensor kind: (name, settings) of bench_real's (its Ouster and Kinect settings) and of the
+#: best of a grid on the training seeds 0-3 (the largest f + k):
+#: lidar 2 x 2 windows, min support 100, stdTol 10 / 20 mm, merge angle 30 deg; depth 6 x 6 windows, min
+#: support 1000 (its other keys changed nothing there).
+PEAC_SETTINGS = {
+    'lidar': (
+        ('PEAC (4x4 windows, min support 100)', bench_real.PEAC_OUSTER),
+        (
+            'PEAC tuned on seeds 0-3 (2x2 windows, min support 100, 10 / 20 mm)',
+            {
+                **bench_real.PEAC_OUSTER,
+                'windowWidth': 2,
+                'windowHeight': 2,
+                'stdTol_init': 10,
+                'stdTol_merge': 20,
+                'similarityDegreeTh_merge': 30,
+            },
+        ),
+    ),
+    'depth_camera': (
+        ('PEAC (10x10 windows, min support 3000)', bench_real.PEAC_KINECT),
+        (
+            'PEAC tuned on seeds 0-3 (6x6 windows, min support 1000)',
+            {**bench_real.PEAC_KINECT, 'windowWidth': 6, 'windowHeight': 6, 'minSupport': 1000},
+        ),
+    ),
+}
+
+
+def methods(kind: str, with_ransac: bool, peac: str | None = None):
+    """(name, function points, origins -> labels) of the compared methods; peac: the PEAC driver or None."""
     out = [
         (f'PPE sensor={kind}', lambda p, o: extract_planes(p, origins=o, sensor=kind)),
         (
@@ -45,15 +78,20 @@ def methods(kind: str, with_ransac: bool):
     o3d = bench_real.open3d_or_none() if with_ransac else None
     if o3d is not None:
         out.append(('Open3D RANSAC loop + connected parts', lambda p, o: bench_real.run_ransac(o3d, p, kind)[0]))
+    for name, settings in PEAC_SETTINGS[kind] if peac is not None else ():
+        out.append((name, lambda p, o, settings=settings: bench_real.run_peac(peac, p, settings)[0]))
     return out
 
 
-def run(kinds: list[str], seeds: list[int], with_ransac: bool) -> None:
+def run(kinds: list[str], seeds: list[int], with_ransac: bool, with_peac: bool = True) -> None:
     print(f'machine: {machine_description()}; seeds {seeds}')
+    peac, note = bench_real.peac_binary() if with_peac else (None, '')
+    if note:
+        print(note)
     for kind in kinds:
         scans = [GENERATORS[kind](seed=seed) for seed in seeds]
         rows = []
-        for name, method in methods(kind, with_ransac):
+        for name, method in methods(kind, with_ransac, peac):
             scores, seconds, calibration = [], [], []
             for scan in scans:
                 start = time.perf_counter()
@@ -83,8 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[1000, 1001, 1002], help='scene seeds (test split)')
     parser.add_argument('--kinds', nargs='+', choices=tuple(GENERATORS), default=list(GENERATORS))
     parser.add_argument('--no-ransac', action='store_true', help='skip Open3D (also skipped when it is absent)')
+    parser.add_argument('--no-peac', action='store_true', help='skip PEAC (also skipped without PEAC_BIN)')
     args = parser.parse_args(argv)
-    run(args.kinds, args.seeds, not args.no_ransac)
+    run(args.kinds, args.seeds, not args.no_ransac, not args.no_peac)
     return 0
 
 

@@ -436,3 +436,48 @@ def test_truth_mahalanobis_against_known_planes():
     np.testing.assert_allclose(flipped, values, atol=1e-9)
     with pytest.raises(ValueError, match='one shape'):
         truth_mahalanobis(labels[:10], offsets, normals, covariances, truth, true.__getitem__)
+
+
+def test_peac_driver_protocol(tmp_path, monkeypatch):
+    """The PEAC adapter writes the grid as documented, reads the driver's labels and its reported time, and
+    names why PEAC is skipped without a usable PEAC_BIN."""
+    import sys
+
+    bench = _bench_real_module()
+    monkeypatch.delenv('PEAC_BIN', raising=False)
+    assert bench.peac_binary()[0] is None and 'set PEAC_BIN' in bench.peac_binary()[1]
+    not_executable = tmp_path / 'plain.txt'
+    not_executable.write_text('')
+    monkeypatch.setenv('PEAC_BIN', str(not_executable))
+    assert bench.peac_binary()[0] is None and 'not an executable file' in bench.peac_binary()[1]
+    # a fake driver: label 1 where z > 1 m, 2 elsewhere, 0 without a point; it echoes its options
+    driver = tmp_path / 'driver.py'
+    driver.write_text(
+        f'#!{sys.executable}\n'
+        'import sys, numpy as np\n'
+        'head = np.fromfile(sys.argv[1], "<i4", count=2)\n'
+        'xyz = np.fromfile(sys.argv[1], "<f8", offset=8).reshape(head[0], head[1], 3)\n'
+        'labels = np.where(xyz[..., 2] > 1.0, 1, 2).astype("<i4")\n'
+        'labels[np.isnan(xyz).any(axis=2)] = 0\n'
+        'labels.tofile(sys.argv[2])\n'
+        'print("options", *sys.argv[3:])\n'
+        'print("seconds 0.125")\n'
+    )
+    driver.chmod(0o755)
+    monkeypatch.setenv('PEAC_BIN', str(driver))
+    binary, note = bench.peac_binary()
+    assert binary == str(driver) and note == ''
+    points = np.ones((3, 4, 3))
+    points[0, :, 2] = 2.0
+    points[2, 3] = np.nan
+    labels, seconds = bench.run_peac(binary, points, {'minSupport': 100, 'depthAlpha': 0.004})
+    expected = np.full((3, 4), 2)
+    expected[0] = 1
+    expected[2, 3] = 0
+    np.testing.assert_array_equal(labels, expected)
+    assert seconds == 0.125
+    failing = tmp_path / 'failing.py'
+    failing.write_text(f'#!{sys.executable}\nimport sys\nsys.exit("no luck")\n')
+    failing.chmod(0o755)
+    with pytest.raises(RuntimeError, match='no luck'):
+        bench.run_peac(str(failing), points, {})
