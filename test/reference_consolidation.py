@@ -98,13 +98,9 @@ def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_column
     return pairs
 
 
-def consolidate_reference(
-    scan, ids, sigmas, tau, *, noise_factor=0.0, connected_only=False, max_gap=64, wrap_columns=False
-):
-    """Surface id (the smallest piece id) of each pixel, -1 for none."""
-    ids = np.asarray(ids, np.int64)
-    pairs = candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_columns)
-    root = {g: g for g in np.unique(ids[ids >= 0])}
+def _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor):
+    """Merge the current surfaces (union-find root over piece ids) along the pieces' candidate pairs, the
+    cheapest admissible pair first, every pair re-valued from the pixels before each merge."""
 
     def find(g):
         while root[g] != g:
@@ -122,6 +118,34 @@ def consolidate_reference(
             if value <= 1.0 and (best is None or value < best[0]):
                 best = (value, a, b)
         if best is None:
-            break
+            return find
         root[best[2]] = best[1]
+
+
+def consolidate_reference(
+    scan,
+    ids,
+    sigmas,
+    tau,
+    *,
+    noise_factor=0.0,
+    connected_only=False,
+    max_gap=64,
+    wrap_columns=False,
+    large_surface_points=0,
+):
+    """Surface id (the smallest piece id) of each pixel, -1 for none. large_surface_points > 0 (not with
+    connected_only): then the surfaces (their pixels of pieces of >= 3 pixels) are found candidates
+    across gaps of any length, and the pairs with a surface of at least that many pixels merge the same way."""
+    ids = np.asarray(ids, np.int64)
+    pairs = candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_columns)
+    root = {g: g for g in np.unique(ids[ids >= 0])}
+    find = _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor)
+    if large_surface_points and not connected_only:
+        sizes = {g: int(np.count_nonzero(ids == g)) for g in root}
+        surfaces = np.array([find(g) if g >= 0 and sizes[g] >= 3 else -1 for g in ids])
+        surface_size = {s: int(np.count_nonzero(surfaces == s)) for s in np.unique(surfaces[surfaces >= 0])}
+        wide = candidate_pairs(scan, sigmas, surfaces, tau, max(scan.height, scan.width), False, wrap_columns)
+        wide = {(a, b) for a, b in wide if max(surface_size[a], surface_size[b]) >= large_surface_points}
+        find = _merge_cheapest_first(scan, ids, sigmas, wide, root, tau, noise_factor)
     return np.array([find(g) if g >= 0 else -1 for g in ids])

@@ -203,6 +203,89 @@ def test_a_wall_behind_a_post_is_one_surface_unless_connected_only():
         assert not np.isin(joined[inside], joined[wall]).any()
 
 
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_large_surfaces_join_across_any_gap_as_the_reference(seed):
+    """With max_gap 1 the post (3-4 columns) keeps the wall in two parts; the second round joins them when
+    one part has large_surface_points rays, as the brute-force reference does, and keeps the panel
+    12 cm in front of the wall, the floor and the post apart."""
+    scan_data = _wall_behind_a_post(noise=0.01, seed=seed)
+    scan = make_ray_scan(scan_data.points, scan_data.origins)
+    ids = _blocks(scan_data.truth, 4 + seed)
+    rng = np.random.default_rng(seed)
+    ids[rng.random(ids.shape) < 0.08] = -1  # rays the greedy left out
+    sigmas = np.where(scan.valid, 0.01, np.nan)
+    truth = scan_data.truth.reshape(-1)
+    sizes = dict(zip(*np.unique(ids, return_counts=True), strict=True))
+    in_piece = np.array([i >= 0 and sizes[i] >= 3 for i in ids])  # pieces of < 3 rays stay as they are
+    wall = (truth == 1) & in_piece
+    kwargs = dict(noise_factor=1.0, max_gap=1)
+    narrow = consolidate_pieces(scan, ids, sigmas, 0.02, **kwargs)
+    parts = np.unique(narrow[wall], return_counts=True)[1]
+    assert len(parts) == 2
+    for large in (int(parts.max()), int(parts.min())):
+        got = consolidate_pieces(scan, ids, sigmas, 0.02, large_surface_points=large, **kwargs)
+        want = consolidate_reference(scan, ids, sigmas, 0.02, large_surface_points=large, **kwargs)
+        np.testing.assert_array_equal(got, want)
+        assert len(np.unique(got[wall])) == 1
+        for face in (0, 2, 3):
+            inside = (truth == face) & in_piece
+            assert not np.isin(got[inside], got[wall]).any()
+    # neither part large enough, or connected_only: the narrow result
+    too_large = int(parts.max()) + 1
+    np.testing.assert_array_equal(
+        consolidate_pieces(scan, ids, sigmas, 0.02, large_surface_points=too_large, **kwargs), narrow
+    )
+    np.testing.assert_array_equal(
+        consolidate_reference(scan, ids, sigmas, 0.02, large_surface_points=too_large, **kwargs), narrow
+    )
+    apart = consolidate_pieces(scan, ids, sigmas, 0.02, noise_factor=1.0, connected_only=True)
+    np.testing.assert_array_equal(
+        consolidate_pieces(scan, ids, sigmas, 0.02, noise_factor=1.0, connected_only=True, large_surface_points=1),
+        apart,
+    )
+
+
+def test_large_surface_points_must_be_a_count():
+    scan_data = _wall_behind_a_post(noise=0.01, seed=0)
+    scan = make_ray_scan(scan_data.points, scan_data.origins)
+    ids = _blocks(scan_data.truth, 4)
+    sigmas = np.where(scan.valid, 0.01, np.nan)
+    for bad in (-1, 2.5, True, float('nan')):
+        with pytest.raises(ValueError, match='large_surface_points'):
+            consolidate_pieces(scan, ids, sigmas, 0.02, large_surface_points=bad)
+    for bad in (0.0, 1.5, True, float('nan')):
+        with pytest.raises(ValueError, match='large_surface_share'):
+            dataclasses.replace(PROFILES['depth_camera'], large_surface_share=bad)
+
+
+def test_depth_profile_joins_a_floor_behind_a_wide_panel():
+    """A floor and a wall with a tall panel close in front of the camera, about 100 of 160 columns wide: it
+    hides the floor behind it and cuts the floor in the frame into a left and a right part. The depth camera
+    profile gives the floor one plane, and two without its large-surface share."""
+    panel = face_from_polygon([[0.8, -0.35, 0.0], [0.8, -0.35, 2.0], [0.8, 0.35, 2.0], [0.8, 0.35, 0.0]])
+    view = dict(rows=90, cols=160, position=(0.0, 0.0, 1.2), pitch_deg=20.0, elevation_fov_deg=45.0)
+    scan_data = cast_scan([plane([0, 0, 1], 0.0), plane([-1, 0, 0], -6.0), panel], noise=0.002, seed=3, **view)
+    floor = scan_data.truth == 0
+    columns = np.flatnonzero((scan_data.truth == 2).all(axis=0) | (scan_data.truth == 2)[-1])
+    assert len(columns) > 64  # wider than the occluder gap of the first round
+    assert not (floor[:, columns[0] : columns[-1] + 1]).any()  # no floor between the two parts
+    sides = (slice(0, columns[0]), slice(columns[-1] + 1, None))
+
+    def floor_plane_each_side(profile):
+        labels = extract_planes(scan_data.points, origins=scan_data.origins, sensor=profile).labels
+        planes = []
+        for side in sides:
+            on_floor = labels[:, side][floor[:, side] & (labels[:, side] > 0)]
+            assert len(on_floor) > 200
+            planes.append(np.bincount(on_floor).argmax())
+        return planes
+
+    left, right = floor_plane_each_side(PROFILES['depth_camera'])
+    assert left == right
+    left, right = floor_plane_each_side(dataclasses.replace(PROFILES['depth_camera'], large_surface_share=None))
+    assert left != right
+
+
 # ------------------------------------------------------------------ noise models and profiles
 
 

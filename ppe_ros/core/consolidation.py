@@ -32,6 +32,14 @@ but only ``delta^2`` here, which is why large surfaces stay whole while a kerb (
 window recessed 10 cm, a ramp at 5 deg or two walls at 90 deg stay apart (their deviation is far
 above a tau of a few cm).
 
+*Large surfaces* (``large_surface_points``, 0: off; never with ``connected_only``): after the merges, a
+second round takes the surfaces as pieces, finds their candidate pairs the same way but across
+occluded gaps of any length along a row or column (a floor behind a wide piece of furniture, a wall
+behind a cupboard), keeps the pairs of which at least one surface has ``large_surface_points`` rays or
+more, and merges them cheapest first with the same test. A large surface is seen well enough that a
+coplanar piece beyond an occluder is its continuation; small coplanar surfaces (two cushions at one
+height) stay apart unless they are within ``max_gap``.
+
 The pass merges candidate pairs greedily, cheapest first (cost: the largest of the three tests'
 squared ratios to their tolerance, ties by
 the smaller then the larger piece id), re-valuing a merged piece's pairs with all the neighbours of
@@ -851,6 +859,7 @@ def consolidate_pieces(
     connected_only: bool = False,
     max_gap: int = DEFAULT_MAX_GAP,
     wrap_columns: bool = False,
+    large_surface_points: int = 0,
 ) -> np.ndarray:
     """Merge the pieces of one physical surface (see the module docstring).
 
@@ -866,6 +875,8 @@ def consolidate_pieces(
         max_gap: the largest occluded gap (pixels) between two pieces of a surface.
         wrap_columns: the last column is next to the first (a full revolution, :func:`columns_wrap`):
             pieces that touch across that seam are candidates too.
+        large_surface_points: a surface of at least this many rays also joins a coplanar surface
+            across an occluded gap of any length (the second round of the module docstring); 0: off.
 
     Returns:
         ``(H*W,)`` surface id of each pixel (the smallest piece id of its surface), -1 for none.
@@ -875,6 +886,7 @@ def consolidate_pieces(
         raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
     if int(max_gap) < 1:
         raise ValueError(f'max_gap must be >= 1 pixel; got {max_gap!r}')
+    large = _check_large_surface_points(large_surface_points)
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
@@ -882,10 +894,11 @@ def consolidate_pieces(
     if len(labels) < 2:
         return ids.copy()
     dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
+    sigmas = np.ascontiguousarray(sigmas, dtype=np.float64)
     pairs = _parallel_candidate_pairs(
         dense_for_pairs,
         scan,
-        np.ascontiguousarray(sigmas, dtype=np.float64),
+        sigmas,
         normals,
         means,
         tau,
@@ -899,7 +912,51 @@ def consolidate_pieces(
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
     roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
+    if large and not connected_only:
+        roots = _join_large_surfaces(scan, dense_for_pairs, roots, moments, sigmas, tau, factor, large, wrap_columns)
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
+
+
+def _check_large_surface_points(large_surface_points: int) -> int:
+    value = large_surface_points
+    if isinstance(value, bool | np.bool_) or not float(value) >= 0 or int(value) != value:
+        raise ValueError(f'large_surface_points must be a whole number of rays >= 0 (0: off); got {value!r}')
+    return int(value)
+
+
+def _join_large_surfaces(
+    scan: RayScan,
+    dense: np.ndarray,
+    roots: np.ndarray,
+    moments: np.ndarray,
+    sigmas: np.ndarray,
+    tau: float,
+    factor: float,
+    large_points: int,
+    wrap_columns: bool,
+) -> np.ndarray:
+    """The second round (module docstring): the surfaces (root rows of the merged pieces; dense: (H*W,)
+    piece row of each pixel, -1 for none or a piece left out of the pairs) as pieces, their candidate
+    pairs across occluded gaps of any length along a row or column, those with a surface of at least
+    large_points rays merged cheapest first. Returns the new root of each piece row."""
+    surface_moments = np.zeros_like(moments)
+    np.add.at(surface_moments, roots, moments)  # (a root's row sums its pieces; the other rows stay 0)
+    counts = surface_moments[:, 0]
+    large = counts >= large_points
+    if not np.any(large) or np.count_nonzero(counts) < 2:
+        return roots
+    surface_of_pixel = np.where(dense >= 0, roots[np.maximum(dense, 0)], -1)
+    normals, means, _ = _piece_planes(np.where(counts[:, None] >= 3, surface_moments, np.ones(moments.shape[1])))
+    pairs = _parallel_candidate_pairs(
+        surface_of_pixel, scan, sigmas, normals, means, tau, max(scan.height, scan.width), False
+    )
+    if wrap_columns:
+        pairs = np.concatenate([pairs, _seam_pairs(surface_of_pixel, scan.height, scan.width)])
+    pairs = pairs[large[pairs[:, 0]] | large[pairs[:, 1]]]
+    if len(pairs) == 0:
+        return roots
+    pairs = _unique_pairs(np.ascontiguousarray(pairs), len(moments))
+    return _merge_pieces(surface_moments, pairs, tau * tau, factor * factor)[roots]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -1079,6 +1136,7 @@ def consolidated_surfaces(
     connected_only: bool = False,
     min_points: int = 1,
     wrap_columns: bool = False,
+    large_surface_points: int = 0,
 ) -> np.ndarray:
     """``absorb_rays(scan, consolidate_pieces(scan, piece_ids, ...), ...)`` with the surfaces numbered
     0..S-1 (by their smallest piece id) instead of by that id: the same rays in the same surfaces,
@@ -1093,6 +1151,7 @@ def consolidated_surfaces(
         raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
+    large = _check_large_surface_points(large_surface_points)
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
@@ -1119,6 +1178,8 @@ def consolidated_surfaces(
             pairs = np.concatenate([pairs, _seam_pairs(pair_ids, scan.height, scan.width)])
         pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))
         roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
+        if large and not connected_only:
+            roots = _join_large_surfaces(scan, pair_ids, roots, moments, sigmas, tau, factor, large, wrap_columns)
     surface_moments = _surface_moments_kernel(dense, roots, scan.endpoints, sigmas, max(int(min_points), 3), surface)
     small = surface_moments[:, 0] < max(int(min_points), 3)
     normals, means, own = _piece_planes(np.where(small[:, None], np.ones(11), surface_moments))

@@ -167,6 +167,10 @@ class SensorProfile:
             greedy's; ppe_ros.core.ppe.GreedyOptions).
         noise_scale_bounds: (low, high): scale the noise model to each scan by
             :func:`estimate_noise_scale`, clamped to these bounds; None = use the model as it is.
+        large_surface_share: a surface holding at least this share of the scan's valid rays also joins
+            a coplanar surface across an occluder of any width along a row or column (a floor behind
+            furniture; ppe_ros.core.consolidation, large surfaces), not only across 64 pixels; None =
+            off. Never with connected_only.
     """
 
     name: str
@@ -187,6 +191,7 @@ class SensorProfile:
     candidate_fits: str = 'exact'
     fit_tolerance: float | None = None
     block_seeds: bool = False
+    large_surface_share: float | None = None
 
     def __post_init__(self) -> None:
         if self.noise_scale_bounds is not None:
@@ -202,6 +207,9 @@ class SensorProfile:
             raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
         if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
             raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
+        share = self.large_surface_share
+        if share is not None and (isinstance(share, bool) or not (isinstance(share, numbers.Real) and 0 < share <= 1)):
+            raise ValueError(f'large_surface_share must be a share in (0, 1] of the valid rays or None; got {share!r}')
 
     def noise_for(self, points: np.ndarray, origins: np.ndarray | None = None) -> NoiseModel | None:
         """The noise model for one organized scan ``points`` (H, W, 3) with ray starts ``origins``
@@ -307,6 +315,7 @@ PROFILES: dict[str, SensorProfile] = {
         correlation_length=0.7,
         noise_scale_bounds=(0.1, 4.0),
         quadrant_jackknife=True,
+        large_surface_share=0.025,
     ),
 }
 

@@ -8,6 +8,7 @@ out (systematic_covariances). Frames: the scan's; lengths in metres.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -46,8 +47,10 @@ def whole_surfaces(
     ray_sigmas = np.where(scan.valid, 1.0, np.nan) if sigmas is None else sigmas
     if surface_tolerance is not None:
         noise_factor = 0.0 if profile is None else profile.noise_factor
+        share = None if profile is None else profile.large_surface_share
+        large_points = 0 if share is None else max(1, math.ceil(share * int(np.count_nonzero(scan.valid))))
         ids = _consolidate(
-            unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points
+            unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points, large_points
         )
     planes, _ = fit_pixel_groups(
         scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
@@ -104,6 +107,7 @@ def _consolidate(
     connected_only: bool,
     noise_factor: float,
     min_points: int,
+    large_surface_points: int = 0,
 ) -> np.ndarray:
     """consolidate_pieces then absorb_rays, across the seam of a full revolution: in the columns (a
     sweep with one row per beam) or in the rows (a transposed sweep, one column per beam), so that a
@@ -133,6 +137,7 @@ def _consolidate(
         noise_factor=noise_factor,
         min_points=min_points,
         wrap_columns=wrap,
+        large_surface_points=large_surface_points,
     )
     if order is None:
         return ids
