@@ -5,8 +5,9 @@ against PPE at the node's settings without a profile, Open3D's RANSAC loop and P
                                                        [--no-ransac] [--no-peac]
 
 PEAC runs through the external driver named by PEAC_BIN, as in bench_real.py (docs/benchmarks.md: Methods),
-with bench_real's settings: its Ouster settings for the lidar sweeps, its Kinect settings for the depth
-frames; without PEAC_BIN it is skipped with a note.
+twice per kind (PEAC_SETTINGS): with bench_real's settings (its Ouster settings for the lidar sweeps, its
+Kinect settings for the depth frames) and with settings chosen on the training seeds 0-3; without PEAC_BIN
+it is skipped with a note.
 
 Seeds 1000-1999 are the test split of `ppe dataset make --kind lidar|depth_camera` (SENSOR_SEED_SPLITS):
 the profiles' defaults were chosen on seeds below 1000. Prints one markdown table per sensor kind (f and k

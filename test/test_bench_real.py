@@ -450,7 +450,7 @@ def test_peac_driver_protocol(tmp_path, monkeypatch):
     not_executable.write_text('')
     monkeypatch.setenv('PEAC_BIN', str(not_executable))
     assert bench.peac_binary()[0] is None and 'not an executable file' in bench.peac_binary()[1]
-    # a fake driver: label 1 where z > 1 m, 2 elsewhere, 0 without a point; it echoes its options
+    # a fake driver: label 1 where z > 1 m, 2 elsewhere, 0 without a point
     driver = tmp_path / 'driver.py'
     driver.write_text(
         f'#!{sys.executable}\n'
@@ -460,7 +460,6 @@ def test_peac_driver_protocol(tmp_path, monkeypatch):
         'labels = np.where(xyz[..., 2] > 1.0, 1, 2).astype("<i4")\n'
         'labels[np.isnan(xyz).any(axis=2)] = 0\n'
         'labels.tofile(sys.argv[2])\n'
-        'print("options", *sys.argv[3:])\n'
         'print("seconds 0.125")\n'
     )
     driver.chmod(0o755)

@@ -171,15 +171,21 @@ def _blocks(truth: np.ndarray, block: int) -> np.ndarray:
     return np.where(truth >= 0, truth * 100000 + tiles, -1).reshape(-1)
 
 
-@pytest.mark.parametrize('connected_only', [False, True])
-@pytest.mark.parametrize('seed', [0, 1, 2])
-def test_consolidation_equals_the_brute_force_reference(seed, connected_only):
+def _wall_pieces(seed: int):
+    """The wall behind a post (1 cm noise) cut into (4 + seed)-square pieces, 8 % of the rays left out as
+    the greedy leaves some: (scan data, ray scan, piece ids, sigmas)."""
     scan_data = _wall_behind_a_post(noise=0.01, seed=seed)
     scan = make_ray_scan(scan_data.points, scan_data.origins)
     ids = _blocks(scan_data.truth, 4 + seed)
     rng = np.random.default_rng(seed)
     ids[rng.random(ids.shape) < 0.08] = -1  # rays the greedy left out
-    sigmas = np.where(scan.valid, 0.01, np.nan)
+    return scan_data, scan, ids, np.where(scan.valid, 0.01, np.nan)
+
+
+@pytest.mark.parametrize('connected_only', [False, True])
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_consolidation_equals_the_brute_force_reference(seed, connected_only):
+    _, scan, ids, sigmas = _wall_pieces(seed)
     got = consolidate_pieces(scan, ids, sigmas, 0.02, noise_factor=1.0, connected_only=connected_only, max_gap=8)
     want = consolidate_reference(scan, ids, sigmas, 0.02, noise_factor=1.0, connected_only=connected_only, max_gap=8)
     np.testing.assert_array_equal(got, want)
@@ -208,12 +214,7 @@ def test_large_surfaces_join_across_any_gap_as_the_reference(seed):
     """With max_gap 1 the post (3-4 columns) keeps the wall in two parts; the second round joins them when
     one part has large_surface_points rays, as the brute-force reference does, and keeps the panel
     12 cm in front of the wall, the floor and the post apart."""
-    scan_data = _wall_behind_a_post(noise=0.01, seed=seed)
-    scan = make_ray_scan(scan_data.points, scan_data.origins)
-    ids = _blocks(scan_data.truth, 4 + seed)
-    rng = np.random.default_rng(seed)
-    ids[rng.random(ids.shape) < 0.08] = -1  # rays the greedy left out
-    sigmas = np.where(scan.valid, 0.01, np.nan)
+    scan_data, scan, ids, sigmas = _wall_pieces(seed)
     truth = scan_data.truth.reshape(-1)
     sizes = dict(zip(*np.unique(ids, return_counts=True), strict=True))
     in_piece = np.array([i >= 0 and sizes[i] >= 3 for i in ids])  # pieces of < 3 rays stay as they are
