@@ -841,6 +841,25 @@ def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, m
     return np.concatenate(run_tasks(block, range(n_blocks), threads, _pool))
 
 
+def _unique_candidate_pairs(
+    ids: np.ndarray,
+    scan: RayScan,
+    sigmas: np.ndarray,
+    normals: np.ndarray,
+    means: np.ndarray,
+    tau: float,
+    max_gap: int,
+    connected_only: bool,
+    wrap_columns: bool,
+) -> np.ndarray:
+    """The candidate pairs (m, 2) of the pieces ids (rows of normals and means; -1: none), with those
+    across the seam of a full revolution when wrap_columns: each pair once, sorted by (a, b)."""
+    pairs = _parallel_candidate_pairs(ids, scan, sigmas, normals, means, tau, max_gap, connected_only)
+    if wrap_columns:
+        pairs = np.concatenate([pairs, _seam_pairs(ids, scan.height, scan.width)])
+    return _unique_pairs(np.ascontiguousarray(pairs), len(normals))
+
+
 def _seam_pairs(ids: np.ndarray, height: int, width: int) -> np.ndarray:
     """(m, 2) pairs (a < b) of distinct pieces that touch across the seam (last column, first column)."""
     grid = ids.reshape(height, width)
@@ -895,19 +914,9 @@ def consolidate_pieces(
         return ids.copy()
     dense_for_pairs = np.where(small[np.maximum(dense, 0)] & (dense >= 0), -1, dense)
     sigmas = np.ascontiguousarray(sigmas, dtype=np.float64)
-    pairs = _parallel_candidate_pairs(
-        dense_for_pairs,
-        scan,
-        sigmas,
-        normals,
-        means,
-        tau,
-        int(max_gap),
-        bool(connected_only),
+    pairs = _unique_candidate_pairs(
+        dense_for_pairs, scan, sigmas, normals, means, tau, int(max_gap), bool(connected_only), wrap_columns
     )
-    if wrap_columns:
-        pairs = np.concatenate([pairs, _seam_pairs(dense_for_pairs, scan.height, scan.width)])
-    pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))  # sorted by (a, b), each pair once
     factor = float(noise_factor)
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
@@ -947,15 +956,12 @@ def _join_large_surfaces(
         return roots
     surface_of_pixel = np.where(dense >= 0, roots[np.maximum(dense, 0)], -1)
     normals, means, _ = _piece_planes(np.where(counts[:, None] >= 3, surface_moments, np.ones(moments.shape[1])))
-    pairs = _parallel_candidate_pairs(
-        surface_of_pixel, scan, sigmas, normals, means, tau, max(scan.height, scan.width), False
+    pairs = _unique_candidate_pairs(
+        surface_of_pixel, scan, sigmas, normals, means, tau, max(scan.height, scan.width), False, wrap_columns
     )
-    if wrap_columns:
-        pairs = np.concatenate([pairs, _seam_pairs(surface_of_pixel, scan.height, scan.width)])
     pairs = pairs[large[pairs[:, 0]] | large[pairs[:, 1]]]
     if len(pairs) == 0:
         return roots
-    pairs = _unique_pairs(np.ascontiguousarray(pairs), len(moments))
     return _merge_pieces(surface_moments, pairs, tau * tau, factor * factor)[roots]
 
 
@@ -1173,10 +1179,9 @@ def consolidated_surfaces(
         normals, means, _ = _piece_planes(np.where(small[:, None], np.ones(11), moments))
         pair_ids = _reusable('pair_ids', scan.size, np.int64)
         _without_small(dense, small, pair_ids)
-        pairs = _parallel_candidate_pairs(pair_ids, scan, sigmas, normals, means, tau, DEFAULT_MAX_GAP, connected_only)
-        if wrap_columns:
-            pairs = np.concatenate([pairs, _seam_pairs(pair_ids, scan.height, scan.width)])
-        pairs = _unique_pairs(np.ascontiguousarray(pairs), len(labels))
+        pairs = _unique_candidate_pairs(
+            pair_ids, scan, sigmas, normals, means, tau, DEFAULT_MAX_GAP, connected_only, wrap_columns
+        )
         roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
         if large and not connected_only:
             roots = _join_large_surfaces(scan, pair_ids, roots, moments, sigmas, tau, factor, large, wrap_columns)
