@@ -251,7 +251,7 @@ def test_large_surface_points_must_be_a_count():
     scan = make_ray_scan(scan_data.points, scan_data.origins)
     ids = _blocks(scan_data.truth, 4)
     sigmas = np.where(scan.valid, 0.01, np.nan)
-    for bad in (-1, 2.5, True, float('nan')):
+    for bad in (-1, 2.5, True, float('nan'), float('inf'), None, 'many', '5'):
         with pytest.raises(ValueError, match='large_surface_points'):
             consolidate_pieces(scan, ids, sigmas, 0.02, large_surface_points=bad)
     for bad in (0.0, 1.5, True, float('nan')):

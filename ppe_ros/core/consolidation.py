@@ -51,6 +51,8 @@ kernel is tested against.
 
 from __future__ import annotations
 
+import numbers
+
 import numba as nb
 import numpy as np
 
@@ -928,7 +930,8 @@ def consolidate_pieces(
 
 def _check_large_surface_points(large_surface_points: int) -> int:
     value = large_surface_points
-    if isinstance(value, bool | np.bool_) or not float(value) >= 0 or int(value) != value:
+    whole = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_) and float(value).is_integer()
+    if not (whole and value >= 0):
         raise ValueError(f'large_surface_points must be a whole number of rays >= 0 (0: off); got {value!r}')
     return int(value)
 
