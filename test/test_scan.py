@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from ppe_ros.core.ppe.seeds import _edge_masks
-from ppe_ros.core.scan import make_ray_scan
+from ppe_ros.core.scan import make_ray_scan, range_noise_scaled
+from ppe_ros.core.sensor import NoiseModel
 
 
 def _numpy_ray_model(points, origins):
@@ -62,6 +63,22 @@ def test_ray_model_equals_its_numpy_definition(origin_kind, height, width):
     np.testing.assert_array_equal(scan.ranges, ranges)
     if origins is not None:
         assert not scan.valid[4 * width + 5]
+
+
+@pytest.mark.parametrize(
+    'constant, proportional, minimum', [(0.02, 0.001, 1e-4), (0.0274, 0.0, 1e-4), (0.0, 0.002, 0.03), (1e-5, 0.0, 1e-4)]
+)
+def test_range_noise_scaling_equals_the_noise_model_and_numpy(constant, proportional, minimum):
+    """The one-pass kernel of a range-only noise model gives NoiseModel.sigmas' values and the numpy scaling bit
+    for bit (NaN sigmas and zero directions on invalid rays; the floor where it is larger)."""
+    rng = np.random.default_rng(4)
+    scan = make_ray_scan(_random_scan(rng, 37, 53), np.array([0.3, -0.1, 1.2]))
+    noise = NoiseModel(constant=constant, proportional=proportional, minimum=minimum)
+    expected = np.where(scan.valid, noise.sigmas(scan.ranges, scan.directions), np.nan)
+    scaled, sigmas = range_noise_scaled(scan, noise.constant, noise.proportional, noise.minimum)
+    np.testing.assert_array_equal(sigmas, expected)
+    np.testing.assert_array_equal(scaled.directions, scan.directions * np.where(scan.valid, expected, 0.0)[:, None])
+    assert scaled.endpoints is scan.endpoints and np.isnan(sigmas[~scan.valid]).all()
 
 
 def test_ray_model_of_a_scan_without_returns_is_all_invalid():

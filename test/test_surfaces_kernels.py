@@ -181,6 +181,30 @@ def test_a_full_merge_heap_runs_the_kernel_again_with_a_larger_one():
     assert len(np.unique(roots)) < len(labels) / 2  # the scene's blocks merge into surfaces
 
 
+def test_the_pairs_first_costs_are_merge_cost_of_each_pair_in_every_block():
+    """_pair_costs values pieces and pairs in parallel blocks: each row and cost equals the serial
+    _plane_of and merge_cost of that piece or pair (more pieces and pairs than one block)."""
+    rng = np.random.default_rng(11)
+    n_pieces = 2 * consolidation._COST_BLOCK + 37
+    points = rng.normal(0.0, 1.0, (n_pieces, 20, 3)) * np.array([2.0, 1.0, 0.01]) + rng.normal(
+        0.0, 3.0, (n_pieces, 1, 3)
+    )
+    moments = np.zeros((n_pieces, 11))
+    for g in range(n_pieces):
+        moments[g] = consolidation._piece_moments(np.zeros(20, np.int64), points[g], np.full(20, 0.02), 1)[0]
+    a = rng.integers(0, n_pieces, 3 * consolidation._COST_BLOCK + 5)
+    b = (a + rng.integers(1, n_pieces, len(a))) % n_pieces
+    pairs = np.ascontiguousarray(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1))
+    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0)
+    expected_rows = np.empty((n_pieces, 13))
+    for g in range(n_pieces):
+        consolidation._plane_of(moments[g], expected_rows[g])
+    np.testing.assert_array_equal(plane_rows, expected_rows)
+    expected = [consolidation.merge_cost(moments[i], moments[j], 0.05, 1.0) for i, j in pairs]
+    np.testing.assert_array_equal(costs, expected)
+    assert 0 < np.count_nonzero(costs <= 1.0) < len(costs)  # both kinds of pairs
+
+
 @pytest.mark.parametrize('seed', [0, 1])
 def test_touching_pairs_are_the_distinct_4_neighbour_pairs(seed):
     rng = np.random.default_rng(seed)

@@ -163,6 +163,20 @@ def test_strips_with_the_most_seeds_are_taken_first():
     assert _largest_first(seed_key.reshape(-1), 4, 12, [0, 4, 8, 12]) == [1, 0, 2]
 
 
+def test_the_strips_logs_are_merged_in_the_order_of_a_stable_argsort():
+    import numpy as np
+
+    from ppe_ros.core.ppe.tiles import _merged_runs_order
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        lengths = rng.integers(0, 30, size=rng.integers(1, 9))
+        runs = [np.sort(rng.choice([0.0, 0.5, 1.0, 2.0, np.inf, *rng.random(4)], size=n)) for n in lengths]
+        keys = np.concatenate(runs)
+        starts = np.cumsum([0, *lengths])
+        np.testing.assert_array_equal(_merged_runs_order(keys, starts), np.argsort(keys, kind='stable'))
+
+
 def test_run_tasks_returns_the_results_in_task_order_from_any_number_of_threads():
     from ppe_ros.core.thread_pool import SharedThreadPool, run_tasks
 

@@ -516,19 +516,39 @@ def _heap_pop(hkey, hint, size):
     return a, b, va, vb, size
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _pair_costs(moments, pairs, tau2, noise_factor2):
-    """_plane_of rows (K, 13) of the pieces and the _merge_cost of every pair (m,)."""
+    """_plane_of rows (K, 13) of the pieces and the _merge_cost of every pair (m,), in blocks of
+    _COST_BLOCK in parallel (each value on its own: the same for any thread count)."""
     n = moments.shape[0]
+    m = pairs.shape[0]
     plane = np.empty((n, 13))
-    for x in range(n):
-        _plane_of(moments[x], plane[x])
-    costs = np.empty(pairs.shape[0])
-    for e in range(pairs.shape[0]):
-        a = pairs[e, 0]
-        b = pairs[e, 1]
-        costs[e] = _merge_cost(moments, plane, a, b, tau2, noise_factor2)
+    costs = np.empty(m)
+    for block in nb.prange((n + _COST_BLOCK - 1) // _COST_BLOCK):
+        _plane_rows(moments, plane, block * _COST_BLOCK, min(n, (block + 1) * _COST_BLOCK))
+    for block in nb.prange((m + _COST_BLOCK - 1) // _COST_BLOCK):
+        _pair_cost_rows(
+            moments, plane, pairs, block * _COST_BLOCK, min(m, (block + 1) * _COST_BLOCK), tau2, noise_factor2, costs
+        )
     return plane, costs
+
+
+#: Pieces or pairs per task of _pair_costs' parallel loops.
+_COST_BLOCK = 1024
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _plane_rows(moments, plane, first, stop):
+    """_plane_of rows first..stop-1 of the pieces' moments into plane."""
+    for x in range(first, stop):
+        _plane_of(moments[x], plane[x])
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _pair_cost_rows(moments, plane, pairs, first, stop, tau2, noise_factor2, costs):
+    """_merge_cost of the pairs first..stop-1 into costs."""
+    for e in range(first, stop):
+        costs[e] = _merge_cost(moments, plane, pairs[e, 0], pairs[e, 1], tau2, noise_factor2)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)

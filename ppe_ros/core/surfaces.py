@@ -91,9 +91,9 @@ def _unit_directions(scan: RayScan, sigmas: np.ndarray) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True, error_model='numpy', nogil=True)
+@nb.njit(cache=True, error_model='numpy', parallel=True)
 def _unit_directions_kernel(directions, valid, sigmas, out):
-    for k in range(len(valid)):
+    for k in nb.prange(len(valid)):
         scale = sigmas[k] if valid[k] else 1.0
         for c in range(3):
             out[k, c] = directions[k, c] / scale
