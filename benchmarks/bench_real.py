@@ -41,6 +41,7 @@ from ppe_ros.benchmark.real import (
     count_planes,
     fit_ground_plane,
     ground_cover,
+    match_plane_sets,
     match_planes,
     motion_difference,
     rigid_fit_from_planes,
@@ -746,17 +747,12 @@ def repeatability(args, handles, kept):
             scan_a, planes_a, label = kept[(a, method)]
             scan_b, planes_b, _ = kept[(b, method)]
             rotation, translation, _ = motions[(a, b)]
-            matches = match_planes(
-                planes_a.labels,
+            matches = match_plane_sets(
                 scan_a.points,
-                planes_a.normals,
-                planes_a.offsets,
-                planes_a.covariances,
-                planes_b.labels,
-                RangeImageProjector(scan_b.points, scan_b.origins),
-                planes_b.normals,
-                planes_b.offsets,
-                planes_b.covariances,
+                planes_a,
+                scan_b.points,
+                scan_b.origins,
+                planes_b,
                 rotation,
                 translation,
                 min_points=LARGE_PLANE_POINTS,

@@ -23,6 +23,7 @@ from ppe_ros.benchmark.real import (
     motion_difference,
     plane_point_counts,
     registration_covariance,
+    resweep,
     rigid_fit_from_planes,
     share_in_large_planes,
     summarize_matches,
@@ -211,6 +212,67 @@ def test_range_image_projector_maps_every_point_to_its_own_pixel():
     assert np.array_equal(pixels, np.flatnonzero(valid))
     # a point straight up, outside the beams' elevations, lands nowhere
     assert projector.project(np.array([[0.0, 0.0, 5.0]]))[0] == -1
+
+
+def test_resweep_without_motion_gives_the_sweep_back():
+    points, _ = _spherical_scene([0, 0, 0])
+    again = resweep(points, None, np.eye(3), np.zeros(3))
+    np.testing.assert_array_equal(again, points)  # NaN where the sweep has no return
+
+
+def test_resweep_sees_the_scene_from_the_moved_sensor():
+    """Every return of the resweep is a moved return of A on the same surface, in the pixel of B's grid whose beam
+    is nearest to it; the nearest of the returns that share a pixel stays; B's rays see most of what the sensor at
+    the new position sees."""
+    motion = np.array([0.25, 0.1, 0.0])  # sensor B sits at `motion` in A's (world) frame: x_B = x_A - motion
+    points_a, labels_a = _spherical_scene([0, 0, 0])
+    points_b = resweep(points_a, None, np.eye(3), -motion)
+    truth_b, truth_labels = _spherical_scene(motion)
+    valid = np.isfinite(points_b).all(axis=2)
+    on_wall = np.abs(points_b[..., 0] + motion[0] - 6.0) < 1e-9
+    on_ground = np.abs(points_b[..., 2] + motion[2] + 1.5) < 1e-9
+    assert np.all(on_wall[valid] | on_ground[valid])  # moved returns, still on their surfaces
+    moved_a = points_a.reshape(-1, 3) - motion
+    assert np.isin(points_b[valid].round(9).view('f8,f8,f8'), moved_a.round(9).view('f8,f8,f8')).all()
+    projector = RangeImageProjector(points_a)
+    pixels = projector.grid_pixels(points_b[valid])
+    np.testing.assert_array_equal(pixels, np.flatnonzero(valid.ravel()))
+    # the labels B's returns carry are the true labels of the moved sensor where both see a return
+    both = valid & np.isfinite(truth_b).all(axis=2)
+    label_b = np.where(on_wall, 1, 2)
+    assert np.mean(label_b[both] == truth_labels[both]) > 0.99
+    assert np.count_nonzero(valid) > 0.8 * np.count_nonzero(np.isfinite(truth_b).all(axis=2))
+    assert np.count_nonzero(valid) < np.count_nonzero(labels_a)  # returns between the beams or hidden: dropped
+
+
+def test_resweep_keeps_the_nearest_return_of_a_pixel_and_adds_range_noise():
+    points = np.full((2, 8, 3), np.nan)
+    azimuth = -2 * np.pi * np.arange(8) / 8
+    for row, elevation in enumerate((0.1, -0.1)):
+        points[row] = (
+            np.stack(
+                [
+                    np.cos(elevation) * np.cos(azimuth),
+                    np.cos(elevation) * np.sin(azimuth),
+                    np.full(8, np.sin(elevation)),
+                ],
+                -1,
+            )
+            * (5.0 + np.arange(8))[:, None]
+        )
+    near = 0.5 * points[0, 3]  # a second return on the ray of pixel (0, 3), nearer
+    points_with_near = points.copy()
+    points_with_near[1, 7] = near  # it lies in another pixel of A's grid but on the beam of (0, 3)
+    out = resweep(points_with_near, None, np.eye(3), np.zeros(3))
+    np.testing.assert_allclose(out[0, 3], near)
+    assert np.isnan(out[1, 7]).all()
+    noisy = resweep(points, None, np.eye(3), np.zeros(3), range_sigma=0.01, seed=3)
+    lengths = np.linalg.norm(noisy, axis=2) - np.linalg.norm(points, axis=2)
+    assert 0.0 < np.abs(lengths).max() < 0.06
+    np.testing.assert_allclose(np.cross(noisy.reshape(-1, 3), points.reshape(-1, 3)), 0.0, atol=1e-12)  # along rays
+    np.testing.assert_array_equal(resweep(points, None, np.eye(3), np.zeros(3), range_sigma=0.01, seed=3), noisy)
+    with pytest.raises(ValueError, match='organized'):
+        resweep(points[0], None, np.eye(3), np.zeros(3))
 
 
 def _planes_of(points, labels):
@@ -413,6 +475,28 @@ def test_bench_real_ppe_settings_and_bad_arguments(capsys):
     if not bench.has_sensor_argument():
         assert bench.main(['--sensor', 'auto']) == 2
         assert 'no sensor argument' in capsys.readouterr().err
+
+
+def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_resweep.py'
+    spec = importlib.util.spec_from_file_location('bench_resweep_under_test', path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main(['--scans', 'no-such-scan']) == 2
+    assert 'no-such-scan' in capsys.readouterr().err
+    assert bench._default_scans() == ['OS-0-128 1491', 'OS-2-128 1259', 'OS-2-32 5424', 'OS-1-32 638']
+    if not bench.SHARED.is_dir():
+        pytest.skip(f'the shared data folder {bench.SHARED} is not here (a fresh clone)')
+    assert bench.main(['--scans', 'OS-2-32 5424']) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith('| OS-2-32 5424 |')]
+    assert len(rows) == len(bench.MOTIONS)
+    for row in rows:
+        found, planes = (int(x) for x in row.split('|')[4].split('/'))
+        assert planes > 0 and 0 <= found <= planes
 
 
 def test_truth_mahalanobis_against_known_planes():

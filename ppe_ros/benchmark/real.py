@@ -510,6 +510,22 @@ class RangeImageProjector:
 
     def project(self, query: np.ndarray) -> np.ndarray:
         """Flat pixel index (row * W + column) of each ``(n, 3)`` point, -1 where the pixel holds no point."""
+        pixel, offset = self._grid_pixels(query)
+        inside = offset <= 1.5 * self.pixel_angle + 1e-9
+        pixel[~inside | ~self.valid.ravel()[pixel]] = -1
+        return pixel
+
+    def grid_pixels(self, query: np.ndarray) -> np.ndarray:
+        """Flat pixel index of each ``(n, 3)`` point whose elevation is within half a beam spacing of its row's
+        (-1: between or beyond the beams), whether or not the sweep has a return there: where this sensor's
+        beams would see the point."""
+        pixel, offset = self._grid_pixels(query)
+        pixel[offset > 0.5 * self.pixel_angle] = -1
+        return pixel
+
+    def _grid_pixels(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest row and column's flat pixel index of each point and its elevation's distance (rad) from
+        that row's elevation, measured from the mean ray start height and circle."""
         q = np.asarray(query, dtype=np.float64).reshape(-1, 3)
         xy = q[:, :2] - self.start_center
         rho = np.linalg.norm(xy, axis=1) - self.start_radius
@@ -528,10 +544,51 @@ class RangeImageProjector:
         row = self.row_order[pos]
         column = np.round(self.column_sign * (azimuth - self.azimuth0) * self.width / (2 * np.pi)).astype(np.int64)
         column %= self.width
-        pixel = row * self.width + column
-        inside = np.abs(elevation - self.row_elevation[row]) <= 1.5 * self.pixel_angle + 1e-9
-        pixel[~inside | ~self.valid.ravel()[pixel]] = -1
-        return pixel
+        return row * self.width + column, np.abs(elevation - self.row_elevation[row])
+
+
+def resweep(
+    points: np.ndarray,
+    origins: np.ndarray | None,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    range_sigma: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """The sweep the same sensor would take of sweep A's scene after the motion ``x_B = R x_A + t``.
+
+    A's returns (``(H, W, 3)`` points, m, A's frame; ``origins`` their ray starts, as for extract_planes) are
+    moved into B's frame and put on A's own beam grid (:meth:`RangeImageProjector.grid_pixels` of A: the same
+    beams and columns): in each pixel the point nearest to the ray start stays (what would hide the others),
+    pixels no point falls into have no return. With ``range_sigma`` > 0 (m) each kept point also moves along its
+    new ray by Gaussian noise of that standard deviation (a new measurement of it; seeded by ``seed``). Returns
+    ``(H, W, 3)`` points in B's frame, NaN where there is no return. A training sequence of real sweeps: the
+    same surfaces sampled by rays that fall elsewhere on them, to measure whether planes are found again.
+    """
+    cloud = np.asarray(points, dtype=np.float64)
+    if cloud.ndim != 3 or cloud.shape[2] != 3:
+        raise ValueError(f'points must be an organized (H, W, 3) array; got shape {cloud.shape}')
+    height, width = cloud.shape[:2]
+    projector = RangeImageProjector(cloud, origins)
+    flat = cloud.reshape(-1, 3)
+    moved = flat[np.isfinite(flat).all(axis=1)] @ np.asarray(rotation, float).T + np.asarray(translation, float)
+    pixel = projector.grid_pixels(moved)
+    moved, pixel = moved[pixel >= 0], pixel[pixel >= 0]
+    starts = np.broadcast_to(np.zeros(3) if origins is None else np.asarray(origins, float), cloud.shape)
+    starts = starts.reshape(-1, 3)[pixel]
+    length = np.linalg.norm(moved - starts, axis=1)
+    order = np.lexsort((length, pixel))  # by pixel, the nearest first
+    pixel, moved, starts, length = pixel[order], moved[order], starts[order], length[order]
+    nearest = np.ones(len(pixel), dtype=bool)
+    nearest[1:] = pixel[1:] != pixel[:-1]
+    kept, start, length = moved[nearest], starts[nearest], length[nearest]
+    if range_sigma > 0.0:
+        noise = np.random.default_rng(seed).normal(0.0, float(range_sigma), len(kept))
+        kept = start + (kept - start) * ((length + noise) / length)[:, None]
+    out = np.full((height * width, 3), np.nan)
+    out[pixel[nearest]] = kept
+    return out.reshape(height, width, 3)
 
 
 @dataclass(frozen=True)
@@ -666,6 +723,35 @@ def match_planes(
             )
         )
     return matches
+
+
+def match_plane_sets(
+    points_a: np.ndarray,
+    planes_a,
+    points_b: np.ndarray,
+    origins_b: np.ndarray | None,
+    planes_b,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    **options,
+) -> list[PlaneMatch]:
+    """:func:`match_planes` of two sweeps' PlaneSets (``(H, W, 3)`` points; B's ray starts for its range image);
+    ``options``: ``min_points``, ``registration_sigma``."""
+    return match_planes(
+        planes_a.labels,
+        points_a,
+        planes_a.normals,
+        planes_a.offsets,
+        planes_a.covariances,
+        planes_b.labels,
+        RangeImageProjector(points_b, origins_b),
+        planes_b.normals,
+        planes_b.offsets,
+        planes_b.covariances,
+        rotation,
+        translation,
+        **options,
+    )
 
 
 @dataclass(frozen=True)
