@@ -6,7 +6,7 @@
 ``extract_planes(points, origins=..., sensor=<the scan's kind>)`` on real scans of ../shared/data
 (ppe_ros.benchmark.real.REAL_SCANS; default the OS-1-128 sweep 1795, 128 x 1024), with every stage timed by
 wrapping the module-level functions it calls (time.perf_counter, inclusive: a stage's time contains the
-stages it calls, e.g. ``_drop_non_planar`` its refit by ``fit_pixel_groups``). Stages a tree does not have
+stages it calls, e.g. ``_consolidate`` its ``columns_wrap``). Stages a tree does not have
 are left blank. Times are medians over the repeats after one warm-up call (which also compiles the
 kernels), wall time and CPU time (time.process_time, all threads: the work, which the machine's other load
 changes less than the wall time); "whole_surfaces" is the serial pass after the greedy, "hierarchy" the ray
@@ -48,6 +48,8 @@ TIMED = (
     ('surfaces:absorb_rays', '    absorb_rays'),
     ('surfaces:fit_pixel_groups', '  fit_pixel_groups (all calls)'),
     ('surfaces:_drop_non_planar', '  _drop_non_planar'),
+    ('surfaces:_plane_sums', '  _plane_sums (all calls)'),
+    ('surfaces:_planar', '  _planar'),
     ('surfaces:_independent_sigmas', '  _independent_sigmas'),
     ('surfaces:systematic_covariances', '  systematic_covariances'),
 )

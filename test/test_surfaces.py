@@ -626,6 +626,30 @@ def test_profile_covariances_are_wider_than_the_fit_alone_on_a_biased_scan():
     assert np.trace(with_model.covariances[biggest]) > 2 * np.trace(fit_only.covariances[biggest])
 
 
+def test_covariances_from_the_planarity_tests_sums_are_the_recomputed_ones():
+    """whole_surfaces hands the planarity test's per-plane sums (of the planes it kept) to systematic_covariances
+    when both use the same sigmas: the covariances are those it computes itself, and it does use what it gets."""
+    from ppe_ros.core.surfaces import _kept_planes, _plane_sums, systematic_covariances
+
+    scan_data = _wall_behind_a_post(noise=0.01, seed=3)
+    planes = extract_planes(scan_data.points, origins=scan_data.origins, sensor='lidar')
+    assert planes.num_planes >= 2
+    scan = make_ray_scan(scan_data.points, scan_data.origins)
+    sigmas = PROFILES['lidar'].noise.sigmas(scan.ranges, scan.directions)
+    sums = _plane_sums(scan, planes, sigmas, np.maximum(planes.point_counts, 1))
+    keep = np.arange(planes.num_planes) != 0  # a plane dropped: the kept planes' rows
+    kept = _kept_planes(planes, keep)
+    expected = systematic_covariances(scan, kept, sigmas, 1.0, quadrant_jackknife=True)
+    given = systematic_covariances(
+        scan, kept, sigmas, 1.0, quadrant_jackknife=True, sums=tuple(column[keep] for column in sums)
+    )
+    np.testing.assert_array_equal(given, expected)
+    centroid, scatter, residual2, noise2, sigma2 = sums
+    rougher = (centroid, scatter, residual2 + 1e-3, noise2, sigma2)  # 3 cm more RMS off each plane
+    other = systematic_covariances(scan, planes, sigmas, 1.0, sums=rougher)
+    assert not np.array_equal(other, systematic_covariances(scan, planes, sigmas, 1.0))
+
+
 def test_the_lidar_profile_seeds_with_squares():
     """extract_planes(sensor='lidar') runs the greedy with the profile's seed_shapes ('square'): the same
     labels as the profile with seed_shapes='square' given explicitly, other labels with the 17 tetrominoes."""

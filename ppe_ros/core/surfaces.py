@@ -57,27 +57,33 @@ def whole_surfaces(
     )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     curvature_factor = np.inf if profile is None else profile.max_plane_curvature_factor
+    sums = None  # the planes' _plane_sums with ray_sigmas, when computed
     if (np.isfinite(factor) or np.isfinite(curvature_factor)) and planes.num_planes:
-        planes = _drop_non_planar(
+        sums = _plane_sums(unit_scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1))
+        planar = _planar(
             unit_scan,
             planes,
-            ray_sigmas,
             surface_tolerance or 0.0,
             profile.noise_factor,
             factor,
             profile.flatness_length,
             curvature_factor,
+            sums,
         )
+        if not planar.all():
+            planes, sums = _kept_planes(planes, planar), tuple(column[planar] for column in sums)
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
+        independent = _independent_sigmas(unit_scan, ray_sigmas, profile)
         planes = replace(
             planes,
             covariances=planes.covariances
             + systematic_covariances(
                 unit_scan,
                 planes,
-                _independent_sigmas(unit_scan, ray_sigmas, profile),
+                independent,
                 profile.correlation_length,
                 quadrant_jackknife=profile.quadrant_jackknife,
+                sums=sums if independent is ray_sigmas else None,
             ),
         )
     return planes
@@ -248,6 +254,8 @@ def systematic_covariances(
     ray_sigmas: np.ndarray,
     correlation_length: float,
     quadrant_jackknife: bool = False,
+    *,
+    sums: tuple | None = None,
 ) -> np.ndarray:
     """``(J, 3, 3)`` covariance (m^2) of each plane's closest point d n from errors that do not average out.
 
@@ -263,11 +271,14 @@ def systematic_covariances(
     quadrants (ppe_ros.core.quadrants: errors correlated over the whole plane, which move the plane
     when a different part of the surface is seen) is used too: its covariance of offset and tilts,
     with each variance raised to the independent-patch model's where that is larger. The result is
-    mapped to d n to first order.
+    mapped to d n to first order. ``sums``: the planes' :func:`_plane_sums` with these ``ray_sigmas``, if
+    already computed.
     """
     count = planes.point_counts.astype(np.float64)
     n_planes = planes.num_planes
-    centroid, scatter, residual2, noise2, _ = _plane_sums(scan, planes, ray_sigmas, count)
+    if sums is None:
+        sums = _plane_sums(scan, planes, ray_sigmas, count)
+    centroid, scatter, residual2, noise2, _ = sums
     normals, offsets = planes.normals, planes.offsets
     systematic2 = np.maximum(residual2 - noise2, 0.0)
     values, vectors = np.linalg.eigh(scatter)  # ascending: the two largest span the plane
@@ -318,8 +329,25 @@ def _drop_non_planar(
     noise, which a tree's or a car's pieces are not; None: tau_D = tau. scan has unit directions.
     The kept planes are renumbered (:func:`_kept_planes`: what a refit of their pixels gives).
     """
-    count = np.maximum(planes.point_counts, 1)
-    centroid, scatter, mean_d2, noise2, sigma2 = _plane_sums(scan, planes, ray_sigmas, count)
+    sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1))
+    planar = _planar(scan, planes, tau, noise_factor, factor, flatness_length, curvature_factor, sums)
+    if planar.all():
+        return planes
+    return _kept_planes(planes, planar)
+
+
+def _planar(
+    scan: RayScan,
+    planes: PlaneSet,
+    tau: float,
+    noise_factor: float,
+    factor: float,
+    flatness_length: float | None,
+    curvature_factor: float,
+    sums: tuple,
+) -> np.ndarray:
+    """``(J,)`` True for the planes :func:`_drop_non_planar` keeps; ``sums``: their :func:`_plane_sums`."""
+    centroid, scatter, mean_d2, noise2, sigma2 = sums
     tau2 = np.full(planes.num_planes, tau**2)
     if flatness_length is not None:
         values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
@@ -329,9 +357,7 @@ def _drop_non_planar(
     if np.isfinite(curvature_factor):
         curvature = curvature_rms(scan, planes, centroid, scatter)
         planar &= curvature**2 <= float(curvature_factor) ** 2 * tau2
-    if planar.all():
-        return planes
-    return _kept_planes(planes, planar)
+    return planar
 
 
 def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter: np.ndarray) -> np.ndarray:
