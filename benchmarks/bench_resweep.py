@@ -1,6 +1,7 @@
 """Repeatability on training sweeps: each real sweep against the sweep its sensor would take after a known motion.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_resweep.py [--scans 'OS-0-128 1491' ...] [--range-sigma 0.005]
+        [--set NAME=VALUE ...]
 
 The consecutive OS-1-128 sweeps 1795-1797 that bench_real.py scores for repeatability are reported scans: no
 default may be chosen on them. This benchmark gives the training sweeps (ppe_ros.benchmark.real.SCAN_SPLIT;
@@ -8,7 +9,8 @@ default the four Ouster training sweeps) a second sweep each: ``ppe_ros.benchmar
 sweep's returns by a motion ``x_B = R x_A + t`` and puts them on the same sensor's beam grid (the nearest
 return per pixel stays), so that B sees A's surfaces through rays that fall elsewhere on them, with A's own
 errors (and, with ``--range-sigma``, new range noise). Both sweeps are extracted with the lidar profile
-(``extract_planes(points, origins=..., sensor='lidar')``) and A's planes of >= 1000 points are matched in B
+(``extract_planes(points, origins=..., sensor='lidar')``; ``--set surface_tolerance=0.065`` measures a
+variant, ppe_ros.benchmark.real.profile_with_settings) and A's planes of >= 1000 points are matched in B
 after the true motion as bench_real.py does (ppe_ros.benchmark.real.match_planes: normal < 2 deg, offset
 < 5 cm, IoU >= 0.7 for "found again"). Motions (MOTIONS): 0.25 m along x (about a car's 0.23 m between two
 10 Hz sweeps), the same with 1 deg of yaw, 0.25 m along y.
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -79,10 +82,13 @@ def main(argv: list[str] | None = None) -> int:
         '--scans', nargs='+', default=None, help='real scan names (default: the Ouster training sweeps)'
     )
     parser.add_argument('--range-sigma', type=float, default=0.0, help='new range noise of sweep B (m, default 0)')
+    parser.add_argument(
+        '--set', nargs='+', default=[], metavar='NAME=VALUE', help='lidar profile fields to change (JSON values)'
+    )
     args = parser.parse_args(argv)
 
     from ppe_ros import extract_planes
-    from ppe_ros.benchmark.real import REAL_SCANS, match_plane_sets, resweep
+    from ppe_ros.benchmark.real import REAL_SCANS, match_plane_sets, profile_with_settings, resweep
     from ppe_ros.benchmark.report import machine_description
     from ppe_ros.io import load_scan
 
@@ -91,6 +97,11 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in names if n not in specs]
     if unknown:
         print(f'bench_resweep: error: unknown scan(s) {unknown}; known: {sorted(specs)}', file=sys.stderr)
+        return 2
+    try:
+        profile = profile_with_settings('lidar', args.set)
+    except ValueError as exc:
+        print(f'bench_resweep: error: {exc}', file=sys.stderr)
         return 2
     if not SHARED.is_dir():
         print(f'bench_resweep: error: the shared data folder {SHARED} does not exist', file=sys.stderr)
@@ -110,10 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         spec = specs[name]
         scan = load_scan(SHARED / spec.path, units=spec.units)
-        planes_a = extract_planes(scan.points, origins=scan.origins, sensor='lidar')
+        planes_a = extract_planes(scan.points, origins=scan.origins, sensor=profile)
         for motion, rotation, translation in MOTIONS:
             points_b = resweep(scan.points, scan.origins, rotation, translation, range_sigma=args.range_sigma)
-            planes_b = extract_planes(points_b, origins=scan.origins, sensor='lidar')
+            planes_b = extract_planes(points_b, origins=scan.origins, sensor=profile)
             matches = match_plane_sets(
                 scan.points,
                 planes_a,
@@ -129,10 +140,12 @@ def main(argv: list[str] | None = None) -> int:
             totals[motion][0] += found
             totals[motion][1] += planes
             print(' | '.join(row), file=sys.stderr, flush=True)
-    command = ' '.join(argv if argv is not None else sys.argv[1:])
+    command = shlex.join(argv if argv is not None else sys.argv[1:])
     when = time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())
     print(f'machine: {machine_description()}; command: python benchmarks/bench_resweep.py {command}; {when}')
-    print(f'range noise of B: {args.range_sigma} m; {time.perf_counter() - started:.0f} s\n')
+    changed = ', '.join(args.set) or 'none'
+    seconds = time.perf_counter() - started
+    print(f'lidar profile changes: {changed}; range noise of B: {args.range_sigma} m; {seconds:.0f} s\n')
     print('| ' + ' | '.join(header) + ' |')
     print('|' + '---|' * len(header))
     for row in rows:

@@ -2,12 +2,15 @@
 against PPE at the node's settings without a profile, Open3D's RANSAC loop and PEAC, on held-out scene seeds.
 
     .venv/bin/python benchmarks/bench_sensor_scans.py [--seeds 1000 1001 1002] [--kinds lidar depth_camera]
-                                                       [--no-ransac] [--no-peac]
+                                                       [--no-ransac] [--no-peac] [--set NAME=VALUE ...]
 
 PEAC runs through the external driver named by PEAC_BIN, as in bench_real.py (docs/benchmarks.md: Methods),
 twice per kind (PEAC_SETTINGS): with bench_real's settings (its Ouster settings for the lidar sweeps, its
 Kinect settings for the depth frames) and with settings chosen on the training seeds 0-3; without PEAC_BIN
 it is skipped with a note.
+
+``--set surface_tolerance=0.065`` measures a variant of the profiles (ppe_ros.benchmark.real.profile_with_settings;
+on training seeds: ``--seeds 0 1 2 3``).
 
 Seeds 1000-1999 are the test split of `ppe dataset make --kind lidar|depth_camera` (SENSOR_SEED_SPLITS):
 the profiles' defaults were chosen on seeds below 1000. Prints one markdown table per sensor kind (f and k
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_real
 
 from ppe_ros import extract_planes
-from ppe_ros.benchmark.real import CHI2_3_MEDIAN, truth_mahalanobis
+from ppe_ros.benchmark.real import CHI2_3_MEDIAN, profile_with_settings, truth_mahalanobis
 from ppe_ros.benchmark.report import machine_description
 from ppe_ros.core.evaluation import score_segmentation
 from ppe_ros.core.synthetic_real import generate_depth_scan, generate_lidar_scan
@@ -67,10 +71,13 @@ PEAC_SETTINGS = {
 }
 
 
-def methods(kind: str, with_ransac: bool, peac: str | None = None):
-    """(name, function points, origins -> labels) of the compared methods; peac: the PEAC driver or None."""
+def methods(kind: str, with_ransac: bool, peac: str | None = None, settings: Sequence[str] = ()):
+    """(name, function points, origins -> labels) of the compared methods; peac: the PEAC driver or None;
+    settings: NAME=VALUE changes of the profile (profile_with_settings)."""
+    profile = profile_with_settings(kind, settings)
+    label = f'PPE sensor={kind}' + (f' ({", ".join(settings)})' if settings else '')
     out = [
-        (f'PPE sensor={kind}', lambda p, o: extract_planes(p, origins=o, sensor=kind)),
+        (label, lambda p, o: extract_planes(p, origins=o, sensor=profile)),
         (
             'PPE e 0.01, lmax inf, 20 points (no profile)',
             lambda p, o: extract_planes(p, origins=o, max_error_increment=0.01, min_plane_points=20),
@@ -84,7 +91,9 @@ def methods(kind: str, with_ransac: bool, peac: str | None = None):
     return out
 
 
-def run(kinds: list[str], seeds: list[int], with_ransac: bool, with_peac: bool = True) -> None:
+def run(
+    kinds: list[str], seeds: list[int], with_ransac: bool, with_peac: bool = True, settings: Sequence[str] = ()
+) -> None:
     print(f'machine: {machine_description()}; seeds {seeds}')
     peac, note = bench_real.peac_binary() if with_peac else (None, '')
     if note:
@@ -92,7 +101,7 @@ def run(kinds: list[str], seeds: list[int], with_ransac: bool, with_peac: bool =
     for kind in kinds:
         scans = [GENERATORS[kind](seed=seed) for seed in seeds]
         rows = []
-        for name, method in methods(kind, with_ransac, peac):
+        for name, method in methods(kind, with_ransac, peac, settings):
             scores, seconds, calibration = [], [], []
             for scan in scans:
                 start = time.perf_counter()
@@ -123,8 +132,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--kinds', nargs='+', choices=tuple(GENERATORS), default=list(GENERATORS))
     parser.add_argument('--no-ransac', action='store_true', help='skip Open3D (also skipped when it is absent)')
     parser.add_argument('--no-peac', action='store_true', help='skip PEAC (also skipped without PEAC_BIN)')
+    parser.add_argument(
+        '--set', nargs='+', default=[], metavar='NAME=VALUE', help="the profiles' fields to change (JSON values)"
+    )
     args = parser.parse_args(argv)
-    run(args.kinds, args.seeds, not args.no_ransac, not args.no_peac)
+    try:
+        for kind in args.kinds:
+            profile_with_settings(kind, args.set)
+    except ValueError as exc:
+        print(f'bench_sensor_scans: error: {exc}', file=sys.stderr)
+        return 2
+    run(args.kinds, args.seeds, not args.no_ransac, not args.no_peac, args.set)
     return 0
 
 

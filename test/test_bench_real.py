@@ -22,6 +22,7 @@ from ppe_ros.benchmark.real import (
     match_planes,
     motion_difference,
     plane_point_counts,
+    profile_with_settings,
     registration_covariance,
     resweep,
     rigid_fit_from_planes,
@@ -497,6 +498,28 @@ def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
     for row in rows:
         found, planes = (int(x) for x in row.split('|')[4].split('/'))
         assert planes > 0 and 0 <= found <= planes
+
+
+def test_profile_with_settings_changes_the_named_fields_only():
+    import dataclasses
+
+    from ppe_ros.core.sensor import PROFILES
+
+    variant = profile_with_settings('lidar', ['surface_tolerance=0.065', 'flatness_length=null', 'seed_shapes="all"'])
+    assert variant == dataclasses.replace(
+        PROFILES['lidar'], surface_tolerance=0.065, flatness_length=None, seed_shapes='all'
+    )
+    assert profile_with_settings('depth_camera') == PROFILES['depth_camera']
+    assert profile_with_settings('depth_camera', ['noise_scale_bounds=[0.2, 3]']).noise_scale_bounds == (0.2, 3)
+    for bad, message in (
+        (['no_such_field=1'], 'field of SensorProfile'),
+        (['surface_tolerance'], 'name=value'),
+        (['surface_tolerance=abc'], 'must be JSON'),
+    ):
+        with pytest.raises(ValueError, match=message):
+            profile_with_settings('lidar', bad)
+    with pytest.raises(ValueError, match='sensor must be one of'):
+        profile_with_settings('sonar', [])
 
 
 def test_truth_mahalanobis_against_known_planes():

@@ -22,11 +22,16 @@ The scans themselves and which of them were used to choose defaults are :data:`R
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+
+from ppe_ros.core.sensor import SensorProfile, sensor_profile
 
 CHI2_3_MEDIAN = 2.365973884375338
 """Median of the chi-squared distribution with 3 degrees of freedom: the Mahalanobis² median of a calibrated 3-D
@@ -90,6 +95,34 @@ REAL_SCANS: tuple[RealScan, ...] = (
     RealScan('ICL-NUIM 2', 'icl_nuim/icl_nuim_2.png', 'depth_camera', labelled=True),
 )
 """The real scans of ``../shared/data`` in table order."""
+
+
+def profile_with_settings(sensor: str, settings: Sequence[str] = ()) -> SensorProfile:
+    """The sensor profile ``sensor`` with fields set by ``name=value`` strings (value: JSON, e.g.
+    ``surface_tolerance=0.065``, ``flatness_length=null``): a variant to measure on training data.
+
+    Raises:
+        ValueError: an unknown profile or field, or a value that is not JSON or not accepted by the profile.
+    """
+    profile = sensor_profile(sensor)
+    names = {f.name for f in dataclasses.fields(profile)}
+    changes = {}
+    for item in settings:
+        name, sep, text = str(item).partition('=')
+        if not sep or name.strip() not in names:
+            raise ValueError(f'a setting must be name=value with a field of SensorProfile; got {item!r}')
+        try:
+            value = json.loads(text)
+            changes[name.strip()] = tuple(value) if isinstance(value, list) else value
+        except json.JSONDecodeError as exc:
+            raise ValueError(
+                f'the value of {name.strip()} must be JSON (0.065, true, null, "square"); got {text!r}'
+            ) from exc
+    try:
+        return dataclasses.replace(profile, **changes)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'profile {profile.name!r} does not take {changes}: {exc}') from exc
+
 
 SEQUENCE_PAIRS: tuple[tuple[str, str], ...] = (('OS-1-128 1795', 'OS-1-128 1796'), ('OS-1-128 1796', 'OS-1-128 1797'))
 """Consecutive sweeps (A, B) of the repeatability and covariance metrics."""
