@@ -21,7 +21,7 @@ def _deviation(points: np.ndarray, normal: np.ndarray, mean: np.ndarray) -> floa
     return max(float(np.mean(((points - mean) @ normal) ** 2)) - own, 0.0)
 
 
-def cost(points_a, points_b, sigmas_a, sigmas_b, tau, noise_factor):
+def cost(points_a, points_b, sigmas_a, sigmas_b, tau, noise_factor, step_factor=1.0):
     normal, mean, _ = _plane(np.concatenate([points_a, points_b]))
     scatter = min(max(_plane(points_a)[2], _plane(points_b)[2]), max(np.mean(sigmas_a**2), np.mean(sigmas_b**2)))
     allowed_a = allowed_b = tau**2 + noise_factor**2 * scatter
@@ -31,7 +31,7 @@ def cost(points_a, points_b, sigmas_a, sigmas_b, tau, noise_factor):
     nb, cb, _ = _plane(points_b)
     step_at_a = nb @ (cb - ca) / (nb @ normal)
     step_at_b = na @ (ca - cb) / (na @ normal)
-    return max(value, min(step_at_a**2, step_at_b**2) / min(allowed_a, allowed_b))
+    return max(value, min(step_at_a**2, step_at_b**2) / (step_factor**2 * min(allowed_a, allowed_b)))
 
 
 def _bridges(scan, sigmas, ids, k, normal, mean, tau, connected_only):
@@ -98,7 +98,7 @@ def candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_column
     return pairs
 
 
-def _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor):
+def _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor, step_factor):
     """Merge the current surfaces (union-find root over piece ids) along the pieces' candidate pairs, the
     cheapest admissible pair first, every pair re-valued from the pixels before each merge."""
 
@@ -114,7 +114,7 @@ def _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor):
                 continue
             ma = np.isin(ids, [g for g in root if find(g) == a])
             mb = np.isin(ids, [g for g in root if find(g) == b])
-            value = cost(scan.endpoints[ma], scan.endpoints[mb], sigmas[ma], sigmas[mb], tau, noise_factor)
+            value = cost(scan.endpoints[ma], scan.endpoints[mb], sigmas[ma], sigmas[mb], tau, noise_factor, step_factor)
             if value <= 1.0 and (best is None or value < best[0]):
                 best = (value, a, b)
         if best is None:
@@ -133,6 +133,7 @@ def consolidate_reference(
     max_gap=64,
     wrap_columns=False,
     large_surface_points=0,
+    step_factor=1.0,
 ):
     """Surface id (the smallest piece id) of each pixel, -1 for none. large_surface_points > 0 (not with
     connected_only): then the surfaces (their pixels of pieces of >= 3 pixels) are found candidates
@@ -140,12 +141,12 @@ def consolidate_reference(
     ids = np.asarray(ids, np.int64)
     pairs = candidate_pairs(scan, sigmas, ids, tau, max_gap, connected_only, wrap_columns)
     root = {g: g for g in np.unique(ids[ids >= 0])}
-    find = _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor)
+    find = _merge_cheapest_first(scan, ids, sigmas, pairs, root, tau, noise_factor, step_factor)
     if large_surface_points and not connected_only:
         sizes = {g: int(np.count_nonzero(ids == g)) for g in root}
         surfaces = np.array([find(g) if g >= 0 and sizes[g] >= 3 else -1 for g in ids])
         surface_size = {s: int(np.count_nonzero(surfaces == s)) for s in np.unique(surfaces[surfaces >= 0])}
         wide = candidate_pairs(scan, sigmas, surfaces, tau, max(scan.height, scan.width), False, wrap_columns)
         wide = {(a, b) for a, b in wide if max(surface_size[a], surface_size[b]) >= large_surface_points}
-        find = _merge_cheapest_first(scan, ids, sigmas, wide, root, tau, noise_factor)
+        find = _merge_cheapest_first(scan, ids, sigmas, wide, root, tau, noise_factor, step_factor)
     return np.array([find(g) if g >= 0 else -1 for g in ids])

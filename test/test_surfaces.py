@@ -79,6 +79,39 @@ def test_a_small_piece_whose_own_plane_is_tilted_by_noise_joins_the_large_plane_
     assert merge_cost(_moments(a, zero_a), _moments(kerb, zero_b), 0.05) > 1.0
 
 
+def test_the_step_factor_admits_the_tilt_of_cambered_road_halves_but_not_a_kerb():
+    """Two halves of a road with a crown, each falling 0.8 deg (1.4 %) to its side, 4 m wide: their planes
+    extrapolated to the other half's mean are about 5.6 cm apart, just above t = 5 cm, though the union is
+    within tau of both (the dev test passes: 3.2 cm). kappa = 1.25 admits it; a 12 cm kerb beside either
+    half is still a step at that kappa; the brute-force cost agrees."""
+    rng = np.random.default_rng(5)
+    fall = np.tan(np.radians(0.8))
+    y_left, y_right = rng.uniform(0.0, 4.0, 600), rng.uniform(-4.0, 0.0, 600)
+    left = np.c_[rng.uniform(0, 12, 600), y_left, -fall * y_left + rng.normal(0, 0.005, 600)]
+    right = np.c_[rng.uniform(0, 12, 600), y_right, fall * y_right + rng.normal(0, 0.005, 600)]
+    zero = np.zeros(600)
+    at_one = merge_cost(_moments(left, zero), _moments(right, zero), 0.05)
+    at_wider = merge_cost(_moments(left, zero), _moments(right, zero), 0.05, step_factor=1.25)
+    assert 1.0 < at_one < 1.5625 and at_wider == pytest.approx(at_one / 1.5625) and at_wider < 1.0
+    assert at_one == pytest.approx(cost(left, right, zero, zero, 0.05, 0.0), rel=1e-6)
+    assert at_wider == pytest.approx(cost(left, right, zero, zero, 0.05, 0.0, 1.25), rel=1e-6)
+    y_kerb = rng.uniform(4.0, 7.0, 300)
+    pavement = np.c_[rng.uniform(0, 12, 300), y_kerb, -fall * 4.0 + 0.12 + rng.normal(0, 0.005, 300)]
+    assert merge_cost(_moments(left, zero), _moments(pavement, zero[:300]), 0.05, step_factor=1.25) > 1.0
+    with pytest.raises(ValueError, match='step_factor'):
+        consolidate_pieces(
+            make_ray_scan(_floor_revolution()), np.zeros(12 * 96, np.int64), np.ones(12 * 96), 0.05, step_factor=0.9
+        )
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_consolidation_with_a_step_factor_equals_the_brute_force_reference(seed):
+    _, scan, ids, sigmas = _wall_pieces(seed)
+    got = consolidate_pieces(scan, ids, sigmas, 0.02, noise_factor=1.0, max_gap=8, step_factor=1.6)
+    want = consolidate_reference(scan, ids, sigmas, 0.02, noise_factor=1.0, max_gap=8, step_factor=1.6)
+    np.testing.assert_array_equal(got, want)
+
+
 def _floor_revolution(rows: int = 12, cols: int = 96, seed: int = 0) -> np.ndarray:
     """A full lidar revolution (column j at azimuth 2 pi (j + 0.5) / cols) of the floor z = -1, 5 mm noise."""
     azimuth = 2.0 * np.pi * (np.arange(cols) + 0.5) / cols

@@ -174,8 +174,8 @@ def test_a_full_merge_heap_runs_the_kernel_again_with_a_larger_one():
         normals, means, 0.05, 16, False, 0, scan.size,
     )  # fmt: skip
     pairs = _unique_pairs(found, len(labels))
-    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0)
-    assert len(_consolidate_kernel(moments, pairs, plane_rows, costs, 0.05**2, 1.0, 1)) == 0  # m entries: full
+    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0, 1.0)
+    assert len(_consolidate_kernel(moments, pairs, plane_rows, costs, 0.05**2, 1.0, 1.0, 1)) == 0  # m entries: full
     roots = _merge_pieces(moments, pairs, 0.05**2, 1.0)
     np.testing.assert_array_equal(_merge_pieces(moments, pairs, 0.05**2, 1.0, heap_capacity=1), roots)
     assert len(np.unique(roots)) < len(labels) / 2  # the scene's blocks merge into surfaces
@@ -195,7 +195,7 @@ def test_the_pairs_first_costs_are_merge_cost_of_each_pair_in_every_block():
     a = rng.integers(0, n_pieces, 3 * consolidation._COST_BLOCK + 5)
     b = (a + rng.integers(1, n_pieces, len(a))) % n_pieces
     pairs = np.ascontiguousarray(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1))
-    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0)
+    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0, 1.0)
     expected_rows = np.empty((n_pieces, 13))
     for g in range(n_pieces):
         consolidation._plane_of(moments[g], expected_rows[g])

@@ -21,9 +21,11 @@ pieces A and B are the same surface when
   tolerance grows with the noise, as a depth camera's does with depth; capped by the noise model,
   so that a merged surface does not widen its own tolerance; 0 for a constant tau); and
 * the two pieces' own planes meet: along U's normal, measured at A's mean (B's plane there) or at
-  B's mean (A's plane there), whichever is smaller, they are at most ``t`` apart. Without it a step
-  between two
-  side-by-side pieces (a kerb beside the road) would pass, the union's plane tilting to split it.
+  B's mean (A's plane there), whichever is smaller, they are at most ``kappa t`` apart (kappa,
+  ``step_factor`` >= 1; 1 by default). Without it a step between two side-by-side pieces (a kerb
+  beside the road) would pass, the union's plane tilting to split it. A plane extrapolated to the
+  other piece's mean also carries the pieces' tilt (two halves of a cambered road 2 deg apart, 5 m
+  from each other, are 5 cm apart there), which kappa > 1 admits while a kerb's step stays above it.
 
 ``dev(A, U)^2 N_A + dev(B, U)^2 N_B`` is the union's increase of the sum of squared point-to-plane
 distances, so the test is the paper's merge increment divided per point and per piece instead of
@@ -193,9 +195,10 @@ def _deviation(piece, n0, n1, n2, c0, c1, c2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _merge_cost(mom, plane, a, b, tau2, noise_factor2):
+def _merge_cost(mom, plane, a, b, tau2, noise_factor2, step_factor2):
     """Cost of joining pieces A and B (admissible: <= 1): the largest of dev(P, U)^2 / t_P^2 for P = A, B
-    and step^2 / t^2, with t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
+    and step^2 / (kappa t)^2 (kappa^2: step_factor2), with
+    t^2 = tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))
     (s_P^2: P's mean squared distance from its own plane; sigma_P^2: the mean range variance of its rays).
 
     U is the union's LS plane; step is the smaller of the two distances along U's normal between the
@@ -216,7 +219,7 @@ def _merge_cost(mom, plane, a, b, tau2, noise_factor2):
     step_at_a = _along_normal(plane_b, plane_a[0], plane_a[1], plane_a[2], u0, u1, u2)
     step_at_b = _along_normal(plane_a, plane_b[0], plane_b[1], plane_b[2], u0, u1, u2)
     step2 = min(step_at_a * step_at_a, step_at_b * step_at_b)
-    return max(cost, step2 / min(allowed_a, allowed_b))
+    return max(cost, step2 / (step_factor2 * min(allowed_a, allowed_b)))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -226,13 +229,17 @@ def _along_normal(piece, x0, x1, x2, u0, u1, u2):
     return (n0 * (piece[0] - x0) + n1 * (piece[1] - x1) + n2 * (piece[2] - x2)) / (n0 * u0 + n1 * u1 + n2 * u2)
 
 
-def merge_cost(m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise_factor: float = 0.0) -> float:
+def merge_cost(
+    m_a: np.ndarray, m_b: np.ndarray, surface_tolerance: float, noise_factor: float = 0.0, step_factor: float = 1.0
+) -> float:
     """:func:`_merge_cost` of two pieces given by their (11,) moments (see _piece_moments); <= 1: admissible."""
     mom = np.stack([np.asarray(m_a, np.float64), np.asarray(m_b, np.float64)])
     plane = np.empty((2, 13))
     _plane_of(mom[0], plane[0])
     _plane_of(mom[1], plane[1])
-    return float(_merge_cost(mom, plane, 0, 1, float(surface_tolerance) ** 2, float(noise_factor) ** 2))
+    return float(
+        _merge_cost(mom, plane, 0, 1, float(surface_tolerance) ** 2, float(noise_factor) ** 2, float(step_factor) ** 2)
+    )
 
 
 # not inline='always': numba's IR inlining of a function whose arrays stay live across its early
@@ -517,7 +524,7 @@ def _heap_pop(hkey, hint, size):
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _pair_costs(moments, pairs, tau2, noise_factor2):
+def _pair_costs(moments, pairs, tau2, noise_factor2, step_factor2):
     """_plane_of rows (K, 13) of the pieces and the _merge_cost of every pair (m,), in blocks of
     _COST_BLOCK in parallel (each value on its own: the same for any thread count)."""
     n = moments.shape[0]
@@ -528,7 +535,15 @@ def _pair_costs(moments, pairs, tau2, noise_factor2):
         _plane_rows(moments, plane, block * _COST_BLOCK, min(n, (block + 1) * _COST_BLOCK))
     for block in nb.prange((m + _COST_BLOCK - 1) // _COST_BLOCK):
         _pair_cost_rows(
-            moments, plane, pairs, block * _COST_BLOCK, min(m, (block + 1) * _COST_BLOCK), tau2, noise_factor2, costs
+            moments,
+            plane,
+            pairs,
+            block * _COST_BLOCK,
+            min(m, (block + 1) * _COST_BLOCK),
+            tau2,
+            noise_factor2,
+            step_factor2,
+            costs,
         )
     return plane, costs
 
@@ -545,17 +560,18 @@ def _plane_rows(moments, plane, first, stop):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _pair_cost_rows(moments, plane, pairs, first, stop, tau2, noise_factor2, costs):
+def _pair_cost_rows(moments, plane, pairs, first, stop, tau2, noise_factor2, step_factor2, costs):
     """_merge_cost of the pairs first..stop-1 into costs."""
     for e in range(first, stop):
-        costs[e] = _merge_cost(moments, plane, pairs[e, 0], pairs[e, 1], tau2, noise_factor2)
+        costs[e] = _merge_cost(moments, plane, pairs[e, 0], pairs[e, 1], tau2, noise_factor2, step_factor2)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, heap_capacity):
+def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, step_factor2, heap_capacity):
     """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
 
-    A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2).
+    A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2,
+    step_factor2 = kappa^2).
     plane_rows, costs: the pieces' _plane_of rows and the pairs' costs (:func:`_pair_costs`). The queue
     is a binary heap ordered by (cost, a, b, version a, version b): every order of pushes pops the
     same sequence. It holds at most max(heap_capacity, m) entries: when it is full the kernel returns an
@@ -631,7 +647,7 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
                 tail[a] = h
                 lo = min(a, c)
                 hi = max(a, c)
-                value = _merge_cost(mom, plane, lo, hi, tau2, noise_factor2)
+                value = _merge_cost(mom, plane, lo, hi, tau2, noise_factor2, step_factor2)
                 if value <= 1.0:
                     if size == len(hkey):
                         return np.empty(0, np.int64)  # the heap is full
@@ -644,15 +660,20 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
 
 
 def _merge_pieces(
-    moments: np.ndarray, pairs: np.ndarray, tau2: float, noise_factor2: float, heap_capacity: int | None = None
+    moments: np.ndarray,
+    pairs: np.ndarray,
+    tau2: float,
+    noise_factor2: float,
+    step_factor2: float = 1.0,
+    heap_capacity: int | None = None,
 ) -> np.ndarray:
     """The root of each piece after :func:`_consolidate_kernel` merged the pieces (moments (K, 11)) along
     their unique candidate pairs (m, 2), valued by :func:`_pair_costs`; with a heap of heap_capacity
     entries (default 4 m + 16: enough for the real scans) doubled until the kernel does not run out of it."""
-    plane_rows, costs = _pair_costs(moments, pairs, tau2, noise_factor2)
+    plane_rows, costs = _pair_costs(moments, pairs, tau2, noise_factor2, step_factor2)
     capacity = 4 * len(pairs) + 16 if heap_capacity is None else int(heap_capacity)
     while True:
-        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, capacity)
+        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, step_factor2, capacity)
         if len(roots) == len(moments):
             return roots
         capacity = 2 * capacity + 16
@@ -901,6 +922,7 @@ def consolidate_pieces(
     max_gap: int = DEFAULT_MAX_GAP,
     wrap_columns: bool = False,
     large_surface_points: int = 0,
+    step_factor: float = 1.0,
 ) -> np.ndarray:
     """Merge the pieces of one physical surface (see the module docstring).
 
@@ -918,6 +940,8 @@ def consolidate_pieces(
             pieces that touch across that seam are candidates too.
         large_surface_points: a surface of at least this many rays also joins a coplanar surface
             across an occluded gap of any length (the second round of the module docstring); 0: off.
+        step_factor: kappa >= 1: the two pieces' planes may be kappa t apart at the nearer mean (the step
+            test of the module docstring); 1: t.
 
     Returns:
         ``(H*W,)`` surface id of each pixel (the smallest piece id of its surface), -1 for none.
@@ -928,6 +952,7 @@ def consolidate_pieces(
     if int(max_gap) < 1:
         raise ValueError(f'max_gap must be >= 1 pixel; got {max_gap!r}')
     large = _check_large_surface_points(large_surface_points)
+    step2 = _check_step_factor(step_factor) ** 2
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
@@ -942,10 +967,19 @@ def consolidate_pieces(
     factor = float(noise_factor)
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
-    roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
+    roots = _merge_pieces(moments, pairs, tau * tau, factor * factor, step2)
     if large and not connected_only:
-        roots = _join_large_surfaces(scan, dense_for_pairs, roots, moments, sigmas, tau, factor, large, wrap_columns)
+        roots = _join_large_surfaces(
+            scan, dense_for_pairs, roots, moments, sigmas, tau, factor, large, wrap_columns, step2
+        )
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
+
+
+def _check_step_factor(step_factor: float) -> float:
+    value = step_factor
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real) or not (1.0 <= value < np.inf):
+        raise ValueError(f'step_factor must be a finite number >= 1 (1: the step within t); got {value!r}')
+    return float(value)
 
 
 def _check_large_surface_points(large_surface_points: int) -> int:
@@ -966,6 +1000,7 @@ def _join_large_surfaces(
     factor: float,
     large_points: int,
     wrap_columns: bool,
+    step_factor2: float = 1.0,
 ) -> np.ndarray:
     """The second round (module docstring): the surfaces (root rows of the merged pieces; dense: (H*W,)
     piece row of each pixel, -1 for none or a piece left out of the pairs) as pieces, their candidate
@@ -985,7 +1020,7 @@ def _join_large_surfaces(
     pairs = pairs[large[pairs[:, 0]] | large[pairs[:, 1]]]
     if len(pairs) == 0:
         return roots
-    return _merge_pieces(surface_moments, pairs, tau * tau, factor * factor)[roots]
+    return _merge_pieces(surface_moments, pairs, tau * tau, factor * factor, step_factor2)[roots]
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -1166,6 +1201,7 @@ def consolidated_surfaces(
     min_points: int = 1,
     wrap_columns: bool = False,
     large_surface_points: int = 0,
+    step_factor: float = 1.0,
 ) -> np.ndarray:
     """``absorb_rays(scan, consolidate_pieces(scan, piece_ids, ...), ...)`` with the surfaces numbered
     0..S-1 (by their smallest piece id) instead of by that id: the same rays in the same surfaces,
@@ -1181,6 +1217,7 @@ def consolidated_surfaces(
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
     large = _check_large_surface_points(large_surface_points)
+    step2 = _check_step_factor(step_factor) ** 2
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
@@ -1205,9 +1242,11 @@ def consolidated_surfaces(
         pairs = _unique_candidate_pairs(
             pair_ids, scan, sigmas, normals, means, tau, DEFAULT_MAX_GAP, connected_only, wrap_columns
         )
-        roots = _merge_pieces(moments, pairs, tau * tau, factor * factor)
+        roots = _merge_pieces(moments, pairs, tau * tau, factor * factor, step2)
         if large and not connected_only:
-            roots = _join_large_surfaces(scan, pair_ids, roots, moments, sigmas, tau, factor, large, wrap_columns)
+            roots = _join_large_surfaces(
+                scan, pair_ids, roots, moments, sigmas, tau, factor, large, wrap_columns, step2
+            )
     surface_moments = _surface_moments_kernel(dense, roots, scan.endpoints, sigmas, max(int(min_points), 3), surface)
     small = surface_moments[:, 0] < max(int(min_points), 3)
     normals, means, own = _piece_planes(np.where(small[:, None], np.ones(11), surface_moments))

@@ -171,6 +171,10 @@ class SensorProfile:
             a coplanar surface across an occluder of any width along a row or column (a floor behind
             furniture; ppe_ros.core.consolidation, large surfaces), not only across 64 pixels; None =
             off. Never with connected_only.
+        step_factor: kappa >= 1: two pieces of one surface may be kappa times their tolerance apart
+            where their planes are compared at the nearer piece's mean (the consolidation's step test;
+            a plane extrapolated there also carries the pieces' tilt, as on a cambered road); 1 = the
+            tolerance itself.
     """
 
     name: str
@@ -192,8 +196,11 @@ class SensorProfile:
     fit_tolerance: float | None = None
     block_seeds: bool = False
     large_surface_share: float | None = None
+    step_factor: float = 1.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.step_factor) and self.step_factor >= 1.0):
+            raise ValueError(f'step_factor must be a finite number >= 1; got {self.step_factor!r}')
         if self.noise_scale_bounds is not None:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):

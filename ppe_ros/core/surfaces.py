@@ -49,8 +49,17 @@ def whole_surfaces(
         noise_factor = 0.0 if profile is None else profile.noise_factor
         share = None if profile is None else profile.large_surface_share
         large_points = 0 if share is None else max(1, math.ceil(share * int(np.count_nonzero(scan.valid))))
+        step_factor = 1.0 if profile is None else profile.step_factor
         ids = _consolidate(
-            unit_scan, ids, ray_sigmas, surface_tolerance, connected_only, noise_factor, min_plane_points, large_points
+            unit_scan,
+            ids,
+            ray_sigmas,
+            surface_tolerance,
+            connected_only,
+            noise_factor,
+            min_plane_points,
+            large_points,
+            step_factor,
         )
     planes, _ = fit_pixel_groups(
         scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
@@ -114,6 +123,7 @@ def _consolidate(
     noise_factor: float,
     min_points: int,
     large_surface_points: int = 0,
+    step_factor: float = 1.0,
 ) -> np.ndarray:
     """consolidate_pieces then absorb_rays, across the seam of a full revolution: in the columns (a
     sweep with one row per beam) or in the rows (a transposed sweep, one column per beam), so that a
@@ -144,6 +154,7 @@ def _consolidate(
         min_points=min_points,
         wrap_columns=wrap,
         large_surface_points=large_surface_points,
+        step_factor=step_factor,
     )
     if order is None:
         return ids
