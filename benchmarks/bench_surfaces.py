@@ -48,8 +48,7 @@ TIMED = (
     ('surfaces:absorb_rays', '    absorb_rays'),
     ('surfaces:fit_pixel_groups', '  fit_pixel_groups (all calls)'),
     ('surfaces:_drop_non_planar', '  _drop_non_planar'),
-    ('surfaces:_plane_sums', '  _plane_sums (all calls)'),
-    ('surfaces:_planar', '  _planar'),
+    ('surfaces:_plane_sums', '    _plane_sums (all calls)'),
     ('surfaces:_independent_sigmas', '  _independent_sigmas'),
     ('surfaces:systematic_covariances', '  systematic_covariances'),
 )

@@ -380,7 +380,7 @@ def test_the_planarity_test_asks_small_planes_to_be_flat_to_the_noise_and_large_
     sigmas = np.where(scan.valid, 0.005, np.nan)
 
     def kept(flatness_length):
-        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, flatness_length)
+        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, flatness_length)[0]
         return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
 
     assert kept(None) == [0, 1, 2]
@@ -470,7 +470,7 @@ def test_the_curvature_test_drops_a_pole_but_not_a_noisier_flat_panel():
     sigmas = np.where(scan.valid, 0.035, np.nan)
 
     def kept(curvature_factor):
-        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, curvature_factor)
+        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, curvature_factor)[0]
         return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
 
     assert kept(np.inf) == [0, 1, 2]

@@ -68,19 +68,16 @@ def whole_surfaces(
     curvature_factor = np.inf if profile is None else profile.max_plane_curvature_factor
     sums = None  # the planes' _plane_sums with ray_sigmas, when computed
     if (np.isfinite(factor) or np.isfinite(curvature_factor)) and planes.num_planes:
-        sums = _plane_sums(unit_scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1))
-        planar = _planar(
+        planes, sums = _drop_non_planar(
             unit_scan,
             planes,
+            ray_sigmas,
             surface_tolerance or 0.0,
             profile.noise_factor,
             factor,
             profile.flatness_length,
             curvature_factor,
-            sums,
         )
-        if not planar.all():
-            planes, sums = _kept_planes(planes, planar), tuple(column[planar] for column in sums)
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         independent = _independent_sigmas(unit_scan, ray_sigmas, profile)
         planes = replace(
@@ -329,7 +326,7 @@ def _drop_non_planar(
     factor: float,
     flatness_length: float | None = None,
     curvature_factor: float = np.inf,
-) -> PlaneSet:
+) -> tuple[PlaneSet, tuple]:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
     plus the sensor's noise along the normal (lambda: noise_factor), or whose best quadric surface
@@ -338,26 +335,10 @@ def _drop_non_planar(
     square root of its area, 12 sqrt(l1 l2) from the scatter's two largest eigenvalues): a
     surface's deviation from flatness grows with its size, so a small patch must be flat to the
     noise, which a tree's or a car's pieces are not; None: tau_D = tau. scan has unit directions.
-    The kept planes are renumbered (:func:`_kept_planes`: what a refit of their pixels gives).
+    Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), and
+    their :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas).
     """
     sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1))
-    planar = _planar(scan, planes, tau, noise_factor, factor, flatness_length, curvature_factor, sums)
-    if planar.all():
-        return planes
-    return _kept_planes(planes, planar)
-
-
-def _planar(
-    scan: RayScan,
-    planes: PlaneSet,
-    tau: float,
-    noise_factor: float,
-    factor: float,
-    flatness_length: float | None,
-    curvature_factor: float,
-    sums: tuple,
-) -> np.ndarray:
-    """``(J,)`` True for the planes :func:`_drop_non_planar` keeps; ``sums``: their :func:`_plane_sums`."""
     centroid, scatter, mean_d2, noise2, sigma2 = sums
     tau2 = np.full(planes.num_planes, tau**2)
     if flatness_length is not None:
@@ -368,7 +349,9 @@ def _planar(
     if np.isfinite(curvature_factor):
         curvature = curvature_rms(scan, planes, centroid, scatter)
         planar &= curvature**2 <= float(curvature_factor) ** 2 * tau2
-    return planar
+    if planar.all():
+        return planes, sums
+    return _kept_planes(planes, planar), tuple(column[planar] for column in sums)
 
 
 def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter: np.ndarray) -> np.ndarray:
