@@ -98,6 +98,9 @@ def test_the_step_factor_admits_the_tilt_of_cambered_road_halves_but_not_a_kerb(
     y_kerb = rng.uniform(4.0, 7.0, 300)
     pavement = np.c_[rng.uniform(0, 12, 300), y_kerb, -fall * 4.0 + 0.12 + rng.normal(0, 0.005, 300)]
     assert merge_cost(_moments(left, zero), _moments(pavement, zero[:300]), 0.05, step_factor=1.25) > 1.0
+    for bad in (0.9, np.inf, 'wide', True):
+        with pytest.raises(ValueError, match='step_factor must be a finite number >= 1'):
+            SensorProfile('mine', step_factor=bad)
     with pytest.raises(ValueError, match='step_factor'):
         consolidate_pieces(
             make_ray_scan(_floor_revolution()), np.zeros(12 * 96, np.int64), np.ones(12 * 96), 0.05, step_factor=0.9

@@ -59,6 +59,7 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.scan import RayScan
+from ppe_ros.core.sensor import check_step_factor
 from ppe_ros.core.thread_pool import SharedThreadPool, run_tasks
 from ppe_ros.core.work_memory import WorkMemory
 
@@ -952,7 +953,7 @@ def consolidate_pieces(
     if int(max_gap) < 1:
         raise ValueError(f'max_gap must be >= 1 pixel; got {max_gap!r}')
     large = _check_large_surface_points(large_surface_points)
-    step2 = _check_step_factor(step_factor) ** 2
+    step2 = check_step_factor(step_factor) ** 2
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
@@ -973,13 +974,6 @@ def consolidate_pieces(
             scan, dense_for_pairs, roots, moments, sigmas, tau, factor, large, wrap_columns, step2
         )
     return np.where(dense >= 0, labels[roots[np.maximum(dense, 0)]], -1)
-
-
-def _check_step_factor(step_factor: float) -> float:
-    value = step_factor
-    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real) or not (1.0 <= value < np.inf):
-        raise ValueError(f'step_factor must be a finite number >= 1 (1: the step within t); got {value!r}')
-    return float(value)
 
 
 def _check_large_surface_points(large_surface_points: int) -> int:
@@ -1217,7 +1211,7 @@ def consolidated_surfaces(
     if not (np.isfinite(factor) and factor >= 0.0):
         raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
     large = _check_large_surface_points(large_surface_points)
-    step2 = _check_step_factor(step_factor) ** 2
+    step2 = check_step_factor(step_factor) ** 2
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)
     if ids.shape != (scan.size,):
         raise ValueError(f'piece_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')

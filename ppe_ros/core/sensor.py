@@ -127,6 +127,15 @@ def estimate_noise_scale(ranges: np.ndarray, sigmas: np.ndarray) -> float:
     return float(np.median(ratio) / 0.6744897501960817)
 
 
+def check_step_factor(step_factor: float) -> float:
+    """``step_factor`` (kappa of the consolidation's step test) as a float; ValueError unless it is a finite
+    number >= 1."""
+    value = step_factor
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real) or not (1.0 <= value < np.inf):
+        raise ValueError(f'step_factor must be a finite number >= 1 (1: the step within t); got {value!r}')
+    return float(value)
+
+
 @dataclass(frozen=True)
 class SensorProfile:
     """The extraction settings of one kind of sensor.
@@ -199,8 +208,7 @@ class SensorProfile:
     step_factor: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.step_factor) and self.step_factor >= 1.0):
-            raise ValueError(f'step_factor must be a finite number >= 1; got {self.step_factor!r}')
+        check_step_factor(self.step_factor)
         if self.noise_scale_bounds is not None:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
