@@ -46,6 +46,7 @@ TIMED = (
     ('surfaces:rows_wrap', '    rows_wrap'),
     ('surfaces:consolidate_pieces', '    consolidate_pieces'),
     ('surfaces:absorb_rays', '    absorb_rays'),
+    ('surfaces:join_at_boundaries', '    join_at_boundaries (boundary round)'),
     ('surfaces:fit_pixel_groups', '  fit_pixel_groups (all calls)'),
     ('surfaces:_drop_non_planar', '  _drop_non_planar'),
     ('surfaces:_plane_sums', '    _plane_sums (all calls)'),

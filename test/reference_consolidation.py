@@ -7,6 +7,8 @@ agglomeration re-values every candidate pair of the current surfaces before each
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 
@@ -150,3 +152,99 @@ def consolidate_reference(
         wide = {(a, b) for a, b in wide if max(surface_size[a], surface_size[b]) >= large_surface_points}
         find = _merge_cheapest_first(scan, ids, sigmas, wide, root, tau, noise_factor, step_factor)
     return np.array([find(g) if g >= 0 else -1 for g in ids])
+
+
+def _boundary_pixel_pairs(ids, large, height, width, wrap, max_gap):
+    """Pixel pairs (k, l) of two large surfaces: l the first pixel with a surface to the right of k (across
+    the seam when wrap) or below it, past at most max_gap pixels without one."""
+    pairs = []
+    for k in range(height * width):
+        if ids[k] < 0 or not large[ids[k]]:
+            continue
+        i, j = divmod(k, width)
+        walks = [
+            [i * width + (j + s) % width for s in range(1, max_gap + 2) if wrap or j + s < width],
+            [(i + s) * width + j for s in range(1, max_gap + 2) if i + s < height],
+        ]
+        for walk in walks:
+            walk = list(itertools.takewhile(lambda x, k=k: x != k, walk))  # not past k, once around
+            hit = next((x for x in walk if ids[x] >= 0), None)
+            if hit is not None and ids[hit] != ids[k] and large[ids[hit]]:
+                pairs.append((k, hit))
+    return pairs
+
+
+def _mean_square_distance(points, normal, mean):
+    return float(np.mean(((points - mean) @ normal) ** 2))
+
+
+def boundary_cost_reference(pa, pb, at_a, at_b, sigmas_a, sigmas_b, tau, noise_factor, step_factor, max_bend_deg):
+    """The boundary round's cost of surfaces with points pa, pb whose boundary points are at_a, at_b (one row
+    per boundary pixel pair); inf if their normals bend by more than max_bend_deg."""
+    normal, mean, _ = _plane(np.concatenate([pa, pb]))
+    na, ca, own_a = _plane(pa)
+    nb, cb, own_b = _plane(pb)
+    if np.degrees(np.arccos(min(abs(float(na @ nb)), 1.0))) > max_bend_deg:
+        return np.inf
+    scatter = min(max(own_a, own_b), max(np.mean(sigmas_a**2), np.mean(sigmas_b**2)))
+    allowed = tau**2 + noise_factor**2 * scatter
+    deviation = max(_deviation(pa, normal, mean), _deviation(pb, normal, mean))
+    excess_a = max(_mean_square_distance(at_a, nb, cb) - _mean_square_distance(at_a, na, ca), 0.0)
+    excess_b = max(_mean_square_distance(at_b, na, ca) - _mean_square_distance(at_b, nb, cb), 0.0)
+    return max(deviation, 0.5 * (excess_a + excess_b) / step_factor**2) / allowed
+
+
+def boundary_join_reference(
+    scan,
+    ids,
+    sigmas,
+    tau,
+    min_points,
+    noise_factor=0.0,
+    step_factor=1.0,
+    wrap=False,
+    max_gap=3,
+    min_pairs=10,
+    max_bend_deg=4.0,
+):
+    """ppe_ros.core.boundary_join.join_at_boundaries by brute force: every pair of current surfaces is
+    valued again from its points before each merge (its boundary: the pixel pairs between its parts)."""
+    ids = np.asarray(ids)
+    counts = np.bincount(ids[ids >= 0]) if np.any(ids >= 0) else np.zeros(0, int)
+    large = counts >= min_points
+    pixel_pairs = _boundary_pixel_pairs(ids, large, scan.height, scan.width, wrap, max_gap)
+    group = {g: g for g in range(len(counts))}  # surface -> its current surface (the smallest id)
+    points = scan.endpoints
+    while True:
+        best = None
+        current = sorted({group[g] for g in range(len(counts)) if large[g]})
+        for a_index, a in enumerate(current):
+            for b in current[a_index + 1 :]:
+                sides = [(k, m) if group[ids[k]] == a else (m, k) for k, m in pixel_pairs]
+                sides = [(k, m) for k, m in sides if group[ids[k]] == a and group[ids[m]] == b]
+                if len(sides) < min_pairs:
+                    continue
+                members_a = np.flatnonzero([g >= 0 and group[g] == a for g in ids])
+                members_b = np.flatnonzero([g >= 0 and group[g] == b for g in ids])
+                sig = np.where(np.isfinite(sigmas), sigmas, 0.0)
+                value = boundary_cost_reference(
+                    points[members_a],
+                    points[members_b],
+                    points[[k for k, _ in sides]],
+                    points[[m for _, m in sides]],
+                    sig[members_a],
+                    sig[members_b],
+                    tau,
+                    noise_factor,
+                    step_factor,
+                    max_bend_deg,
+                )
+                if value <= 1.0 and (best is None or (value, a, b) < best):
+                    best = (value, a, b)
+        if best is None:
+            break
+        _, a, b = best
+        for g in group:
+            if group[g] == b:
+                group[g] = a
+    return np.array([group[g] if g >= 0 else -1 for g in ids])

@@ -16,7 +16,13 @@ from pathlib import Path
 import pytest
 
 from ppe_ros.core.ppe import cache_guard
-from ppe_ros.core.ppe.cache_guard import STAMP_NAME, clear_stale_cache, kernel_sources, sources_digest
+from ppe_ros.core.ppe.cache_guard import (
+    STAMP_NAME,
+    clear_stale_cache,
+    guard_module_cache,
+    kernel_sources,
+    sources_digest,
+)
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'ppe_ros'
 
@@ -40,6 +46,31 @@ def test_a_stamp_mismatch_clears_the_package_cache_files_only(tmp_path):
     # another digest: cleared again
     assert clear_stale_cache(tmp_path, ['greedy', 'state'], 'def') is True
     assert not (tmp_path / 'greedy._ppe_kernel-300.py311.nbi').exists()
+
+
+def test_a_module_outside_the_package_is_guarded_on_the_module_it_inlines_from(tmp_path, monkeypatch):
+    """ppe_ros.core.boundary_join's kernels inline consolidation.py's helpers: a change there clears them."""
+    monkeypatch.setenv('PPE_NUMBA_CACHE_GUARD', '1')
+    sources, cache = tmp_path / 'src', tmp_path / 'cache'
+    sources.mkdir()
+    cache.mkdir()
+    module, dependency = sources / 'boundary_join.py', sources / 'consolidation.py'
+    module.write_text('# kernels\n')
+    dependency.write_text('# helpers\n')
+    _touch(cache, 'boundary_join._cost-10.py311.nbi', 'consolidation._find-3.py311.nbi')
+    assert guard_module_cache(module, [dependency], cache) is True  # no stamp yet
+    assert sorted(p.name for p in cache.iterdir()) == [f'boundary_join.{STAMP_NAME}', 'consolidation._find-3.py311.nbi']
+    _touch(cache, 'boundary_join._cost-10.py311.nbi')
+    assert guard_module_cache(module, [dependency], cache) is False  # unchanged: kept
+    assert (cache / 'boundary_join._cost-10.py311.nbi').exists()
+    dependency.write_text('# helpers, changed\n')
+    assert guard_module_cache(module, [dependency], cache) is True
+    assert not (cache / 'boundary_join._cost-10.py311.nbi').exists()
+    assert (cache / 'consolidation._find-3.py311.nbi').exists()  # numba keys that one on its own file
+    monkeypatch.setenv('PPE_NUMBA_CACHE_GUARD', '0')
+    dependency.write_text('# changed again\n')
+    _touch(cache, 'boundary_join._cost-10.py311.nbi')
+    assert guard_module_cache(module, [dependency], cache) is False
 
 
 def test_a_file_that_vanishes_meanwhile_is_skipped(tmp_path, monkeypatch):

@@ -947,9 +947,7 @@ def consolidate_pieces(
     Returns:
         ``(H*W,)`` surface id of each pixel (the smallest piece id of its surface), -1 for none.
     """
-    tau = float(surface_tolerance)
-    if not (np.isfinite(tau) and tau > 0.0):
-        raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
+    tau, factor = checked_tolerances(surface_tolerance, noise_factor)
     if int(max_gap) < 1:
         raise ValueError(f'max_gap must be >= 1 pixel; got {max_gap!r}')
     large = _check_large_surface_points(large_surface_points)
@@ -965,9 +963,6 @@ def consolidate_pieces(
     pairs = _unique_candidate_pairs(
         dense_for_pairs, scan, sigmas, normals, means, tau, int(max_gap), bool(connected_only), wrap_columns
     )
-    factor = float(noise_factor)
-    if not (np.isfinite(factor) and factor >= 0.0):
-        raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
     roots = _merge_pieces(moments, pairs, tau * tau, factor * factor, step2)
     if large and not connected_only:
         roots = _join_large_surfaces(
@@ -1184,6 +1179,17 @@ def _surface_moments_kernel(dense, roots, endpoints, sigmas, min_points, surface
     return mom
 
 
+def checked_tolerances(surface_tolerance: float, noise_factor: float) -> tuple[float, float]:
+    """(tau, lambda) as floats; ValueError unless tau is a finite length > 0 m and lambda finite and >= 0."""
+    tau = float(surface_tolerance)
+    factor = float(noise_factor)
+    if not (np.isfinite(tau) and tau > 0.0):
+        raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
+    if not (np.isfinite(factor) and factor >= 0.0):
+        raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
+    return tau, factor
+
+
 def consolidated_surfaces(
     scan: RayScan,
     piece_ids: np.ndarray,
@@ -1204,12 +1210,7 @@ def consolidated_surfaces(
     Returns ``(H*W,)`` surface of each pixel (-1: none); the array is work memory, overwritten by
     this thread's next call (copy it to keep it).
     """
-    tau = float(surface_tolerance)
-    factor = float(noise_factor)
-    if not (np.isfinite(tau) and tau > 0.0):
-        raise ValueError(f'surface_tolerance must be a finite length > 0 m; got {surface_tolerance!r}')
-    if not (np.isfinite(factor) and factor >= 0.0):
-        raise ValueError(f'noise_factor must be finite and >= 0; got {noise_factor!r}')
+    tau, factor = checked_tolerances(surface_tolerance, noise_factor)
     large = _check_large_surface_points(large_surface_points)
     step2 = check_step_factor(step_factor) ** 2
     ids = np.ascontiguousarray(piece_ids, dtype=np.int64)

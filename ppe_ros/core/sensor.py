@@ -136,6 +136,16 @@ def check_step_factor(step_factor: float) -> float:
     return float(value)
 
 
+def check_boundary_join_points(min_points: int) -> int:
+    """``boundary_join_points`` (the boundary round's smallest surface, rays) as an int; ValueError unless it
+    is an integer >= 1."""
+    value = min_points
+    whole = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_) and float(value).is_integer()
+    if not whole or value < 1:
+        raise ValueError(f'boundary_join_points must be an integer >= 1 (rays of a surface) or None; got {value!r}')
+    return int(value)
+
+
 @dataclass(frozen=True)
 class SensorProfile:
     """The extraction settings of one kind of sensor.
@@ -184,6 +194,11 @@ class SensorProfile:
             where their planes are compared at the nearer piece's mean (the consolidation's step test;
             a plane extrapolated there also carries the pieces' tilt, as on a cambered road); 1 = the
             tolerance itself.
+        boundary_join_points: after the merges and the absorption, two surfaces of at least this many
+            rays that share a boundary (touching, or across at most 3 rays without a surface along a
+            row or column) are one surface when each is within t of their union's plane and their
+            planes meet at that boundary (a cambered road's halves; not a kerb: ppe_ros.core.boundary_join);
+            None = off.
     """
 
     name: str
@@ -206,9 +221,12 @@ class SensorProfile:
     block_seeds: bool = False
     large_surface_share: float | None = None
     step_factor: float = 1.0
+    boundary_join_points: int | None = None
 
     def __post_init__(self) -> None:
         check_step_factor(self.step_factor)
+        if self.boundary_join_points is not None:
+            check_boundary_join_points(self.boundary_join_points)
         if self.noise_scale_bounds is not None:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
@@ -318,6 +336,7 @@ PROFILES: dict[str, SensorProfile] = {
         seed_shapes='square',
         candidate_fits='one_step',
         fit_tolerance=PROFILE_FIT_TOLERANCE,
+        boundary_join_points=300,
     ),
     'depth_camera': SensorProfile(
         name='depth_camera',

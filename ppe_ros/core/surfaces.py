@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numba as nb
 import numpy as np
 
+from ppe_ros.core.boundary_join import BOUNDARY_GAP, join_at_boundaries
 from ppe_ros.core.chunks import group_chunks
 from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
 from ppe_ros.core.fitting import fit_pixel_groups
@@ -50,6 +51,7 @@ def whole_surfaces(
         share = None if profile is None else profile.large_surface_share
         large_points = 0 if share is None else max(1, math.ceil(share * int(np.count_nonzero(scan.valid))))
         step_factor = 1.0 if profile is None else profile.step_factor
+        boundary_points = None if profile is None else profile.boundary_join_points
         ids = _consolidate(
             unit_scan,
             ids,
@@ -60,6 +62,7 @@ def whole_surfaces(
             min_plane_points,
             large_points,
             step_factor,
+            boundary_points,
         )
     planes, _ = fit_pixel_groups(
         scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
@@ -121,10 +124,11 @@ def _consolidate(
     min_points: int,
     large_surface_points: int = 0,
     step_factor: float = 1.0,
+    boundary_join_points: int | None = None,
 ) -> np.ndarray:
-    """consolidate_pieces then absorb_rays, across the seam of a full revolution: in the columns (a
-    sweep with one row per beam) or in the rows (a transposed sweep, one column per beam), so that a
-    transposed grid gives the same surfaces."""
+    """consolidate_pieces then absorb_rays (then join_at_boundaries with boundary_join_points), across
+    the seam of a full revolution: in the columns (a sweep with one row per beam) or in the rows (a
+    transposed sweep, one column per beam), so that a transposed grid gives the same surfaces."""
     scan, order = unit_scan, None
     wrap = columns_wrap(unit_scan)
     if not wrap and rows_wrap(unit_scan):  # consolidate the transposed grid, whose columns wrap
@@ -153,6 +157,18 @@ def _consolidate(
         large_surface_points=large_surface_points,
         step_factor=step_factor,
     )
+    if boundary_join_points is not None:
+        ids = join_at_boundaries(
+            scan,
+            ids,
+            ray_sigmas,
+            tau,
+            boundary_join_points,
+            noise_factor=noise_factor,
+            step_factor=step_factor,
+            wrap_columns=wrap,
+            max_gap=0 if connected_only else BOUNDARY_GAP,
+        )
     if order is None:
         return ids
     back = np.empty_like(ids)

@@ -58,26 +58,28 @@ def _probe():
     """A function of this package's directory: numba's cache locators place its kernels' files by it."""
 
 
-def cache_directory() -> Path | None:
-    """The directory numba caches this package's kernels in (None: numba could not cache them).
+def cache_directory(probe=_probe) -> Path | None:
+    """The directory numba caches the kernels of ``probe``'s directory in (default: this package's; None:
+    numba could not cache them).
 
-    Asks numba's own locator (as a kernel of this directory would), so NUMBA_CACHE_DIR,
+    Asks numba's own locator (as a kernel of that directory would), so NUMBA_CACHE_DIR,
     NUMBA_CACHE_LOCATOR_CLASSES and the fallbacks (a read-only tree: the user-wide cache) are honoured.
     """
     from numba.core.caching import CompileResultCacheImpl
 
     try:
-        return Path(CompileResultCacheImpl(_probe).locator.get_cache_path())
+        return Path(CompileResultCacheImpl(probe).locator.get_cache_path())
     except RuntimeError:  # no locator available
         return None
 
 
-def clear_stale_cache(cache_dir: Path, module_stems: list[str], digest: str) -> bool:
-    """Delete the modules' numba cache files in cache_dir unless its stamp equals digest; write the stamp.
+def clear_stale_cache(cache_dir: Path, module_stems: list[str], digest: str, stamp_name: str = STAMP_NAME) -> bool:
+    """Delete the modules' numba cache files in cache_dir unless its stamp (file ``stamp_name``) equals
+    digest; write the stamp.
 
     Returns True when files were (or would have been) cleared: the stamp was missing or different.
     """
-    stamp = cache_dir / STAMP_NAME
+    stamp = cache_dir / stamp_name
     try:
         if stamp.read_text().strip() == digest:
             return False
@@ -98,7 +100,7 @@ def clear_stale_cache(cache_dir: Path, module_stems: list[str], digest: str) -> 
                 pass  # not ours to delete (read-only cache): numba keeps using its own checks
     try:
         cache_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile('w', dir=cache_dir, prefix=STAMP_NAME, delete=False) as handle:
+        with tempfile.NamedTemporaryFile('w', dir=cache_dir, prefix=stamp_name, delete=False) as handle:
             handle.write(digest + '\n')
         os.replace(handle.name, stamp)
     except OSError:
@@ -120,3 +122,15 @@ def guard_kernel_cache(package_dir: Path = PACKAGE_DIR, dependencies=DEPENDENCIE
     return clear_stale_cache(
         cache_dir, [m.stem for m in modules], sources_digest(kernel_sources(package_dir, dependencies))
     )
+
+
+def guard_module_cache(module: Path, dependencies: list[Path], cache_dir: Path | None) -> bool:
+    """Clear one module's cached kernels in cache_dir (the files of its stem) when its source or a
+    dependency's (a module whose njit helpers its kernels call or inline) changed since they were cached;
+    the stamp is ``<stem>.`` + STAMP_NAME. For a kernel module outside this package (e.g.
+    ppe_ros.core.boundary_join, which inlines ppe_ros.core.consolidation's helpers); returns True when
+    cleared. ``PPE_NUMBA_CACHE_GUARD=0`` switches it off too."""
+    if os.environ.get('PPE_NUMBA_CACHE_GUARD', '1') == '0' or cache_dir is None:
+        return False
+    digest = sources_digest([Path(module), *(Path(d) for d in dependencies)])
+    return clear_stale_cache(cache_dir, [Path(module).stem], digest, stamp_name=f'{Path(module).stem}.{STAMP_NAME}')
