@@ -191,7 +191,7 @@ def boundary_cost_reference(pa, pb, at_a, at_b, sigmas_a, sigmas_b, tau, noise_f
     deviation = max(_deviation(pa, normal, mean), _deviation(pb, normal, mean))
     excess_a = max(_mean_square_distance(at_a, nb, cb) - _mean_square_distance(at_a, na, ca), 0.0)
     excess_b = max(_mean_square_distance(at_b, na, ca) - _mean_square_distance(at_b, nb, cb), 0.0)
-    return max(deviation, 0.5 * (excess_a + excess_b) / step_factor**2) / allowed
+    return max(deviation, max(excess_a, excess_b) / step_factor**2) / allowed
 
 
 def boundary_join_reference(

@@ -73,6 +73,18 @@ def test_a_step_or_a_ramp_between_two_flat_surfaces_keeps_them_apart(height_of_x
     assert np.array_equal(_join(scan, ids, sigmas), ids)
 
 
+def test_a_kerb_stays_apart_when_rays_of_the_road_joined_the_pavement_next_to_it():
+    """The pavement's side of the boundary then lies on the road's plane; the road's side still lies the
+    kerb's height off the pavement's: each side is tested on its own (a mean of both would pass 6.5 cm)."""
+    scan, ids, sigmas = _halves(_ground(lambda x: np.where(x >= STEP * COLS / 2, 0.065, 0.0)))
+    grid = ids.reshape(ROWS, COLS)
+    grid[grid == 0], grid[grid == 1] = 2, 0  # the pavement (right) is surface 0, the road (left) surface 1
+    grid[grid == 2] = 1
+    grid[:, COLS // 2 - 2 : COLS // 2] = 0  # two columns of road rays in the pavement's surface
+    out = _join(scan, grid.reshape(-1), sigmas)
+    assert np.array_equal(out, grid.reshape(-1))
+
+
 def test_two_walls_at_ninety_degrees_stay_apart():
     points = _ground(lambda x: np.zeros_like(x))
     right = points[:, COLS // 2 :]

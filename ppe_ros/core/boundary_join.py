@@ -18,8 +18,10 @@ a full revolution when ``wrap_columns``). They are one surface when
   test: ``mean_P dist_U^2 - s_P^2 <= t^2`` for P = A, B, with its t),
 * their planes meet at the boundary: the boundary points of A lie no farther from B's plane than
   from A's own, and those of B no farther from A's plane than from B's own, by a mean square of at
-  most ``(kappa t)^2`` over both sides, ``(excess_A + excess_B) / 2 <= kappa^2 t^2`` with
-  ``excess_A = max(mean_{a} dist_B(a)^2 - mean_{a} dist_A(a)^2, 0)``, and
+  most ``(kappa t)^2`` on each side, ``max(excess_A, excess_B) <= kappa^2 t^2`` with
+  ``excess_A = max(mean_{a} dist_B(a)^2 - mean_{a} dist_A(a)^2, 0)`` (each side on its own: where
+  rays of the road joined the pavement's surface next to a kerb, the pavement's side of the boundary
+  lies on the road's plane, but the road's side still lies a kerb's height off the pavement's), and
 * their normals are at most ``max_bend_deg`` (MAX_BEND_DEG, 4 deg) apart.
 
 A crease (two planes that intersect where the surfaces meet) has no excess; a kerb beside the road
@@ -215,7 +217,7 @@ def _mean_square_distance(m, plane_row):
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _boundary_cost(mom, plane, side, p, a, b, tau2, noise_factor2, step_factor2, min_cos_bend):
     """Cost of joining surfaces a < b of pair p (admissible: <= 1): the larger of the deviation test's
-    max dev(P, U)^2 / t^2 and the boundary test's mean excess / (kappa t)^2 (module docstring); inf
+    max dev(P, U)^2 / t^2 and the boundary test's larger excess / (kappa t)^2 (module docstring); inf
     for a boundary of fewer than MIN_BOUNDARY_PAIRS pixel pairs (which may grow as surfaces join)."""
     if side[2 * p, 0] < MIN_BOUNDARY_PAIRS:
         return np.inf
@@ -233,7 +235,7 @@ def _boundary_cost(mom, plane, side, p, a, b, tau2, noise_factor2, step_factor2,
     side_a, side_b = side[2 * p], side[2 * p + 1]
     excess_a = max(_mean_square_distance(side_a, plane_b) - _mean_square_distance(side_a, plane_a), 0.0)
     excess_b = max(_mean_square_distance(side_b, plane_a) - _mean_square_distance(side_b, plane_b), 0.0)
-    return max(deviation, 0.5 * (excess_a + excess_b) / step_factor2) / allowed
+    return max(deviation, max(excess_a, excess_b) / step_factor2) / allowed
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
