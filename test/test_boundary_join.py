@@ -103,6 +103,13 @@ def test_a_boundary_crosses_at_most_max_gap_rays_without_a_surface(gap, max_gap,
     assert np.array_equal(out, np.where(ids >= 0, 0, -1) if joined else ids)
 
 
+def test_any_non_negative_ids_give_the_same_surfaces_with_their_own_ids():
+    scan, ids, sigmas = _halves(_ground(_crown()), gap=1)
+    sparse = np.where(ids >= 0, 10**12 + 7 * ids, -1)  # far beyond the pixel count
+    out = _join(scan, sparse, sigmas)
+    assert np.array_equal(out, np.where(ids >= 0, 10**12, -1))
+
+
 def test_surfaces_below_min_points_and_short_boundaries_take_no_part():
     scan, ids, sigmas = _halves(_ground(_crown()))
     assert np.array_equal(_join(scan, ids, sigmas, min_points=601), ids)  # each half holds 600 rays
@@ -166,6 +173,11 @@ def test_bad_arguments_are_clear_errors():
         join_at_boundaries(scan, ids, sigmas, TAU, 300, max_gap=-1)
     with pytest.raises(ValueError, match='one entry per pixel'):
         join_at_boundaries(scan, ids[:-1], sigmas, TAU, 300)
+    with pytest.raises(ValueError, match='sigmas must have one entry per pixel'):
+        join_at_boundaries(scan, ids, sigmas[:-1], TAU, 300)
+    for bend in (-1.0, 91.0, 'steep', True):
+        with pytest.raises(ValueError, match='max_bend_deg'):
+            join_at_boundaries(scan, ids, sigmas, TAU, 300, max_bend_deg=bend)
     for bad in (0, 2.5, True, 'many'):
         with pytest.raises(ValueError, match='boundary_join_points'):
             SensorProfile(name='x', boundary_join_points=bad)

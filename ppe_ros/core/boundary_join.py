@@ -122,16 +122,23 @@ def join_at_boundaries(
     step2 = check_step_factor(step_factor) ** 2
     if isinstance(max_gap, bool) or not isinstance(max_gap, numbers.Integral) or max_gap < 0:
         raise ValueError(f'max_gap must be an integer >= 0; got {max_gap!r}')
-    bend = float(max_bend_deg)
-    if not 0.0 <= bend <= 90.0:
+    if isinstance(max_bend_deg, bool) or not isinstance(max_bend_deg, numbers.Real) or not 0 <= max_bend_deg <= 90:
         raise ValueError(f'max_bend_deg must be an angle in [0, 90] deg; got {max_bend_deg!r}')
-    ids = np.ascontiguousarray(surface_ids, dtype=np.int64)
-    if ids.shape != (scan.size,):
-        raise ValueError(f'surface_ids must have one entry per pixel ({scan.size}); got shape {ids.shape}')
-    if ids.size == 0 or ids.max() < 0:
-        return ids.copy()
+    bend = float(max_bend_deg)
+    given = np.ascontiguousarray(surface_ids, dtype=np.int64)
+    if given.shape != (scan.size,):
+        raise ValueError(f'surface_ids must have one entry per pixel ({scan.size}); got shape {given.shape}')
+    if np.shape(sigmas) != (scan.size,):
+        raise ValueError(f'sigmas must have one entry per pixel ({scan.size}); got shape {np.shape(sigmas)}')
+    if given.size == 0 or given.max() < 0:
+        return given.copy()
+    ids, labels = given, None
+    if given.max() >= given.size:  # sparse ids: numbered 0..S-1 here (in order), given back at the end
+        labels, dense = np.unique(given[given >= 0], return_inverse=True)
+        ids = np.full_like(given, -1)
+        ids[given >= 0] = dense
     n = int(ids.max()) + 1
-    ray_sigmas = np.where(np.isfinite(sigmas), sigmas, 0.0)
+    ray_sigmas = np.where(np.isfinite(sigmas), np.asarray(sigmas, dtype=np.float64), 0.0)
     moments = _piece_moments(ids, scan.endpoints, ray_sigmas, n)
     large = moments[:, 0] >= points
     pixel_pairs = _boundary_pixel_pairs(ids, large, scan.height, scan.width, bool(wrap_columns), int(max_gap))
@@ -148,7 +155,7 @@ def join_at_boundaries(
     )
     out = ids.copy()
     valid = out >= 0
-    out[valid] = roots[out[valid]]
+    out[valid] = roots[out[valid]] if labels is None else labels[roots[out[valid]]]
     return out
 
 
