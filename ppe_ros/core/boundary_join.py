@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import threading
 from pathlib import Path
 
 import numba as nb
@@ -64,19 +65,23 @@ def _cache_probe():
 
 
 _cache_guarded = []
+_cache_guard_lock = threading.Lock()
 
 
 def _guard_cache() -> None:
     """Once per process, before this module's first kernel is loaded: numba keys a cached kernel on its own
     file, and the kernels here inline consolidation.py's helpers, so their cache is dropped when
-    consolidation.py changed (ppe_ros.core.ppe.cache_guard.guard_module_cache)."""
+    consolidation.py changed (ppe_ros.core.ppe.cache_guard.guard_module_cache). Threads that call at once
+    wait for the first one's guard."""
     if _cache_guarded:
         return
     from ppe_ros.core.ppe.cache_guard import cache_directory, guard_module_cache  # not at import: a cycle
 
-    here = Path(__file__).resolve()
-    guard_module_cache(here, [here.with_name('consolidation.py')], cache_directory(_cache_probe))
-    _cache_guarded.append(True)
+    with _cache_guard_lock:
+        if not _cache_guarded:
+            here = Path(__file__).resolve()
+            guard_module_cache(here, [here.with_name('consolidation.py')], cache_directory(_cache_probe))
+            _cache_guarded.append(True)
 
 
 #: Rays without a surface that a boundary between two surfaces may cross along a row or column.
