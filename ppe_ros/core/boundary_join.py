@@ -47,13 +47,12 @@ import numpy as np
 from ppe_ros.core.consolidation import (
     _add_pair,
     _add_ray,
-    _deviation,
+    _mean_square_distance,
     _piece_moments,
     _plane_of,
     _plane_rows,
     _scatter,
-    _smallest_eigen,
-    _union_scatter,
+    _union_deviation,
     checked_tolerances,
 )
 from ppe_ros.core.scan import RayScan
@@ -215,15 +214,14 @@ def _side_moments(endpoints, sigmas, pixel_pairs, pair_index, n_pairs):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _mean_square_distance(m, plane_row):
+def _side_square_distance(m, plane_row):
     """Mean squared distance (m^2) of points with moments m (count, sums, sums of products) from the
     plane of a _plane_of row (through its mean, along its normal)."""
     mean, sc = _scatter(m)
-    n0, n1, n2 = plane_row[10], plane_row[11], plane_row[12]
-    q = n0 * n0 * sc[0] + n1 * n1 * sc[3] + n2 * n2 * sc[5]
-    q += 2.0 * (n0 * n1 * sc[1] + n0 * n2 * sc[2] + n1 * n2 * sc[4])
-    offset = n0 * (mean[0] - plane_row[0]) + n1 * (mean[1] - plane_row[1]) + n2 * (mean[2] - plane_row[2])
-    return q + offset * offset
+    return _mean_square_distance(
+        mean[0], mean[1], mean[2], sc[0], sc[1], sc[2], sc[3], sc[4], sc[5],
+        plane_row[10], plane_row[11], plane_row[12], plane_row[0], plane_row[1], plane_row[2],
+    )  # fmt: skip
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -236,17 +234,10 @@ def _boundary_cost(mom, plane, side, p, a, b, tau2, noise_factor2, step_factor2,
     plane_a, plane_b = plane[a], plane[b]
     if abs(plane_a[10] * plane_b[10] + plane_a[11] * plane_b[11] + plane_a[12] * plane_b[12]) < min_cos_bend:
         return np.inf
-    mean_u, sc = _union_scatter(mom, a, b)
-    _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
-    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
-    allowed = tau2 + noise_factor2 * scatter
-    deviation = max(
-        _deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]),
-        _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]),
-    )
+    deviation, allowed, _, _, _ = _union_deviation(mom, plane, a, b, tau2, noise_factor2)
     side_a, side_b = side[2 * p], side[2 * p + 1]
-    excess_a = max(_mean_square_distance(side_a, plane_b) - _mean_square_distance(side_a, plane_a), 0.0)
-    excess_b = max(_mean_square_distance(side_b, plane_a) - _mean_square_distance(side_b, plane_b), 0.0)
+    excess_a = max(_side_square_distance(side_a, plane_b) - _side_square_distance(side_a, plane_a), 0.0)
+    excess_b = max(_side_square_distance(side_b, plane_a) - _side_square_distance(side_b, plane_b), 0.0)
     return max(deviation, max(excess_a, excess_b) / step_factor2) / allowed
 
 

@@ -53,13 +53,11 @@ kernel is tested against.
 
 from __future__ import annotations
 
-import numbers
-
 import numba as nb
 import numpy as np
 
 from ppe_ros.core.scan import RayScan
-from ppe_ros.core.sensor import check_step_factor
+from ppe_ros.core.sensor import check_step_factor, is_whole_number
 from ppe_ros.core.thread_pool import SharedThreadPool, run_tasks
 from ppe_ros.core.work_memory import WorkMemory
 
@@ -182,17 +180,38 @@ def _plane_of(m, out):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _mean_square_distance(m0, m1, m2, s00, s01, s02, s11, s12, s22, n0, n1, n2, c0, c1, c2):
+    """Mean squared distance (m^2) of points with mean m and per-point scatter s (xx xy xz yy yz zz)
+    from the plane with unit normal n through c."""
+    q = n0 * n0 * s00 + n1 * n1 * s11 + n2 * n2 * s22 + 2.0 * (n0 * n1 * s01 + n0 * n2 * s02 + n1 * n2 * s12)
+    offset = n0 * (m0 - c0) + n1 * (m1 - c1) + n2 * (m2 - c2)
+    return q + offset * offset
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _deviation(piece, n0, n1, n2, c0, c1, c2):
     """dev^2 (m^2) of a piece (its _plane_of row) from the plane with unit normal n through c: the mean
     squared distance of its points from that plane less that from its own plane."""
-    q = (
-        n0 * n0 * piece[3]
-        + n1 * n1 * piece[6]
-        + n2 * n2 * piece[8]
-        + 2.0 * (n0 * n1 * piece[4] + n0 * n2 * piece[5] + n1 * n2 * piece[7])
+    square = _mean_square_distance(
+        piece[0], piece[1], piece[2], piece[3], piece[4], piece[5], piece[6], piece[7], piece[8], n0, n1, n2, c0, c1, c2
     )
-    offset = n0 * (piece[0] - c0) + n1 * (piece[1] - c1) + n2 * (piece[2] - c2)
-    return max(q + offset * offset - piece[9], 0.0)
+    return max(square - piece[9], 0.0)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _union_deviation(mom, plane, a, b, tau2, noise_factor2):
+    """The deviation test of pieces A and B (rows a, b of moments and _plane_of rows): (max dev(P, U)^2 over
+    P = A, B, t^2, and U's unit normal u0, u1, u2), U the union's LS plane, t^2 = tau^2 + lambda^2
+    min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))."""
+    mean_u, sc = _union_scatter(mom, a, b)
+    _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
+    plane_a, plane_b = plane[a], plane[b]
+    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
+    deviation = max(
+        _deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]),
+        _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]),
+    )
+    return deviation, tau2 + noise_factor2 * scatter, u0, u1, u2
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -207,20 +226,13 @@ def _merge_cost(mom, plane, a, b, tau2, noise_factor2, step_factor2):
     its mean). mom: (K, 11) moments; plane: their _plane_of rows (K, 13); a, b: the pieces' rows (indices,
     not row views: a view of a row per call costs a reference count increment and decrement).
     """
-    mean_u, sc = _union_scatter(mom, a, b)
-    _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
+    deviation, allowed, u0, u1, u2 = _union_deviation(mom, plane, a, b, tau2, noise_factor2)
     plane_a, plane_b = plane[a], plane[b]
-    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
-    allowed_a = allowed_b = tau2 + noise_factor2 * scatter
-    cost = max(
-        _deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_a,
-        _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]) / allowed_b,
-    )
     # at each piece's mean its own plane is at 0: the step there is the other plane's distance
     step_at_a = _along_normal(plane_b, plane_a[0], plane_a[1], plane_a[2], u0, u1, u2)
     step_at_b = _along_normal(plane_a, plane_b[0], plane_b[1], plane_b[2], u0, u1, u2)
     step2 = min(step_at_a * step_at_a, step_at_b * step_at_b)
-    return max(cost, step2 / (step_factor2 * min(allowed_a, allowed_b)))
+    return max(deviation / allowed, step2 / (step_factor2 * allowed))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -973,8 +985,7 @@ def consolidate_pieces(
 
 def _check_large_surface_points(large_surface_points: int) -> int:
     value = large_surface_points
-    whole = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_) and float(value).is_integer()
-    if not (whole and value >= 0):
+    if not (is_whole_number(value) and value >= 0):
         raise ValueError(f'large_surface_points must be a whole number of rays >= 0 (0: off); got {value!r}')
     return int(value)
 

@@ -136,12 +136,16 @@ def check_step_factor(step_factor: float) -> float:
     return float(value)
 
 
+def is_whole_number(value) -> bool:
+    """True for a real number with no fractional part (not a bool): a count given as 300 or 300.0."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_) and float(value).is_integer()
+
+
 def check_boundary_join_points(min_points: int) -> int:
     """``boundary_join_points`` (the boundary round's smallest surface, rays) as an int; ValueError unless it
     is an integer >= 1."""
     value = min_points
-    whole = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_) and float(value).is_integer()
-    if not whole or value < 1:
+    if not is_whole_number(value) or value < 1:
         raise ValueError(f'boundary_join_points must be an integer >= 1 (rays of a surface) or None; got {value!r}')
     return int(value)
 

@@ -132,5 +132,6 @@ def guard_module_cache(module: Path, dependencies: list[Path], cache_dir: Path |
     cleared. ``PPE_NUMBA_CACHE_GUARD=0`` switches it off too."""
     if os.environ.get('PPE_NUMBA_CACHE_GUARD', '1') == '0' or cache_dir is None:
         return False
-    digest = sources_digest([Path(module), *(Path(d) for d in dependencies)])
-    return clear_stale_cache(cache_dir, [Path(module).stem], digest, stamp_name=f'{Path(module).stem}.{STAMP_NAME}')
+    module = Path(module)
+    digest = sources_digest([module, *(Path(d) for d in dependencies)])
+    return clear_stale_cache(cache_dir, [module.stem], digest, stamp_name=f'{module.stem}.{STAMP_NAME}')
