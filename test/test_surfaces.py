@@ -701,3 +701,90 @@ def test_the_lidar_profile_seeds_with_squares():
         extract_planes(scan.points, origins=scan.origins, sensor='lidar').labels, labels['square']
     )
     assert (labels['square'] != labels['all']).mean() > 0.01
+
+
+def _chamfered_shelf_scan(rng, chamfer_rows=2, chamfer_step=0.006):
+    """A wall 3 m ahead (rows 0-39), a 45 deg chamfer of ``chamfer_rows`` rows (each ``chamfer_step`` m
+    back and up) along its top edge and a shelf top above it (the remaining rows, horizontal, about 20 cm
+    deep), 1 mm noise, seen by a pinhole at the origin. Returns the scan and the ids (0 wall, 1 chamfer,
+    2 shelf top)."""
+    rows, cols = 60, 120
+    y = np.linspace(-1.0, 1.0, cols)
+    points = np.empty((rows, cols, 3))
+    ids = np.zeros((rows, cols), np.int64)
+    for r in range(rows):
+        if r < 40:  # the wall x = 3, z from -1 to 0.3
+            x, z = 3.0, -1.0 + 1.3 * r / 39
+        elif r < 40 + chamfer_rows:  # the chamfer: x and z change together
+            step = (r - 39) * chamfer_step
+            x, z, ids[r] = 3.0 - step, 0.3 + step, 1
+        else:  # the shelf top z = 0.3 + chamfer, x from the chamfer's end back to 2.8
+            top = 0.3 + chamfer_rows * chamfer_step
+            depth = 0.2 * (r - 40 - chamfer_rows) / (rows - 41 - chamfer_rows)
+            x, z, ids[r] = 3.0 - chamfer_rows * chamfer_step - depth, top, 2
+        points[r, :, 0] = x
+        points[r, :, 1] = y * x / 3.0
+        points[r, :, 2] = z
+    points += rng.normal(0.0, 0.001, points.shape)
+    return make_ray_scan(points), ids
+
+
+def _width_reference(points, labels):
+    """Slow, obviously correct width of each plane (label j + 1): sqrt(12 l2) of its points' covariance."""
+    return np.array(
+        [
+            np.sqrt(12.0 * np.linalg.eigvalsh(np.cov(points[labels == j].T, bias=True))[1])
+            for j in range(1, labels.max() + 1)
+        ]
+    )
+
+
+def test_the_width_test_drops_a_sliver_along_an_edge_but_not_the_faces_beside_it():
+    """min_plane_width: a chamfer two rows (about 2 cm) wide is no plane; the wall and the 20 cm shelf top
+    stay; the kept planes are those whose points span at least the width (the per-plane reference)."""
+    from ppe_ros.core.fitting import fit_pixel_groups
+    from ppe_ros.core.surfaces import _drop_non_planar
+
+    scan, ids = _chamfered_shelf_scan(np.random.default_rng(2))
+    planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    sigmas = np.where(scan.valid, 0.001, np.nan)
+    widths = _width_reference((scan.endpoints + scan.center).reshape(-1, 3), planes.labels.reshape(-1))
+    by_id = {
+        int(np.bincount(ids.reshape(-1)[planes.labels.reshape(-1) == j + 1]).argmax()): widths[j] for j in range(3)
+    }
+    assert by_id[1] < 0.03 < by_id[2] < by_id[0]
+
+    def kept(min_width):
+        out = _drop_non_planar(scan, planes, sigmas, 0.005, 0.0, np.inf, None, np.inf, min_width)[0]
+        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+
+    assert kept(None) == [0, 1, 2]
+    assert kept(0.03) == [0, 2]
+    for width in (0.5 * by_id[1], 0.5 * (by_id[1] + by_id[2]), 0.5 * (by_id[2] + by_id[0]), 2.0 * by_id[0]):
+        assert kept(width) == sorted(i for i in (0, 1, 2) if by_id[i] >= width)
+
+
+def test_the_depth_profile_reports_no_plane_on_a_narrow_chamfer_but_keeps_a_wide_one():
+    """End to end: the depth camera profile (min_plane_width 3 cm) keeps the wall and the shelf top of the
+    chamfered shelf and drops a chamfer 2.6 cm wide, which the same profile without the width test reports;
+    a chamfer 5 cm wide is a plane with the test too."""
+    from ppe_ros.core.sensor import sensor_profile
+
+    depth = sensor_profile('depth_camera')
+    assert depth.min_plane_width == 0.03
+
+    def faces(chamfer_rows, chamfer_step, profile):
+        scan, ids = _chamfered_shelf_scan(np.random.default_rng(4), chamfer_rows, chamfer_step)
+        planes = extract_planes(scan.endpoints.reshape(60, 120, 3) + scan.center, sensor=profile)
+        labels = planes.labels.reshape(-1)
+        return sorted({int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()) for j in range(planes.num_planes)})
+
+    assert faces(2, 0.007, dataclasses.replace(depth, min_plane_width=None)) == [0, 1, 2]
+    assert faces(2, 0.007, depth) == [0, 2]
+    assert faces(4, 0.008, depth) == [0, 1, 2]
+
+
+@pytest.mark.parametrize('width', [0.0, -0.01, float('nan'), float('inf'), True, '0.03'])
+def test_min_plane_width_must_be_a_positive_width(width):
+    with pytest.raises(ValueError, match='min_plane_width'):
+        SensorProfile(name='mine', min_plane_width=width)

@@ -203,6 +203,9 @@ class SensorProfile:
             row or column) are one surface when each is within t of their union's plane and their
             planes meet at that boundary (a cambered road's halves; not a kerb: ppe_ros.core.boundary_join);
             None = off.
+        min_plane_width: w (m): a plane whose points span less than w across (sqrt(12 l2), l2 the
+            scatter's second-largest eigenvalue: the width of a uniform strip) is reported as no plane
+            (a sliver along a rounded edge, whose curvature across it is too narrow to see); None = off.
     """
 
     name: str
@@ -226,6 +229,7 @@ class SensorProfile:
     large_surface_share: float | None = None
     step_factor: float = 1.0
     boundary_join_points: int | None = None
+    min_plane_width: float | None = None
 
     def __post_init__(self) -> None:
         check_step_factor(self.step_factor)
@@ -244,6 +248,11 @@ class SensorProfile:
             raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
         if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
             raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
+        width = self.min_plane_width
+        if width is not None and (
+            isinstance(width, bool) or not (isinstance(width, numbers.Real) and np.isfinite(width) and width > 0)
+        ):
+            raise ValueError(f'min_plane_width must be a width > 0 m or None; got {width!r}')
         share = self.large_surface_share
         if share is not None and (isinstance(share, bool) or not (isinstance(share, numbers.Real) and 0 < share <= 1)):
             raise ValueError(f'large_surface_share must be a share in (0, 1] of the valid rays or None; got {share!r}')
@@ -354,6 +363,7 @@ PROFILES: dict[str, SensorProfile] = {
         noise_scale_bounds=(0.1, 4.0),
         quadrant_jackknife=True,
         large_surface_share=0.025,
+        min_plane_width=0.03,
     ),
 }
 

@@ -69,8 +69,9 @@ def whole_surfaces(
     )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     curvature_factor = np.inf if profile is None else profile.max_plane_curvature_factor
+    min_width = None if profile is None else profile.min_plane_width
     sums = None  # the planes' _plane_sums with ray_sigmas, when computed
-    if (np.isfinite(factor) or np.isfinite(curvature_factor)) and planes.num_planes:
+    if (np.isfinite(factor) or np.isfinite(curvature_factor) or min_width is not None) and planes.num_planes:
         planes, sums = _drop_non_planar(
             unit_scan,
             planes,
@@ -80,6 +81,7 @@ def whole_surfaces(
             factor,
             profile.flatness_length,
             curvature_factor,
+            min_width,
         )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         independent = _independent_sigmas(unit_scan, ray_sigmas, profile)
@@ -342,6 +344,7 @@ def _drop_non_planar(
     factor: float,
     flatness_length: float | None = None,
     curvature_factor: float = np.inf,
+    min_width: float | None = None,
 ) -> tuple[PlaneSet, tuple]:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
@@ -365,6 +368,9 @@ def _drop_non_planar(
     if np.isfinite(curvature_factor):
         curvature = curvature_rms(scan, planes, centroid, scatter)
         planar &= curvature**2 <= float(curvature_factor) ** 2 * tau2
+    if min_width is not None:
+        middle = np.linalg.eigvalsh(scatter)[:, 1]
+        planar &= 12.0 * np.maximum(middle, 0.0) >= float(min_width) ** 2
     if planar.all():
         return planes, sums
     return _kept_planes(planes, planar), tuple(column[planar] for column in sums)
