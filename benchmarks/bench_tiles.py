@@ -13,6 +13,11 @@ medians (and minima) over the repeats after one warm-up call; "seeds + greedy" i
 process's CPU time of the call (all threads: the work, which other processes' load changes less than the
 wall time; on a loaded machine a second thread waits for a core and the wall times of 2 threads mislead).
 
+First, the machine's own two-thread ceiling: two copies of a small nogil kernel run at once on two
+threads against one copy alone (SCALING_KERNELS: dependent arithmetic, random reads in 8 MB and in 64 MB),
+as a throughput ratio (2.00x: two independent cores; less where the two vCPUs share a physical core or
+its caches and memory are contended). The extraction's "2 threads vs 1" is judged against it.
+
 Accuracy: the same two settings (1 tile, auto) on generated OS-1-128 and OS-1-32 street sweeps
 (ppe_ros.core.synthetic_real, test-split seeds 1000, 1001, ...) scored against their per-surface ground
 truth (f, k of score_segmentation), and on every real Ouster sweep the plane counts the real-data benchmark
@@ -105,6 +110,83 @@ def speed_table(repeats: int) -> list[str]:
     return lines
 
 
+@numba.njit(cache=True, nogil=True)
+def _dependent_arithmetic(steps):
+    """A chain of dependent multiply-adds: bound by one core's arithmetic, not by memory."""
+    total, x = 0.0, 1.0001
+    for _ in range(steps):
+        total += x * 1.0000001
+        x = x * 0.9999999 + 1e-9
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _random_reads(values, steps):
+    """Reads of ``values`` at pseudo-random positions (a stride coprime with its length): bound by the
+    caches and memory, as the greedy's scattered reads of its plane and queue state are."""
+    total, n = 0.0, len(values)
+    for i in range(steps):
+        total += values[(i * 7919) % n]
+    return total
+
+
+#: (kernel, size of its data in MB, steps): the machine's own two-thread ceiling for that kind of work
+SCALING_KERNELS = (
+    ('dependent arithmetic (no memory)', 0, 100_000_000),
+    ('random reads in 8 MB (the L3 cache)', 8, 20_000_000),
+    ('random reads in 64 MB (main memory)', 64, 10_000_000),
+)
+
+
+def _one_and_two(run, repeats: int) -> tuple[float, float]:
+    """Median seconds of ``run()`` alone and of the slower of two copies run at once on two threads."""
+    import threading
+
+    def timed(seconds: list, slot: int) -> None:
+        begin = time.perf_counter()
+        run()
+        seconds[slot] = time.perf_counter() - begin
+
+    alone, both = [], []
+    for _ in range(repeats):
+        one, two = [0.0], [0.0, 0.0]
+        timed(one, 0)
+        helper = threading.Thread(target=timed, args=(two, 1))
+        helper.start()
+        timed(two, 0)
+        helper.join()
+        alone.append(one[0])
+        both.append(max(two))
+    return float(np.median(alone)), float(np.median(both))
+
+
+def machine_scaling_table(repeats: int) -> list[str]:
+    """What a second thread gains on this machine for work bound by arithmetic and by memory: the throughput
+    of two copies of a kernel run at once relative to one copy alone (2.00x: two independent cores). The
+    extraction's "2 threads vs 1" can only approach the ratio of work like its own (scattered reads)."""
+    lines = [
+        '| kernel (nogil numba, one copy per thread) | one copy s | two copies at once s '
+        '| 2 threads vs 1 (throughput) |',
+        '|---|---:|---:|---:|',
+    ]
+    rng = np.random.default_rng(0)
+    for label, megabytes, steps in SCALING_KERNELS:
+        if megabytes:
+            values = rng.random(megabytes * 2**20 // 8)
+
+            def run(values=values, steps=steps):
+                return _random_reads(values, steps)
+        else:
+
+            def run(steps=steps):
+                return _dependent_arithmetic(steps)
+
+        run()  # compile (or load from the cache) before timing
+        alone, both = _one_and_two(run, repeats)
+        lines.append(f'| {label} | {alone:.3f} | {both:.3f} | {2 * alone / both:.2f}x |')
+    return lines
+
+
 def accuracy_tables(n_scans: int) -> list[str]:
     from ppe_ros.benchmark.real import count_planes, share_in_large_planes
     from ppe_ros.core.evaluation import score_segmentation
@@ -173,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
         f'machine: {machine_description()}; numba threads available: {numba.config.NUMBA_NUM_THREADS}; '
         f'command: {command.strip()}; {time.strftime("%Y-%m-%d %H:%M")}\n'
     )
+    for line in machine_scaling_table(repeats):
+        print(line, flush=True)
+    print()
     for line in speed_table(repeats):
         print(line, flush=True)
     if n_scans:
