@@ -16,7 +16,9 @@ Seeds 1000-1999 are the test split of `ppe dataset make --kind lidar|depth_camer
 the profiles' defaults were chosen on seeds below 1000. Prints one markdown table per sensor kind (f and k
 pooled over the seeds as in ppe eval: f = correct / GT regions, k = mean over scans), for PPE the covariance
 calibration against the generated true planes (ppe_ros.benchmark.real.truth_mahalanobis: the median
-Mahalanobis² of the planes of >= 1000 points, with their count), and the machine.
+Mahalanobis² of the planes of >= 1000 points, with their count), the share of the clutter's points (trees,
+cars, people, plants, lamps: CLUTTER_LABEL, non-planar things that should be no plane) that a method puts
+in planes, and the machine.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from ppe_ros import extract_planes
 from ppe_ros.benchmark.real import CHI2_3_MEDIAN, profile_with_settings, truth_mahalanobis
 from ppe_ros.benchmark.report import machine_description
 from ppe_ros.core.evaluation import score_segmentation
-from ppe_ros.core.synthetic_real import generate_depth_scan, generate_lidar_scan
+from ppe_ros.core.synthetic_real import CLUTTER_LABEL, generate_depth_scan, generate_lidar_scan
 
 GENERATORS = {'lidar': generate_lidar_scan, 'depth_camera': generate_depth_scan}
 
@@ -102,13 +104,16 @@ def run(
         scans = [GENERATORS[kind](seed=seed) for seed in seeds]
         rows = []
         for name, method in methods(kind, with_ransac, peac, settings):
-            scores, seconds, calibration = [], [], []
+            scores, seconds, calibration, clutter = [], [], [], [0, 0]
             for scan in scans:
                 start = time.perf_counter()
                 result = method(scan.points, getattr(scan, 'origins', None))
                 seconds.append(time.perf_counter() - start)
                 labels = getattr(result, 'labels', result)
                 scores.append(score_segmentation(labels, scan.labels))
+                on_clutter = np.asarray(scan.labels).reshape(np.shape(labels)) == CLUTTER_LABEL
+                clutter[0] += int(np.count_nonzero(np.asarray(labels)[on_clutter] > 0))
+                clutter[1] += int(np.count_nonzero(on_clutter))
                 if hasattr(result, 'covariances'):  # PPE's planes: their covariances against the true planes
                     calibration.extend(
                         truth_mahalanobis(
@@ -118,10 +123,13 @@ def run(
             f = sum(s.n_correct for s in scores) / max(sum(s.n_gt for s in scores), 1)
             k = float(np.mean([s.k for s in scores]))
             mahalanobis = f'{np.nanmedian(calibration):.2f} ({len(calibration)})' if calibration else ''
-            rows.append(f'| {name} | {100 * f:.1f} % | {100 * k:.1f} % | {mahalanobis} | {np.median(seconds):.2f} |')
+            in_planes = f'{100 * clutter[0] / clutter[1]:.1f} %' if clutter[1] else ''
+            cells = (f'{100 * f:.1f} %', f'{100 * k:.1f} %', in_planes, mahalanobis, f'{np.median(seconds):.2f}')
+            rows.append(f'| {name} | ' + ' | '.join(cells) + ' |')
         print(
-            f'\n### {kind} ({len(seeds)} scans)\n\n| method | f | k | median Mahalanobis² vs the true planes '
-            f'(planes >= 1000 points; calibrated {CHI2_3_MEDIAN:.2f}) | median s per scan |\n|---|---|---|---|---|'
+            f'\n### {kind} ({len(seeds)} scans)\n\n| method | f | k | clutter points in planes | median Mahalanobis² '
+            f'vs the true planes (planes >= 1000 points; calibrated {CHI2_3_MEDIAN:.2f}) | median s per scan |'
+            '\n|---|---|---|---|---|---|'
         )
         print('\n'.join(rows))
 

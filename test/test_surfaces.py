@@ -788,3 +788,80 @@ def test_the_depth_profile_reports_no_plane_on_a_narrow_chamfer_but_keeps_a_wide
 def test_min_plane_width_must_be_a_positive_width(width):
     with pytest.raises(ValueError, match='min_plane_width'):
         SensorProfile(name='mine', min_plane_width=width)
+
+
+def test_the_curvature_test_judges_only_planes_below_its_size_limit():
+    """curvature_max_size: the pole (a half cylinder 2 m tall, size D about 0.75 m) is judged by the curvature
+    test below a limit above its size and kept above it; the kept planes are those the per-plane reference
+    (np.cov sizes, least-squares quadric bends) does not find both smaller than the limit and bent."""
+    from ppe_ros.core.fitting import fit_pixel_groups
+    from ppe_ros.core.surfaces import _drop_non_planar
+
+    scan, ids = _pole_and_panel_scan(np.random.default_rng(5))
+    planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
+    sigmas = np.where(scan.valid, 0.035, np.nan)
+    points = (scan.endpoints + scan.center).reshape(-1, 3)
+    labels = planes.labels.reshape(-1)
+    values = [np.linalg.eigvalsh(np.cov(points[labels == j + 1].T, bias=True)) for j in range(planes.num_planes)]
+    size = np.array([np.sqrt(12.0 * np.sqrt(v[2] * v[1])) for v in values])
+    bend = _curvature_reference(points, labels)
+    tau_d = 0.05 * np.minimum(1.0, size / 4.0)
+    by_id = {int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()): j for j in range(planes.num_planes)}
+    assert 0.5 < size[by_id[1]] < 1.0 and bend[by_id[1]] > 1.3 * tau_d[by_id[1]]
+
+    def kept(limit):
+        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, 1.3, None, limit)[0]
+        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+
+    assert kept(None) == kept(1.0) == [0, 2]
+    assert kept(0.5) == [0, 1, 2]
+    for limit in (0.2, 0.5, 1.0, 3.0):
+        judged = (size < limit) & (bend > 1.3 * tau_d)
+        assert kept(limit) == sorted(i for i, j in by_id.items() if not judged[j])
+
+
+def _ball_and_box_frame(rng, radius=0.25):
+    """A 320 x 240 pinhole frame (f 285 px): a wall 2.5 m ahead, a ball of ``radius`` whose front is 2 m
+    ahead at x = -0.3 m and a flat box face 0.24 x 0.4 m at 2 m, x = +0.3 m; 1 mm noise along the
+    rays' depth. Returns the (H, W, 3) points and the ids (0 wall, 1 ball, 2 box face)."""
+    height, width, focal = 240, 320, 285.0
+    v, u = np.mgrid[0:height, 0:width]
+    x, y = (u - width / 2) / focal, (v - height / 2) / focal  # the ray through a pixel: (x, y, 1) z
+    z = np.full((height, width), 2.5)
+    ids = np.zeros((height, width), np.int64)
+    centre = 2.0 + radius  # the ball's centre (-0.3, 0, centre): solve |(x z + 0.3, y z, z - centre)| = radius
+    a, b, c = x * x + y * y + 1.0, 2.0 * (0.3 * x - centre), 0.09 + centre**2 - radius**2
+    disc = b * b - 4.0 * a * c
+    ball = disc > 0
+    z[ball] = (-b[ball] - np.sqrt(disc[ball])) / (2.0 * a[ball])
+    ids[ball] = 1
+    box = (np.abs(2.0 * x - 0.3) < 0.12) & (np.abs(2.0 * y) < 0.2)
+    z[box], ids[box] = 2.0, 2
+    z = z + rng.normal(0.0, 0.001, z.shape)
+    return np.stack([x * z, y * z, z], axis=-1), ids
+
+
+def test_the_depth_profile_leaves_a_ball_unlabelled_and_keeps_a_flat_face_of_its_size():
+    """End to end: with the depth camera profile's curvature test (planes under 1 m must bend by no more
+    than 3 tau D / 1 m) no plane lies on a ball of radius 0.25 m; without the test several pieces of it
+    are planes. The flat box face of the same size and the wall are planes either way."""
+    from ppe_ros.core.sensor import sensor_profile
+
+    points, ids = _ball_and_box_frame(np.random.default_rng(0))
+    depth = sensor_profile('depth_camera')
+    assert (depth.flatness_length, depth.max_plane_curvature_factor, depth.curvature_max_size) == (1.0, 3.0, 1.0)
+
+    def faces(profile):
+        planes = extract_planes(points, sensor=profile)
+        labels = planes.labels.reshape(-1)
+        return [int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()) for j in range(planes.num_planes)]
+
+    assert sorted(faces(depth)) == [0, 2]
+    without = faces(dataclasses.replace(depth, max_plane_curvature_factor=np.inf))
+    assert without.count(0) == 1 and without.count(2) == 1 and without.count(1) >= 3
+
+
+@pytest.mark.parametrize('size', [0.0, -1.0, float('nan'), float('inf'), False, '1'])
+def test_curvature_max_size_must_be_a_positive_size(size):
+    with pytest.raises(ValueError, match='curvature_max_size'):
+        SensorProfile(name='mine', curvature_max_size=size)

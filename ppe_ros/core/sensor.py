@@ -206,6 +206,10 @@ class SensorProfile:
         min_plane_width: w (m): a plane whose points span less than w across (sqrt(12 l2), l2 the
             scatter's second-largest eigenvalue: the width of a uniform strip) is reported as no plane
             (a sliver along a rounded edge, whose curvature across it is too narrow to see); None = off.
+        curvature_max_size: the curvature test (max_plane_curvature_factor) judges only planes smaller
+            than this size D (m; as flatness_length's): a larger surface's bend is the sensor's own (a
+            depth camera's distortion bends a wall by centimetres), a small one's is the object's (a
+            cushion, a lamp shade, a plant); None = every plane.
     """
 
     name: str
@@ -230,6 +234,7 @@ class SensorProfile:
     step_factor: float = 1.0
     boundary_join_points: int | None = None
     min_plane_width: float | None = None
+    curvature_max_size: float | None = None
 
     def __post_init__(self) -> None:
         check_step_factor(self.step_factor)
@@ -253,6 +258,11 @@ class SensorProfile:
             isinstance(width, bool) or not (isinstance(width, numbers.Real) and np.isfinite(width) and width > 0)
         ):
             raise ValueError(f'min_plane_width must be a width > 0 m or None; got {width!r}')
+        size = self.curvature_max_size
+        if size is not None and (
+            isinstance(size, bool) or not (isinstance(size, numbers.Real) and np.isfinite(size) and size > 0)
+        ):
+            raise ValueError(f'curvature_max_size must be a size > 0 m or None; got {size!r}')
         share = self.large_surface_share
         if share is not None and (isinstance(share, bool) or not (isinstance(share, numbers.Real) and 0 < share <= 1)):
             raise ValueError(f'large_surface_share must be a share in (0, 1] of the valid rays or None; got {share!r}')
@@ -364,6 +374,9 @@ PROFILES: dict[str, SensorProfile] = {
         quadrant_jackknife=True,
         large_surface_share=0.025,
         min_plane_width=0.03,
+        flatness_length=1.0,
+        max_plane_curvature_factor=3.0,
+        curvature_max_size=1.0,
     ),
 }
 

@@ -82,6 +82,7 @@ def whole_surfaces(
             profile.flatness_length,
             curvature_factor,
             min_width,
+            profile.curvature_max_size,
         )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         independent = _independent_sigmas(unit_scan, ray_sigmas, profile)
@@ -345,6 +346,7 @@ def _drop_non_planar(
     flatness_length: float | None = None,
     curvature_factor: float = np.inf,
     min_width: float | None = None,
+    curvature_max_size: float | None = None,
 ) -> tuple[PlaneSet, tuple]:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
@@ -353,24 +355,28 @@ def _drop_non_planar(
     wheel, a car body, a pole). tau_D = tau min(1, D / flatness_length) for a plane of size D (the
     square root of its area, 12 sqrt(l1 l2) from the scatter's two largest eigenvalues): a
     surface's deviation from flatness grows with its size, so a small patch must be flat to the
-    noise, which a tree's or a car's pieces are not; None: tau_D = tau. scan has unit directions.
+    noise, which a tree's or a car's pieces are not; None: tau_D = tau. With ``curvature_max_size`` the
+    curvature test judges only planes of a size D below it; ``min_width``: a plane whose points span less
+    than that across (sqrt(12 l2), l2 the scatter's middle eigenvalue) is no plane. scan has unit directions.
     Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), and
     their :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas).
     """
     sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1))
     centroid, scatter, mean_d2, noise2, sigma2 = sums
     tau2 = np.full(planes.num_planes, tau**2)
+    values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
+    size = np.sqrt(12.0 * np.sqrt(np.maximum(values[:, 2], 0.0) * np.maximum(values[:, 1], 0.0)))
     if flatness_length is not None:
-        values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
-        size = np.sqrt(12.0 * np.sqrt(np.maximum(values[:, 2], 0.0) * np.maximum(values[:, 1], 0.0)))
         tau2 *= np.minimum(1.0, size / float(flatness_length)) ** 2
     planar = mean_d2 <= factor**2 * (tau2 + noise_factor**2 * sigma2 + noise2)
     if np.isfinite(curvature_factor):
         curvature = curvature_rms(scan, planes, centroid, scatter)
-        planar &= curvature**2 <= float(curvature_factor) ** 2 * tau2
+        bent = curvature**2 > float(curvature_factor) ** 2 * tau2
+        if curvature_max_size is not None:
+            bent &= size < float(curvature_max_size)
+        planar &= ~bent
     if min_width is not None:
-        middle = np.linalg.eigvalsh(scatter)[:, 1]
-        planar &= 12.0 * np.maximum(middle, 0.0) >= float(min_width) ** 2
+        planar &= 12.0 * np.maximum(values[:, 1], 0.0) >= float(min_width) ** 2
     if planar.all():
         return planes, sums
     return _kept_planes(planes, planar), tuple(column[planar] for column in sums)
