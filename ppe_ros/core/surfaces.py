@@ -371,7 +371,7 @@ def _drop_non_planar(
     planar = mean_d2 <= factor**2 * (tau2 + noise_factor**2 * sigma2 + noise2)
     if np.isfinite(curvature_factor):
         curvature = curvature_rms(scan, planes, centroid, scatter)
-        bent = curvature**2 > float(curvature_factor) ** 2 * tau2
+        bent = ~(curvature**2 <= float(curvature_factor) ** 2 * tau2)  # NaN: bent, as a failed test
         if curvature_max_size is not None:
             bent &= size < float(curvature_max_size)
         planar &= ~bent
