@@ -442,8 +442,7 @@ def test_curvature_rms_matches_a_per_plane_least_squares_reference():
     want = _curvature_reference(points, planes.labels.reshape(-1))
     assert planes.num_planes >= 4
     np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9)
-    labels = planes.labels.reshape(-1)
-    by_id = {int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()): got[j] for j in range(planes.num_planes)}
+    by_id = {face: got[j] for j, face in enumerate(_true_faces(ids, planes))}
     assert by_id[1] == pytest.approx(0.15 * 0.25, rel=0.35)  # half a cylinder: about R / 4
     assert by_id[0] < 0.002 and by_id[2] < 0.01  # flat: the noise's share only
     # a plane on two rows of a noise-free wall (v takes two values: v^2 depends on 1 and v) and one of
@@ -473,8 +472,7 @@ def test_the_curvature_test_drops_a_pole_but_not_a_noisier_flat_panel():
     sigmas = np.where(scan.valid, 0.035, np.nan)
 
     def kept(curvature_factor):
-        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, curvature_factor)[0]
-        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+        return _faces_in_planes(ids, _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, curvature_factor)[0])
 
     assert kept(np.inf) == [0, 1, 2]
     assert kept(1.3) == [0, 2]
@@ -729,14 +727,25 @@ def _chamfered_shelf_scan(rng, chamfer_rows=2, chamfer_step=0.006):
     return make_ray_scan(points), ids
 
 
+def _scatter_eigenvalues(points, labels):
+    """``(J, 3)`` eigenvalues (ascending, m^2) of each plane's (label j + 1) point covariance, by np.cov."""
+    return np.array([np.linalg.eigvalsh(np.cov(points[labels == j].T, bias=True)) for j in range(1, labels.max() + 1)])
+
+
 def _width_reference(points, labels):
     """Slow, obviously correct width of each plane (label j + 1): sqrt(12 l2) of its points' covariance."""
-    return np.array(
-        [
-            np.sqrt(12.0 * np.linalg.eigvalsh(np.cov(points[labels == j].T, bias=True))[1])
-            for j in range(1, labels.max() + 1)
-        ]
-    )
+    return np.sqrt(12.0 * _scatter_eigenvalues(points, labels)[:, 1])
+
+
+def _true_faces(ids, planes):
+    """The id (of ``ids``, a scene's faces) that most of each plane's pixels have, in plane order."""
+    labels = planes.labels.reshape(-1)
+    return [int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()) for j in range(planes.num_planes)]
+
+
+def _faces_in_planes(ids, planes):
+    """The ids (of ``ids``) of all pixels that lie in some plane, sorted."""
+    return sorted(np.unique(ids.reshape(-1)[planes.labels.reshape(-1) > 0]).tolist())
 
 
 def test_the_width_test_drops_a_sliver_along_an_edge_but_not_the_faces_beside_it():
@@ -749,14 +758,13 @@ def test_the_width_test_drops_a_sliver_along_an_edge_but_not_the_faces_beside_it
     planes, _ = fit_pixel_groups(scan, ids.reshape(-1), min_plane_points=4, residuals=False)
     sigmas = np.where(scan.valid, 0.001, np.nan)
     widths = _width_reference((scan.endpoints + scan.center).reshape(-1, 3), planes.labels.reshape(-1))
-    by_id = {
-        int(np.bincount(ids.reshape(-1)[planes.labels.reshape(-1) == j + 1]).argmax()): widths[j] for j in range(3)
-    }
+    by_id = {face: widths[j] for j, face in enumerate(_true_faces(ids, planes))}
     assert by_id[1] < 0.03 < by_id[2] < by_id[0]
 
     def kept(min_width):
-        out = _drop_non_planar(scan, planes, sigmas, 0.005, 0.0, np.inf, None, np.inf, min_width)[0]
-        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+        return _faces_in_planes(
+            ids, _drop_non_planar(scan, planes, sigmas, 0.005, 0.0, np.inf, None, np.inf, min_width)[0]
+        )
 
     assert kept(None) == [0, 1, 2]
     assert kept(0.03) == [0, 2]
@@ -776,8 +784,7 @@ def test_the_depth_profile_reports_no_plane_on_a_narrow_chamfer_but_keeps_a_wide
     def faces(chamfer_rows, chamfer_step, profile):
         scan, ids = _chamfered_shelf_scan(np.random.default_rng(4), chamfer_rows, chamfer_step)
         planes = extract_planes(scan.endpoints.reshape(60, 120, 3) + scan.center, sensor=profile)
-        labels = planes.labels.reshape(-1)
-        return sorted({int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()) for j in range(planes.num_planes)})
+        return sorted(set(_true_faces(ids, planes)))
 
     assert faces(2, 0.007, dataclasses.replace(depth, min_plane_width=None)) == [0, 1, 2]
     assert faces(2, 0.007, depth) == [0, 2]
@@ -802,16 +809,15 @@ def test_the_curvature_test_judges_only_planes_below_its_size_limit():
     sigmas = np.where(scan.valid, 0.035, np.nan)
     points = (scan.endpoints + scan.center).reshape(-1, 3)
     labels = planes.labels.reshape(-1)
-    values = [np.linalg.eigvalsh(np.cov(points[labels == j + 1].T, bias=True)) for j in range(planes.num_planes)]
-    size = np.array([np.sqrt(12.0 * np.sqrt(v[2] * v[1])) for v in values])
+    values = _scatter_eigenvalues(points, labels)
+    size = np.sqrt(12.0 * np.sqrt(values[:, 2] * values[:, 1]))
     bend = _curvature_reference(points, labels)
     tau_d = 0.05 * np.minimum(1.0, size / 4.0)
-    by_id = {int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()): j for j in range(planes.num_planes)}
+    by_id = {face: j for j, face in enumerate(_true_faces(ids, planes))}
     assert 0.5 < size[by_id[1]] < 1.0 and bend[by_id[1]] > 1.3 * tau_d[by_id[1]]
 
     def kept(limit):
-        out = _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, 1.3, None, limit)[0]
-        return sorted(np.unique(ids.reshape(-1)[out.labels.reshape(-1) > 0]).tolist())
+        return _faces_in_planes(ids, _drop_non_planar(scan, planes, sigmas, 0.05, 0.0, 1.3, 4.0, 1.3, None, limit)[0])
 
     assert kept(None) == kept(1.0) == [0, 2]
     assert kept(0.5) == [0, 1, 2]
@@ -852,9 +858,7 @@ def test_the_depth_profile_leaves_a_ball_unlabelled_and_keeps_a_flat_face_of_its
     assert (depth.flatness_length, depth.max_plane_curvature_factor, depth.curvature_max_size) == (1.0, 3.0, 1.0)
 
     def faces(profile):
-        planes = extract_planes(points, sensor=profile)
-        labels = planes.labels.reshape(-1)
-        return [int(np.bincount(ids.reshape(-1)[labels == j + 1]).argmax()) for j in range(planes.num_planes)]
+        return _true_faces(ids, extract_planes(points, sensor=profile))
 
     assert sorted(faces(depth)) == [0, 2]
     without = faces(dataclasses.replace(depth, max_plane_curvature_factor=np.inf))

@@ -47,6 +47,7 @@ import numpy as np
 from ppe_ros.core.consolidation import (
     _add_pair,
     _add_ray,
+    _find,
     _mean_square_distance,
     _piece_moments,
     _plane_of,
@@ -316,8 +317,5 @@ def _boundary_merge_kernel(moments, plane_rows, pairs, side_rows, tau2, noise_fa
                 )
     roots = np.empty(len(mom), np.int64)
     for x in range(len(mom)):
-        r = x
-        while parent[r] != r:
-            r = parent[r]
-        roots[x] = r
+        roots[x] = _find(parent, x)
     return roots

@@ -150,6 +150,14 @@ def check_boundary_join_points(min_points: int) -> int:
     return int(value)
 
 
+def _check_optional_length(name: str, value, what: str) -> None:
+    """ValueError unless ``value`` is None or a finite real number > 0 (metres; not a bool)."""
+    if value is not None and (
+        isinstance(value, bool) or not (isinstance(value, numbers.Real) and np.isfinite(value) and value > 0)
+    ):
+        raise ValueError(f'{name} must be {what} > 0 m or None; got {value!r}')
+
+
 @dataclass(frozen=True)
 class SensorProfile:
     """The extraction settings of one kind of sensor.
@@ -253,16 +261,8 @@ class SensorProfile:
             raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
         if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
             raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
-        width = self.min_plane_width
-        if width is not None and (
-            isinstance(width, bool) or not (isinstance(width, numbers.Real) and np.isfinite(width) and width > 0)
-        ):
-            raise ValueError(f'min_plane_width must be a width > 0 m or None; got {width!r}')
-        size = self.curvature_max_size
-        if size is not None and (
-            isinstance(size, bool) or not (isinstance(size, numbers.Real) and np.isfinite(size) and size > 0)
-        ):
-            raise ValueError(f'curvature_max_size must be a size > 0 m or None; got {size!r}')
+        _check_optional_length('min_plane_width', self.min_plane_width, 'a width')
+        _check_optional_length('curvature_max_size', self.curvature_max_size, 'a size')
         share = self.large_surface_share
         if share is not None and (isinstance(share, bool) or not (isinstance(share, numbers.Real) and 0 < share <= 1)):
             raise ValueError(f'large_surface_share must be a share in (0, 1] of the valid rays or None; got {share!r}')
