@@ -44,6 +44,13 @@ TIMED = (
     ('surfaces:_consolidate', '  _consolidate'),
     ('surfaces:columns_wrap', '    columns_wrap'),
     ('surfaces:rows_wrap', '    rows_wrap'),
+    ('surfaces:consolidated_surfaces', '    consolidated_surfaces'),
+    ('consolidation:_dense_moments_kernel', '      piece moments'),
+    ('consolidation:_unique_candidate_pairs', '      candidate pairs'),
+    ('consolidation:_merge_pieces', '      merge loop (pair costs + heap)'),
+    ('consolidation:_join_large_surfaces', '      large surfaces'),
+    ('consolidation:_surface_moments_kernel', '      surface moments'),
+    ('consolidation:_absorb_kernel', '      absorption'),
     ('surfaces:consolidate_pieces', '    consolidate_pieces'),
     ('surfaces:absorb_rays', '    absorb_rays'),
     ('surfaces:join_at_boundaries', '    join_at_boundaries (boundary round)'),
@@ -73,6 +80,7 @@ class _Timers:
             'extract': extract_module,
             'sensor': importlib.import_module('ppe_ros.core.sensor'),
             'surfaces': importlib.import_module('ppe_ros.core.surfaces'),
+            'consolidation': importlib.import_module('ppe_ros.core.consolidation'),
         }
         self.sums: dict[str, float] = {}
         self.names: list[str] = []
