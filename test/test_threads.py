@@ -200,3 +200,41 @@ def test_run_tasks_returns_the_results_in_task_order_from_any_number_of_threads(
 
     with pytest.raises(ValueError, match='task 2'):
         run_tasks(fails, range(4), 2, pool)
+
+
+_OPENMP_PROBE = """
+import os, sys
+import numpy as np
+import ppe_ros.core.scan as scan
+print('before', os.environ.get('OMP_WAIT_POLICY'), 'runtime loaded', 'numba.np.ufunc.omppool' in sys.modules)
+scan.make_ray_scan(np.ones((8, 8, 3)))  # a parallel loop: numba loads its threading layer here
+import numba
+print('layer', numba.threading_layer())
+"""
+
+
+def _probe_openmp(**env_overrides: str) -> tuple[str, str]:
+    """stdout and stderr of _OPENMP_PROBE in a fresh interpreter (OpenMP prints its settings to stderr)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT')}
+    env.update(env_overrides, OMP_DISPLAY_ENV='TRUE')
+    done = subprocess.run([sys.executable, '-c', _OPENMP_PROBE], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return done.stdout, done.stderr
+
+
+def test_openmp_threads_sleep_after_a_parallel_loop_unless_the_user_says_otherwise():
+    # set before numba's OpenMP runtime loads, and the runtime takes it (it prints its settings)
+    out, err = _probe_openmp()
+    assert 'before PASSIVE runtime loaded False' in out
+    if 'layer omp' in out:  # numba's OpenMP layer (GNU OpenMP on Linux)
+        assert "OMP_WAIT_POLICY = 'PASSIVE'" in err
+    out, err = _probe_openmp(OMP_WAIT_POLICY='ACTIVE')
+    assert 'before ACTIVE' in out
+    if 'layer omp' in out:
+        assert "OMP_WAIT_POLICY = 'ACTIVE'" in err
+    out, _ = _probe_openmp(GOMP_SPINCOUNT='1000')
+    assert 'before None' in out
