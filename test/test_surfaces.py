@@ -869,3 +869,16 @@ def test_the_depth_profile_leaves_a_ball_unlabelled_and_keeps_a_flat_face_of_its
 def test_curvature_max_size_must_be_a_positive_size(size):
     with pytest.raises(ValueError, match='curvature_max_size'):
         SensorProfile(name='mine', curvature_max_size=size)
+
+
+@pytest.mark.parametrize('length', [0.0, -1.0, float('nan'), float('inf'), True, '4'])
+def test_flatness_length_must_be_a_positive_length(length):
+    with pytest.raises(ValueError, match='flatness_length must be a length > 0 m or None'):
+        SensorProfile(name='mine', flatness_length=length)
+
+
+@pytest.mark.parametrize('factor', [0.0, -1.0, float('nan'), True, '1.3', None])
+def test_max_plane_curvature_factor_must_be_a_positive_number(factor):
+    with pytest.raises(ValueError, match='max_plane_curvature_factor must be a number > 0'):
+        SensorProfile(name='mine', max_plane_curvature_factor=factor)
+    assert SensorProfile(name='mine', max_plane_curvature_factor=np.inf).max_plane_curvature_factor == np.inf

@@ -256,11 +256,10 @@ class SensorProfile:
         check_candidate_fits(self.candidate_fits)
         if self.fit_tolerance is not None:
             check_fit_tolerance(self.fit_tolerance)
-        if not self.max_plane_curvature_factor > 0:  # NaN too
-            factor = self.max_plane_curvature_factor
-            raise ValueError(f'max_plane_curvature_factor must be > 0 (inf: no curvature test); got {factor!r}')
-        if self.flatness_length is not None and not (np.isfinite(self.flatness_length) and self.flatness_length > 0):
-            raise ValueError(f'flatness_length must be a length > 0 m or None; got {self.flatness_length!r}')
+        factor = self.max_plane_curvature_factor
+        if isinstance(factor, bool) or not (isinstance(factor, numbers.Real) and factor > 0):  # NaN fails > 0
+            raise ValueError(f'max_plane_curvature_factor must be a number > 0 (inf: no test); got {factor!r}')
+        _check_optional_length('flatness_length', self.flatness_length, 'a length')
         _check_optional_length('min_plane_width', self.min_plane_width, 'a width')
         _check_optional_length('curvature_max_size', self.curvature_max_size, 'a size')
         share = self.large_surface_share
