@@ -39,6 +39,26 @@ def test_smallest_eigen_matches_numpy_on_random_and_nearly_planar_scatters():
         assert abs(np.dot([n0, n1, n2], vectors[:, 0])) == pytest.approx(1.0, abs=1e-9)
 
 
+def test_smallest_eigen_falls_back_to_the_closed_form_on_a_repeated_smallest_value():
+    from ppe_ros.core.consolidation import _smallest_root_newton
+
+    rng = np.random.default_rng(5)
+    for smallest, middle in ((1.0, 1.0), (1.0, 1.0 + 1e-9), (0.3, 0.3)):
+        u = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        s = u @ np.diag([smallest, middle, 2.0]) @ u.T
+        args = (s[0, 0], s[0, 1], s[0, 2], s[1, 1], s[1, 2], s[2, 2])
+        assert np.isnan(_smallest_root_newton(*args))  # the Newton steps give up: slope ~0 at the root
+        value, n0, n1, n2 = _smallest_eigen(*args)
+        values = np.linalg.eigvalsh(s)
+        # the closed form's own accuracy at a double root: arccos near 1 loses half the digits
+        assert value == pytest.approx(values[0], abs=1e-7 * values[2])
+        assert np.linalg.norm(s @ [n0, n1, n2] - values[0] * np.array([n0, n1, n2])) < 1e-6  # an eigenvector
+    u = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    planar = u @ np.diag([1e-6, 1.0, 4.0]) @ u.T
+    root = _smallest_root_newton(planar[0, 0], planar[0, 1], planar[0, 2], planar[1, 1], planar[1, 2], planar[2, 2])
+    assert root == pytest.approx(1e-6, abs=1e-15)
+
+
 def _moments(points: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     return _piece_moments(np.zeros(len(points), np.int64), points, sigmas, 1)[0]
 
