@@ -104,8 +104,9 @@ _NEWTON_STEPS = 8
 def _smallest_root_newton(a00, a01, a02, a11, a12, a22):
     """Smallest root of det(A - x I) = 0 for a symmetric positive semi-definite 3x3 A, by Newton steps
     from x = 0 on x^3 - c2 x^2 + c1 x - c0 (below its inflection point c2 / 3, where the smallest root
-    lies, the cubic is increasing and concave, so the steps approach the root from below without
-    overshooting); NaN if _NEWTON_STEPS steps do not settle to 1e-15 of the trace."""
+    lies, the cubic is increasing and concave, so from below the root the steps approach it without
+    overshooting; a root that rounding put just below 0 is passed once, then approached from below);
+    NaN if _NEWTON_STEPS steps do not settle to 1e-15 of the trace."""
     c2 = a00 + a11 + a22
     c1 = a00 * a11 + a00 * a22 + a11 * a22 - a01 * a01 - a02 * a02 - a12 * a12
     c0 = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
