@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ppe_ros.core.chunks import group_chunks
+from ppe_ros.core.chunks import group_chunks, plane_members
 from ppe_ros.core.fitting import FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE, _fit_groups, fit_pixel_groups
 from ppe_ros.core.quadrants import _jackknife_kernel, _members_by_plane
 from ppe_ros.core.scan import make_ray_scan
@@ -45,6 +45,22 @@ def test_a_group_larger_than_a_share_is_a_run_of_its_own_and_sizes_of_one_order_
         group_chunks(sizes, 0)
 
 
+def test_plane_members_group_each_planes_pixels_in_pixel_order():
+    rng = np.random.default_rng(3)
+    for n_planes, size in ((5, 300), (1, 7), (40, 2000), (3, 0)):
+        labels = rng.integers(0, n_planes + 1, size).astype(np.int32)
+        members, starts = plane_members(labels, n_planes)
+        on = np.flatnonzero(labels > 0)
+        np.testing.assert_array_equal(members, on[np.argsort(labels[on], kind='stable')])
+        np.testing.assert_array_equal(
+            starts, np.concatenate([[0], np.cumsum(np.bincount(labels, minlength=n_planes + 1)[1:])])
+        )
+    with pytest.raises(ValueError, match='labels must be in 0..2'):
+        plane_members(np.array([0, 3]), 2)
+    with pytest.raises(ValueError, match='one-dimensional'):
+        plane_members(np.zeros((2, 2), np.int32), 2)
+
+
 def _grouped_scene(seed):
     """A noisy curved scan cut into groups of very different sizes (the first one holds most rays)."""
     rng = np.random.default_rng(seed)
@@ -71,7 +87,7 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
 
     def sums(bounds):
         args = (scan.endpoints, scan.center, scan.directions, sigmas, planes.normals, planes.offsets, counts)
-        return _plane_sums_kernel(labels, bounds, *args)
+        return _plane_sums_kernel(*plane_members(labels, n), bounds, *args)
 
     first = sums(splits[0])
     centroid, scatter = first[:, :3], first[:, [[3, 4, 5], [4, 6, 7], [5, 7, 8]]]
@@ -79,10 +95,10 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
     scales = np.ones((n, 3))
     members, starts = _members_by_plane(np.maximum(labels - 1, 0), n)  # pixels without a plane: none here
     assert (labels > 0).all()
-    w, sse, info = np.empty((n, 3)), np.empty(n), np.empty((n, 6))
+    w, sse, info, metric = np.empty((n, 3)), np.empty(n), np.empty((n, 6)), np.empty(n)
     results = []
     for bounds in splits:
-        for out in (w, sse, info):
+        for out in (w, sse, info, metric):
             out.fill(np.nan)  # a plane a split missed stays NaN
         _fit_groups(
             scan.endpoints,
@@ -95,15 +111,20 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
             w,
             sse,
             info,
+            sigmas,
+            metric,
         )
         results.append(
             (
                 sums(bounds),
-                _quadric_reduction_kernel(labels, bounds, scan.endpoints, scan.center, centroid, vectors, scales),
-                _jackknife_kernel(scan.endpoints + scan.center, members, starts, bounds, centroid, vectors),
+                _quadric_reduction_kernel(
+                    *plane_members(labels, n), bounds, scan.endpoints, scan.center, centroid, vectors, scales
+                ),
+                _jackknife_kernel(scan.endpoints, scan.center, members, starts, bounds, centroid, vectors),
                 w.copy(),
                 sse.copy(),
                 info.copy(),
+                metric.copy(),
             )
         )
     for other in results[1:]:

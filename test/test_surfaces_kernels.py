@@ -101,8 +101,8 @@ def test_dropping_planes_from_a_fit_equals_refitting_the_kept_ones():
 
 @pytest.mark.parametrize('seed', [0, 3])
 def test_weighted_group_fits_sum_the_sse_as_the_residual_image_does(seed):
-    """With sigmas and no residual image, fit_pixel_groups sums the sse in metres in one kernel pass
-    (_weighted_group_sse); with the image, from the image (the numpy reference): the same planes."""
+    """With sigmas and no residual image, fit_pixel_groups sums the sse in metres per plane
+    (_metric_sse, in the fits' kernel); with the image, from the image (the numpy reference): the same planes."""
     scan0, ids, sigmas = _scene(seed)
     scan = dataclasses.replace(scan0, directions=scan0.directions * np.nan_to_num(sigmas)[:, None])
     want, image = fit_pixel_groups(
@@ -341,6 +341,33 @@ def test_the_seam_test_equals_the_numpy_medians():
         if n_steps:
             want_median = np.median(np.arccos(np.clip(steps[:n_steps], -1.0, 1.0)))
             assert consolidation._median_angle(steps[:n_steps].copy()) == want_median
+
+
+def test_the_median_angle_test_counts_as_the_sorted_median_decides():
+    """_median_angle_at_least (no sort) against np.median of the angles, with repeated angles, both
+    parities, cosines rounded beyond 1, and thresholds on either side of the median and between the two
+    middle angles of an even count (not on a tie itself: there the arccos of numba and numpy may
+    differ in the last bit)."""
+    from ppe_ros.core.consolidation import _median_angle_at_least
+
+    rng = np.random.default_rng(5)
+    decided = {True: 0, False: 0}
+    for _ in range(3000):
+        n = int(rng.integers(1, 12))
+        cosines = np.cos(rng.choice(rng.uniform(0.0, 3.0, 5), n))
+        cosines[rng.random(n) < 0.1] = 1.0 + 1e-15  # a dot product of unit vectors rounded up
+        angles = np.sort(np.arccos(np.clip(cosines, -1.0, 1.0)))
+        median = float(np.median(angles))
+        middle = angles[n // 2 - 1 : n // 2 + 1] if n % 2 == 0 else angles[n // 2 : n // 2 + 1]
+        thresholds = [median * (1 + 1e-9), median * (1 - 1e-9), 0.5 * (middle[0] + median), rng.uniform(0, 3), 0.0]
+        for threshold in thresholds:
+            if abs(threshold - median) <= 1e-12 * max(median, 1.0):
+                continue
+            want = median >= threshold
+            assert _median_angle_at_least(cosines, threshold) == want, (cosines, threshold)
+            decided[want] += 1
+    assert min(decided.values()) > 1000
+    assert not _median_angle_at_least(np.zeros(0), 0.0)
 
 
 def test_the_public_release_frees_the_whole_surface_work_memory_too():

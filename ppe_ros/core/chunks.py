@@ -4,7 +4,9 @@ numba's ``prange`` gives each thread an equal share of the iterations. The per-p
 fits and of the whole-surface pass loop over planes numbered by decreasing size, so equal shares of
 planes would give the first thread most of the points. They loop instead over ``group_chunks``:
 one run of planes per thread, each holding about the same number of points. Each plane is still
-computed by one thread in its own order, so the results do not depend on the thread count.
+computed by one thread in its own order, so the results do not depend on the thread count. A thread
+finds its planes' pixels in ``plane_members`` (each plane's pixels in pixel order, one counting sort)
+instead of scanning every pixel for them.
 """
 
 from __future__ import annotations
@@ -45,3 +47,39 @@ def _group_chunks_kernel(counts, n_chunks):
         bounds[c] = g
     bounds[n_chunks] = len(counts)
     return bounds
+
+
+def plane_members(labels: np.ndarray, n_planes: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of each plane, grouped by plane, in pixel order within a plane (a counting sort).
+
+    Args:
+        labels: ``(N,)`` plane labels 1..n_planes of the pixels (0: no plane).
+        n_planes: number of planes J.
+    Returns ``members`` (the labelled pixels' indices) and ``starts`` ``(J + 1,)``: plane j's pixels
+    (label j + 1) are ``members[starts[j]:starts[j + 1]]``. The per-plane kernels loop over them, so that
+    a thread visits only its own planes' pixels, in the order a loop over all pixels would.
+    """
+    labels = np.ascontiguousarray(labels)
+    if labels.ndim != 1:
+        raise ValueError(f'labels must be one-dimensional; got shape {labels.shape}')
+    if len(labels) and (labels.min() < 0 or labels.max() > n_planes):
+        raise ValueError(f'labels must be in 0..{n_planes}')
+    return _plane_members_kernel(labels, int(n_planes))
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _plane_members_kernel(labels, n_planes):
+    starts = np.zeros(n_planes + 2, np.int64)  # starts[label + 1] counts the label's pixels
+    for label in labels:
+        starts[label + 1] += 1
+    for j in range(n_planes + 1):
+        starts[j + 1] += starts[j]
+    fill = starts[1:-1].copy()  # label 0 (no plane) is left out: plane j fills from starts[j + 1]
+    members = np.empty(starts[-1] - starts[1], np.int64)
+    first = starts[1]
+    for k in range(len(labels)):
+        label = labels[k]
+        if label > 0:
+            members[fill[label - 1] - first] = k
+            fill[label - 1] += 1
+    return members, starts[1:] - first

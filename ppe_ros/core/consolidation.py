@@ -842,8 +842,7 @@ def _last_next_to_first(valid: np.ndarray, directions: np.ndarray) -> bool:
     n_steps, n_seam = _neighbour_dots(valid, directions, steps, seam)
     if n_steps < 4 or n_seam == 0:
         return False
-    step_angle = _median_angle(steps[:n_steps])
-    return _median_angle(seam[:n_seam]) <= 2.0 * step_angle
+    return _median_angle_at_least(steps[:n_steps], 0.5 * _median_angle(seam[:n_seam]))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -876,6 +875,31 @@ def _neighbour_dots(valid, directions, steps, seam):
     return n_steps, n_seam
 
 
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _median_angle_at_least(cosines, angle):
+    """``np.median(np.arccos(np.clip(cosines, -1, 1))) >= angle`` (rad) without sorting: by counting the
+    angles of at least ``angle`` (cosines below cos(angle); within 1e-9 of it, by the angle itself); for an
+    even count with exactly half of them counted, from the two middle angles (the largest angle not
+    counted, the smallest counted)."""
+    n = len(cosines)
+    if n == 0:
+        return False
+    limit = np.cos(angle) if angle > 0.0 else 2.0  # angle <= 0: every angle counts
+    at_least = 0
+    counted_max = -2.0  # the largest cosine <= limit: the smallest angle counted
+    uncounted_min = 2.0  # the smallest cosine > limit: the largest angle not counted
+    for c in cosines:
+        c = min(max(c, -1.0), 1.0)
+        if c < limit - 1e-9 or (c <= limit + 1e-9 and np.arccos(c) >= angle):  # near the limit: the angle
+            at_least += 1
+            counted_max = max(counted_max, c)
+        else:
+            uncounted_min = min(uncounted_min, c)
+    if n % 2 or 2 * at_least != n:
+        return 2 * at_least > n
+    return 0.5 * (np.arccos(uncounted_min) + np.arccos(counted_max)) >= angle
+
+
 def _median_angle(cosines: np.ndarray) -> float:
     """``np.median(np.arccos(np.clip(cosines, -1, 1)))`` from the middle cosines alone (arccos decreases:
     the middle angles are those of the middle cosines); cosines (work memory) is partitioned in place."""
@@ -886,7 +910,7 @@ def _median_angle(cosines: np.ndarray) -> float:
 
 
 #: Pixels per thread below which the candidate pairs are found in the calling thread alone.
-PARALLEL_MIN_PIXELS = 32768
+PARALLEL_MIN_PIXELS = 8192
 #: Row blocks per thread of the candidate pairs (the cost per row varies: no returns, occluders).
 BLOCKS_PER_THREAD = 4
 

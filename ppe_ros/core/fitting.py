@@ -287,10 +287,22 @@ def fit4(P, V, k0, k1, k2, k3):
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
 def _fit_groups(
-    endpoints, directions, members, starts, bounds, max_iterations, relative_tolerance, out_w, out_sse, out_info
+    endpoints,
+    directions,
+    members,
+    starts,
+    bounds,
+    max_iterations,
+    relative_tolerance,
+    out_w,
+    out_sse,
+    out_info,
+    sigmas,
+    out_metric_sse,
 ):
     """Fit every group g = members[starts[g]:starts[g+1]] exactly; the groups' runs ``bounds``
-    (chunks.group_chunks) in parallel."""
+    (chunks.group_chunks) in parallel. With ``sigmas`` (one per ray; an empty array: none), also each
+    fitted group's SSE in metres (:func:`_metric_sse`) into out_metric_sse (an unfitted one keeps its sse)."""
     for c in nb.prange(len(bounds) - 1):
         for g in range(bounds[c], bounds[c + 1]):
             idx = members[starts[g] : starts[g + 1]]
@@ -303,6 +315,25 @@ def _fit_groups(
             out_w[g, 2] = w2
             for i in range(6):
                 out_info[g, i] = information[i]
+            if len(sigmas):
+                fitted = np.isfinite(w0) and np.isfinite(w1) and np.isfinite(w2)
+                out_metric_sse[g] = _metric_sse(endpoints, directions, sigmas, idx, w0, w1, w2) if fitted else sse
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _metric_sse(endpoints, directions, sigmas, idx, w0, w1, w2):
+    """SSE (m^2) of the plane w of the rays idx from their residuals times sigma_k, summed in idx's order.
+
+    The dot products are summed as (0 + 2) + 1, the order of the np.einsum that fit_pixel_groups's
+    residual image uses, so that both give the same sse bit for bit.
+    """
+    total = 0.0
+    for k in idx:
+        along_p = (endpoints[k, 0] * w0 + endpoints[k, 2] * w2) + endpoints[k, 1] * w1
+        along_v = (directions[k, 0] * w0 + directions[k, 2] * w2) + directions[k, 1] * w1
+        residual = (along_p - 1.0) / along_v * sigmas[k]
+        total += residual * residual
+    return total
 
 
 # --------------------------------------------------------------------------------------------
@@ -456,6 +487,8 @@ def fit_pixel_groups(
     out_w = np.empty((n_planes, 3))
     out_sse = np.empty(n_planes)
     out_info = np.empty((n_planes, 6))
+    metric = sigmas is not None and not residuals  # the sse in metres again, in the fits' pass
+    out_metric_sse = np.empty(n_planes if metric else 0)
     _fit_groups(
         scan.endpoints,
         scan.directions,
@@ -467,6 +500,8 @@ def fit_pixel_groups(
         out_w,
         out_sse,
         out_info,
+        np.ascontiguousarray(sigmas, dtype=np.float64) if metric else np.empty(0),
+        out_metric_sse,
     )
     centroids = sums / point_counts[:, None] + scan.center
     normals = np.full((n_planes, 3), np.nan)
@@ -489,12 +524,8 @@ def fit_pixel_groups(
             residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
                 'ij,ij->i', scan.directions[idx], w_of_pixel
             )
-    sse = out_sse.copy()
-    if sigmas is not None and residual_image is None:  # the sse in metres again, in one pass
-        _weighted_group_sse(
-            scan.endpoints, scan.directions, np.ascontiguousarray(sigmas, dtype=np.float64), labels, out_w, sse
-        )
-    elif sigmas is not None:  # residuals in metres again
+    sse = out_metric_sse if metric else out_sse.copy()
+    if sigmas is not None and residual_image is not None:  # residuals in metres again
         residual_image *= sigmas
         on_plane = np.flatnonzero(labels > 0)
         metric = np.bincount(labels[on_plane] - 1, weights=residual_image[on_plane] ** 2, minlength=n_planes)
@@ -591,32 +622,3 @@ def fit_labeled_planes(
     mask = plane_labels > 0
     label_ids[plane_labels[mask] - 1] = flat[mask]
     return LabeledPlanes(planes=planes, label_ids=label_ids, residuals=residuals)
-
-
-# --------------------------------------------------------------------------------------------
-# the sse in metres of noise-weighted group fits without a residual image (fit_pixel_groups)
-# --------------------------------------------------------------------------------------------
-
-
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _weighted_group_sse(endpoints, directions, sigmas, labels, w, out_sse):
-    """SSE (m^2) of every fitted plane (finite w[j]; labels j + 1) from its rays' residuals times sigma_k,
-    summed in pixel order; out_sse keeps the fit's own sse of an unfitted plane.
-
-    The dot products are summed as (0 + 2) + 1, the order of the np.einsum that fit_pixel_groups's
-    residual image uses, so that both give the same sse bit for bit.
-    """
-    n_planes = len(w)
-    fitted = np.empty(n_planes, np.bool_)
-    for j in range(n_planes):
-        fitted[j] = np.isfinite(w[j, 0]) and np.isfinite(w[j, 1]) and np.isfinite(w[j, 2])
-        if fitted[j]:
-            out_sse[j] = 0.0
-    for k in range(len(labels)):
-        j = labels[k] - 1
-        if j < 0 or not fitted[j]:
-            continue
-        along_p = (endpoints[k, 0] * w[j, 0] + endpoints[k, 2] * w[j, 2]) + endpoints[k, 1] * w[j, 1]
-        along_v = (directions[k, 0] * w[j, 0] + directions[k, 2] * w[j, 2]) + directions[k, 1] * w[j, 1]
-        residual = (along_p - 1.0) / along_v * sigmas[k]
-        out_sse[j] += residual * residual

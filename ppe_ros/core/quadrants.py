@@ -51,7 +51,29 @@ def quadrant_jackknife(
     if len(plane_index) and (plane_index.min() < 0 or plane_index.max() >= n_planes):
         raise ValueError(f'plane_index must be in 0..{n_planes - 1}')
     order, starts = _members_by_plane(plane_index, n_planes)
-    return _jackknife_kernel(points, order, starts, group_chunks(np.diff(starts)), centroids, axes)
+    return jackknife_of_members(points, np.zeros(3), order, starts, centroids, axes)
+
+
+def jackknife_of_members(
+    endpoints: np.ndarray,
+    shift: np.ndarray,
+    members: np.ndarray,
+    starts: np.ndarray,
+    centroids: np.ndarray,
+    axes: np.ndarray,
+) -> np.ndarray:
+    """:func:`quadrant_jackknife` of plane j's points ``endpoints[members[starts[j]:starts[j + 1]]] + shift``
+    (m; ``shift`` (3,): a scan's center), with ``centroids`` and ``axes`` as there; members as
+    chunks.plane_members gives them (no checks)."""
+    return _jackknife_kernel(
+        np.ascontiguousarray(endpoints, dtype=np.float64),
+        np.ascontiguousarray(shift, dtype=np.float64),
+        members,
+        starts,
+        group_chunks(np.diff(starts)),
+        np.ascontiguousarray(centroids, dtype=np.float64),
+        np.ascontiguousarray(axes, dtype=np.float64),
+    )
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -72,29 +94,29 @@ def _members_by_plane(plane_index, n_planes):
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _jackknife_kernel(points, order, starts, bounds, centroids, axes):
-    """quadrant_jackknife of the planes' members; the planes' runs ``bounds`` (chunks.group_chunks) in
-    parallel."""
+def _jackknife_kernel(points, shift, order, starts, bounds, centroids, axes):
+    """quadrant_jackknife of the planes' members (points + shift); the planes' runs ``bounds``
+    (chunks.group_chunks) in parallel."""
     out = np.zeros((len(centroids), 3, 3))
     for c in nb.prange(len(bounds) - 1):
         for j in range(bounds[c], bounds[c + 1]):
             members = order[starts[j] : starts[j + 1]]
             if len(members) >= NUM_QUADRANTS * MIN_QUADRANT_POINTS:
-                local = _local_coordinates(points, members, centroids[j], axes[j])
+                local = _local_coordinates(points, shift, members, centroids[j], axes[j])
                 out[j] = _plane_jackknife(local, _quadrants(local))
     return out
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _local_coordinates(points, members, centroid, axes):
-    """(n, 3) coordinates u, v, w of the members relative to the centroid along axes."""
+def _local_coordinates(points, shift, members, centroid, axes):
+    """(n, 3) coordinates u, v, w of the members (points + shift) relative to the centroid along axes."""
     local = np.empty((len(members), 3))
     for i in range(len(members)):
         for a in range(3):
             local[i, a] = (
-                (points[members[i], 0] - centroid[0]) * axes[a, 0]
-                + (points[members[i], 1] - centroid[1]) * axes[a, 1]
-                + (points[members[i], 2] - centroid[2]) * axes[a, 2]
+                (points[members[i], 0] + shift[0] - centroid[0]) * axes[a, 0]
+                + (points[members[i], 1] + shift[1] - centroid[1]) * axes[a, 1]
+                + (points[members[i], 2] + shift[2] - centroid[2]) * axes[a, 2]
             )
     return local
 

@@ -16,11 +16,11 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.boundary_join import BOUNDARY_GAP, join_at_boundaries
-from ppe_ros.core.chunks import group_chunks
+from ppe_ros.core.chunks import group_chunks, plane_members
 from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
 from ppe_ros.core.fitting import fit_pixel_groups
 from ppe_ros.core.planes import PlaneSet
-from ppe_ros.core.quadrants import quadrant_jackknife as quadrant_jackknife_covariances
+from ppe_ros.core.quadrants import jackknife_of_members
 from ppe_ros.core.scan import RayScan
 from ppe_ros.core.sensor import SensorProfile
 
@@ -193,8 +193,9 @@ def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: Sen
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _plane_sums_kernel(labels, bounds, endpoints, center, directions, ray_sigmas, normals, offsets, count):
-    """Per-plane sums over the rays of every plane (label j + 1 > 0; pixel order, as np.bincount adds).
+def _plane_sums_kernel(members, starts, bounds, endpoints, center, directions, ray_sigmas, normals, offsets, count):
+    """Per-plane sums over the rays of every plane j (``members[starts[j]:starts[j + 1]]``, chunks.plane_members:
+    pixel order, as np.bincount adds).
 
     Returns (J, 12): centroid (3, m; endpoints + center), per-point scatter xx xy xz yy yz zz about it
     (6, m^2), mean squared distance from the plane (m^2), mean (sigma_k n . v_k)^2 (m^2), mean sigma_k^2
@@ -203,20 +204,27 @@ def _plane_sums_kernel(labels, bounds, endpoints, center, directions, ray_sigmas
     """
     out = np.zeros((len(count), 12))
     for c in nb.prange(len(bounds) - 1):
-        _plane_sums_run(
-            labels, bounds[c], bounds[c + 1], endpoints, center, directions, ray_sigmas, normals, offsets, count, out
-        )
+        for g in range(bounds[c], bounds[c + 1]):
+            _plane_sums_of(
+                members[starts[g] : starts[g + 1]],
+                g,
+                endpoints,
+                center,
+                directions,
+                ray_sigmas,
+                normals,
+                offsets,
+                count,
+                out,
+            )
     return out
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _plane_sums_run(labels, first, stop, endpoints, center, directions, ray_sigmas, normals, offsets, count, out):
-    """_plane_sums_kernel's rows first..stop-1 (planes with labels first + 1 .. stop). Two passes: the
-    sums of the points, then of the products of their offsets from the centroid."""
-    for k in range(len(labels)):
-        g = labels[k] - 1
-        if g < first or g >= stop:
-            continue
+def _plane_sums_of(pixels, g, endpoints, center, directions, ray_sigmas, normals, offsets, count, out):
+    """_plane_sums_kernel's row g from the plane's pixels. Two passes: the sums of the points, then of
+    the products of their offsets from the centroid."""
+    for k in pixels:
         x = endpoints[k, 0] + center[0]
         y = endpoints[k, 1] + center[1]
         z = endpoints[k, 2] + center[2]
@@ -232,13 +240,9 @@ def _plane_sums_run(labels, first, stop, endpoints, center, directions, ray_sigm
         out[g, 9] += distance * distance
         out[g, 10] += along * along
         out[g, 11] += ray_sigmas[k] * ray_sigmas[k]
-    for g in range(first, stop):
-        for a in (0, 1, 2, 9, 10, 11):
-            out[g, a] /= count[g]
-    for k in range(len(labels)):
-        g = labels[k] - 1
-        if g < first or g >= stop:
-            continue
+    for a in (0, 1, 2, 9, 10, 11):
+        out[g, a] /= count[g]
+    for k in pixels:
         rx = endpoints[k, 0] + center[0] - out[g, 0]
         ry = endpoints[k, 1] + center[1] - out[g, 1]
         rz = endpoints[k, 2] + center[2] - out[g, 2]
@@ -248,16 +252,18 @@ def _plane_sums_run(labels, first, stop, endpoints, center, directions, ray_sigm
         out[g, 6] += ry * ry
         out[g, 7] += ry * rz
         out[g, 8] += rz * rz
-    for g in range(first, stop):
-        for a in range(3, 9):
-            out[g, a] /= count[g]
+    for a in range(3, 9):
+        out[g, a] /= count[g]
 
 
-def _plane_sums(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, count: np.ndarray):
+def _plane_sums(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, count: np.ndarray, members=None):
     """Per-plane means over each plane's rays (see _plane_sums_kernel): centroid (J, 3), scatter
-    (J, 3, 3), mean squared distance from the plane, mean (sigma_k n . v_k)^2 and mean sigma_k^2 (J,)."""
+    (J, 3, 3), mean squared distance from the plane, mean (sigma_k n . v_k)^2 and mean sigma_k^2 (J,).
+    ``members``: the planes' :func:`_members`, if already computed."""
+    members, starts = _members(planes) if members is None else members
     sums = _plane_sums_kernel(
-        np.ascontiguousarray(planes.labels.reshape(-1)),
+        members,
+        starts,
         group_chunks(planes.point_counts),
         np.ascontiguousarray(scan.endpoints, dtype=np.float64),
         np.ascontiguousarray(scan.center, dtype=np.float64),
@@ -269,6 +275,11 @@ def _plane_sums(scan: RayScan, planes: PlaneSet, ray_sigmas: np.ndarray, count: 
     )
     scatter = sums[:, _SCATTER_INDEX]
     return sums[:, :3], scatter, sums[:, 9], sums[:, 10], sums[:, 11]
+
+
+def _members(planes: PlaneSet) -> tuple[np.ndarray, np.ndarray]:
+    """The planes' pixels grouped by plane (chunks.plane_members of their labels)."""
+    return plane_members(planes.labels.reshape(-1), planes.num_planes)
 
 
 #: Columns of _plane_sums_kernel's xx xy xz yy yz zz as a symmetric (3, 3) matrix.
@@ -317,10 +328,9 @@ def systematic_covariances(
     u_axis, v_axis = vectors[:, :, 2], vectors[:, :, 1]
     local = np.zeros((n_planes, 3, 3))
     if quadrant_jackknife:
-        on = np.flatnonzero(planes.labels.reshape(-1) > 0)
         axes = np.stack([u_axis, v_axis, normals], axis=1)
-        points = scan.endpoints[on] + scan.center
-        local = quadrant_jackknife_covariances(points, planes.labels.reshape(-1)[on] - 1, centroid, axes)
+        members, starts = _members(planes)
+        local = jackknife_of_members(scan.endpoints, scan.center, members, starts, centroid, axes)
     diagonal = np.arange(3)
     local[:, diagonal, diagonal] = np.maximum(local[:, diagonal, diagonal], model)
     # d n of the plane w = a + b u + c v (w along the normal from the centroid), to first order
@@ -361,7 +371,8 @@ def _drop_non_planar(
     Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), and
     their :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas).
     """
-    sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1))
+    members = _members(planes)
+    sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1), members)
     centroid, scatter, mean_d2, noise2, sigma2 = sums
     tau2 = np.full(planes.num_planes, tau**2)
     values = np.linalg.eigvalsh(scatter)  # ascending: the two largest span the plane
@@ -370,7 +381,7 @@ def _drop_non_planar(
         tau2 *= np.minimum(1.0, size / float(flatness_length)) ** 2
     planar = mean_d2 <= factor**2 * (tau2 + noise_factor**2 * sigma2 + noise2)
     if np.isfinite(curvature_factor):
-        curvature = curvature_rms(scan, planes, centroid, scatter)
+        curvature = curvature_rms(scan, planes, centroid, scatter, members=members)
         bent = ~(curvature**2 <= float(curvature_factor) ** 2 * tau2)  # NaN: bent, as a failed test
         if curvature_max_size is not None:
             bent &= size < float(curvature_max_size)
@@ -382,7 +393,9 @@ def _drop_non_planar(
     return _kept_planes(planes, planar), tuple(column[planar] for column in sums)
 
 
-def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter: np.ndarray) -> np.ndarray:
+def curvature_rms(
+    scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter: np.ndarray, *, members=None
+) -> np.ndarray:
     """``(J,)`` RMS (m) by which each plane's best quadric surface departs from its best plane.
 
     In the frame of the plane's points (centroid; u, v along the scatter's two largest axes, w along
@@ -391,11 +404,14 @@ def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter
     RMS of the quadric's bend over the plane's points (a flat surface: only the noise's share, about
     sigma sqrt(3 / N); half a cylinder of radius R: about R / 4). ``centroid`` (J, 3) and ``scatter``
     (J, 3, 3, per point) are :func:`_plane_sums`'; points are ``scan.endpoints + scan.center``.
+    ``members``: the planes' :func:`_members`, if already computed.
     """
+    members, starts = _members(planes) if members is None else members
     values, vectors = np.linalg.eigh(scatter)  # ascending: w, v, u
     scales = np.sqrt(np.where(values > 0.0, values, 1.0))  # u, v in units of their spread
     reduction = _quadric_reduction_kernel(
-        np.ascontiguousarray(planes.labels.reshape(-1)),
+        members,
+        starts,
         group_chunks(planes.point_counts),
         np.ascontiguousarray(scan.endpoints, dtype=np.float64),
         np.ascontiguousarray(scan.center, dtype=np.float64),
@@ -408,33 +424,34 @@ def curvature_rms(scan: RayScan, planes: PlaneSet, centroid: np.ndarray, scatter
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
-def _quadric_reduction_kernel(labels, bounds, endpoints, center, centroid, vectors, scales):
-    """Per plane (label j + 1 > 0), SSE_plane - SSE_quadric (m^2) of curvature_rms; the planes' runs
-    ``bounds`` (chunks.group_chunks) in parallel, each plane by one thread in pixel order."""
+def _quadric_reduction_kernel(members, starts, bounds, endpoints, center, centroid, vectors, scales):
+    """Per plane j (pixels ``members[starts[j]:starts[j + 1]]``, chunks.plane_members), SSE_plane - SSE_quadric
+    (m^2) of curvature_rms; the planes' runs ``bounds`` (chunks.group_chunks) in parallel, each plane by one
+    thread in pixel order."""
     out = np.zeros(len(centroid))
     for c in nb.prange(len(bounds) - 1):
-        _quadric_reduction_run(labels, bounds[c], bounds[c + 1], endpoints, center, centroid, vectors, scales, out)
+        for g in range(bounds[c], bounds[c + 1]):
+            out[g] = _quadric_reduction_of(
+                members[starts[g] : starts[g + 1]], g, endpoints, center, centroid, vectors, scales
+            )
     return out
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _quadric_reduction_run(labels, first, stop, endpoints, center, centroid, vectors, scales, out):
-    """_quadric_reduction_kernel's planes first..stop-1.
+def _quadric_reduction_of(pixels, g, endpoints, center, centroid, vectors, scales):
+    """_quadric_reduction_kernel's value of plane g from its pixels.
 
     The normal equations A^T A x = A^T w in the basis (1, u, v, u^2, u v, v^2) (u, v divided by
-    scales[j, 2], scales[j, 1]) are summed in pixel order. With the Cholesky factor L L^T = A^T A and
+    scales[g, 2], scales[g, 1]) are summed in pixel order. With the Cholesky factor L L^T = A^T A and
     z = L^-1 A^T w, a fit on the first m basis functions has SSE = w^T w - (z_0^2 + ... + z_{m-1}^2)
     (L's leading block factors the leading block), so the reduction is z_3^2 + z_4^2 + z_5^2. A basis
     function that depends on the earlier ones (a pivot of at most 1e-12 of its diagonal: points on
     two lines) adds nothing and is skipped.
     """
-    normal = np.zeros((stop - first, 6, 6))
-    rhs = np.zeros((stop - first, 6))
+    normal = np.zeros((6, 6))
+    rhs = np.zeros(6)
     basis = np.empty(6)
-    for k in range(len(labels)):
-        g = labels[k] - 1
-        if g < first or g >= stop:
-            continue
+    for k in pixels:
         dx = endpoints[k, 0] + center[0] - centroid[g, 0]
         dy = endpoints[k, 1] + center[1] - centroid[g, 1]
         dz = endpoints[k, 2] + center[2] - centroid[g, 2]
@@ -443,30 +460,28 @@ def _quadric_reduction_run(labels, first, stop, endpoints, center, centroid, vec
         w = dx * vectors[g, 0, 0] + dy * vectors[g, 1, 0] + dz * vectors[g, 2, 0]
         basis[0], basis[1], basis[2] = 1.0, u, v
         basis[3], basis[4], basis[5] = u * u, u * v, v * v
-        row = g - first
         for a in range(6):
-            rhs[row, a] += basis[a] * w
+            rhs[a] += basis[a] * w
             for b in range(a + 1):
-                normal[row, a, b] += basis[a] * basis[b]
+                normal[a, b] += basis[a] * basis[b]
     lower = np.zeros((6, 6))
     z = np.zeros(6)
-    for row in range(stop - first):
-        for a in range(6):  # Cholesky, row by row, and forward substitution of z
-            for b in range(a + 1):
-                total = normal[row, a, b]
-                for c in range(b):
-                    total -= lower[a, c] * lower[b, c]
-                if b < a:
-                    lower[a, b] = total / lower[b, b] if lower[b, b] > 0.0 else 0.0
-                elif total > 1e-12 * normal[row, a, a]:
-                    lower[a, a] = np.sqrt(total)
-                else:
-                    lower[a, a] = 0.0  # dependent: skipped
-            total = rhs[row, a]
-            for c in range(a):
-                total -= lower[a, c] * z[c]
-            z[a] = total / lower[a, a] if lower[a, a] > 0.0 else 0.0
-        out[first + row] = z[3] * z[3] + z[4] * z[4] + z[5] * z[5]
+    for a in range(6):  # Cholesky, row by row, and forward substitution of z
+        for b in range(a + 1):
+            total = normal[a, b]
+            for c in range(b):
+                total -= lower[a, c] * lower[b, c]
+            if b < a:
+                lower[a, b] = total / lower[b, b] if lower[b, b] > 0.0 else 0.0
+            elif total > 1e-12 * normal[a, a]:
+                lower[a, a] = np.sqrt(total)
+            else:
+                lower[a, a] = 0.0  # dependent: skipped
+        total = rhs[a]
+        for c in range(a):
+            total -= lower[a, c] * z[c]
+        z[a] = total / lower[a, a] if lower[a, a] > 0.0 else 0.0
+    return z[3] * z[3] + z[4] * z[4] + z[5] * z[5]
 
 
 def _kept_planes(planes: PlaneSet, keep: np.ndarray) -> PlaneSet:
