@@ -314,8 +314,9 @@ def systematic_covariances(
     """
     count = planes.point_counts.astype(np.float64)
     n_planes = planes.num_planes
+    members = _members(planes) if sums is None or quadrant_jackknife else None
     if sums is None:
-        sums = _plane_sums(scan, planes, ray_sigmas, count)
+        sums = _plane_sums(scan, planes, ray_sigmas, count, members)
     centroid, scatter, residual2, noise2, _ = sums
     normals, offsets = planes.normals, planes.offsets
     systematic2 = np.maximum(residual2 - noise2, 0.0)
@@ -329,8 +330,7 @@ def systematic_covariances(
     local = np.zeros((n_planes, 3, 3))
     if quadrant_jackknife:
         axes = np.stack([u_axis, v_axis, normals], axis=1)
-        members, starts = _members(planes)
-        local = jackknife_of_members(scan.endpoints, scan.center, members, starts, centroid, axes)
+        local = jackknife_of_members(scan.endpoints, scan.center, *members, centroid, axes)
     diagonal = np.arange(3)
     local[:, diagonal, diagonal] = np.maximum(local[:, diagonal, diagonal], model)
     # d n of the plane w = a + b u + c v (w along the normal from the centroid), to first order
