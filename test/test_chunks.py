@@ -55,7 +55,7 @@ def test_plane_members_group_each_planes_pixels_in_pixel_order():
         np.testing.assert_array_equal(
             starts, np.concatenate([[0], np.cumsum(np.bincount(labels, minlength=n_planes + 1)[1:])])
         )
-    with pytest.raises(ValueError, match='labels must be in 0..2'):
+    with pytest.raises(ValueError, match=r'labels must be in 0\.\.2'):
         plane_members(np.array([0, 3]), 2)
     with pytest.raises(ValueError, match='one-dimensional'):
         plane_members(np.zeros((2, 2), np.int32), 2)
