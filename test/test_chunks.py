@@ -7,7 +7,7 @@ import pytest
 
 from ppe_ros.core.chunks import group_chunks, plane_members
 from ppe_ros.core.fitting import FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE, _fit_groups, fit_pixel_groups
-from ppe_ros.core.quadrants import _jackknife_kernel, _members_by_plane
+from ppe_ros.core.quadrants import _jackknife_kernel
 from ppe_ros.core.scan import make_ray_scan
 from ppe_ros.core.surfaces import _plane_sums_kernel, _quadric_reduction_kernel
 
@@ -85,15 +85,16 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
     splits = [np.array([0, n]), group_chunks(counts, 3), np.arange(n + 1)]
     assert n > 20 and planes.point_counts[0] > counts.sum() / 3
 
+    members, starts = plane_members(labels, n)
+
     def sums(bounds):
         args = (scan.endpoints, scan.center, scan.directions, sigmas, planes.normals, planes.offsets, counts)
-        return _plane_sums_kernel(*plane_members(labels, n), bounds, *args)
+        return _plane_sums_kernel(members, starts, bounds, *args)
 
     first = sums(splits[0])
     centroid, scatter = first[:, :3], first[:, [[3, 4, 5], [4, 6, 7], [5, 7, 8]]]
     vectors = np.linalg.eigh(scatter)[1]
     scales = np.ones((n, 3))
-    members, starts = _members_by_plane(np.maximum(labels - 1, 0), n)  # pixels without a plane: none here
     assert (labels > 0).all()
     w, sse, info, metric = np.empty((n, 3)), np.empty(n), np.empty((n, 6)), np.empty(n)
     results = []
@@ -118,7 +119,7 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
             (
                 sums(bounds),
                 _quadric_reduction_kernel(
-                    *plane_members(labels, n), bounds, scan.endpoints, scan.center, centroid, vectors, scales
+                    members, starts, bounds, scan.endpoints, scan.center, centroid, vectors, scales
                 ),
                 _jackknife_kernel(scan.endpoints, scan.center, members, starts, bounds, centroid, vectors),
                 w.copy(),

@@ -114,14 +114,3 @@ def test_profile_covariance_counts_the_spread_of_a_bent_surface():
     big = int(np.argmax(with_spread.point_counts))
     assert np.trace(with_spread.covariances[big]) > 10 * np.trace(model_only.covariances[big])
     assert np.all(np.linalg.eigvalsh(with_spread.covariances[big]) > -1e-15)
-
-
-def test_members_by_plane_is_a_stable_sort_by_plane():
-    from ppe_ros.core.quadrants import _members_by_plane
-
-    rng = np.random.default_rng(3)
-    index = rng.integers(0, 7, 1000)
-    index[index == 4] = 5  # an empty plane
-    order, starts = _members_by_plane(index, 7)
-    np.testing.assert_array_equal(order, np.argsort(index, kind='stable'))
-    np.testing.assert_array_equal(starts, np.searchsorted(np.sort(index), np.arange(8)))

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ppe_ros.core.chunks import group_chunks
+from ppe_ros.core.chunks import group_chunks, plane_members
 
 #: Quadrants of the jackknife (2 x 2 blocks in the plane).
 NUM_QUADRANTS = 4
@@ -50,8 +50,8 @@ def quadrant_jackknife(
         raise ValueError('centroids must be (J, 3) and axes (J, 3, 3)')
     if len(plane_index) and (plane_index.min() < 0 or plane_index.max() >= n_planes):
         raise ValueError(f'plane_index must be in 0..{n_planes - 1}')
-    order, starts = _members_by_plane(plane_index, n_planes)
-    return jackknife_of_members(points, np.zeros(3), order, starts, centroids, axes)
+    members, starts = plane_members(plane_index + 1, n_planes)  # labels 1..J: every point is on a plane
+    return jackknife_of_members(points, np.zeros(3), members, starts, centroids, axes)
 
 
 def jackknife_of_members(
@@ -74,23 +74,6 @@ def jackknife_of_members(
         np.ascontiguousarray(centroids, dtype=np.float64),
         np.ascontiguousarray(axes, dtype=np.float64),
     )
-
-
-@nb.njit(cache=True, error_model='numpy', nogil=True)
-def _members_by_plane(plane_index, n_planes):
-    """A counting sort: the points' indices grouped by plane (in order within a plane) and where
-    each plane's group starts (n_planes + 1)."""
-    starts = np.zeros(n_planes + 1, dtype=np.int64)
-    for p in plane_index:
-        starts[p + 1] += 1
-    for j in range(n_planes):
-        starts[j + 1] += starts[j]
-    fill = starts[:-1].copy()
-    order = np.empty(len(plane_index), dtype=np.int64)
-    for i in range(len(plane_index)):
-        order[fill[plane_index[i]]] = i
-        fill[plane_index[i]] += 1
-    return order, starts
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
