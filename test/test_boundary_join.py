@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -197,6 +198,50 @@ def test_the_lidar_profile_runs_the_round_after_the_consolidation():
     assert without.boundary_join_points is None
 
 
+@pytest.mark.parametrize('wrap', [False, True])
+def test_the_boundary_pixel_pairs_of_row_blocks_are_those_of_one_pass(wrap, monkeypatch):
+    """The kernel over all pixels equals the reference (the smaller surface id's pixel first); any split
+    into pixel ranges, and the row blocks on 2 threads (_parallel_boundary_pixel_pairs), give the same
+    pairs in the same order."""
+    import numba
+    import reference_consolidation as reference
+
+    from ppe_ros.core import boundary_join
+
+    rng = np.random.default_rng(7)
+    height, width = 64, 300
+    ids = np.where(rng.random(height * width) < 0.2, -1, rng.integers(0, 9, height * width)).astype(np.int64)
+    large = np.arange(9) != 4  # surface 4 is too small
+    whole = _boundary_pixel_pairs(ids, large, height, width, wrap, 3, 0, height * width)
+    want = [
+        (k, x) if ids[k] < ids[x] else (x, k)
+        for k, x in reference._boundary_pixel_pairs(ids, large, height, width, wrap, 3)
+    ]
+    assert len(whole) > 1000
+    np.testing.assert_array_equal(whole, np.array(want))
+    cuts = [0, 1, 7 * width, 7 * width + 5, height * width - 3, height * width]
+    blocks = [_boundary_pixel_pairs(ids, large, height, width, wrap, 3, a, b) for a, b in itertools.pairwise(cuts)]
+    np.testing.assert_array_equal(np.concatenate(blocks), whole)
+    calls = []
+    run_tasks = boundary_join.run_tasks
+
+    def recording_run_tasks(run, order, threads, pool):
+        calls.append((len(order), threads))
+        return run_tasks(run, order, threads, pool)
+
+    monkeypatch.setattr(boundary_join, 'PARALLEL_PAIRS_MIN_PIXELS', 1000)
+    monkeypatch.setattr(boundary_join, 'run_tasks', recording_run_tasks)
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        got = boundary_join._parallel_boundary_pixel_pairs(ids, large, height, width, wrap, 3)
+    finally:
+        numba.set_num_threads(before)
+    np.testing.assert_array_equal(got, whole)
+    if numba.config.NUMBA_NUM_THREADS >= 2:
+        assert calls == [(2 * boundary_join.BLOCKS_PER_THREAD, 2)]
+
+
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_the_cost_of_a_pair_is_the_reference_cost_from_its_points(seed):
     """Unequal sides: a 4 cm step under a 2 deg tilt of one side, boundary pairs across a gap of 2 rays."""
@@ -208,7 +253,7 @@ def test_the_cost_of_a_pair_is_the_reference_cost_from_its_points(seed):
     moments = _piece_moments(ids, scan.endpoints, sigmas, 2)
     plane = np.empty((2, 13))
     _plane_rows(moments, plane, 0, 2)
-    pixel_pairs = _boundary_pixel_pairs(ids, np.array([True, True]), ROWS, COLS, False, 2)
+    pixel_pairs = _boundary_pixel_pairs(ids, np.array([True, True]), ROWS, COLS, False, 2, 0, ROWS * COLS)
     side = _side_moments(scan.endpoints, sigmas, pixel_pairs, np.zeros(len(pixel_pairs), np.int64), 1)
     for noise_factor, step_factor in ((0.0, 1.0), (2.0, 1.3)):
         value = _boundary_cost(moments, plane, side, 0, 0, 1, TAU**2, noise_factor**2, step_factor**2, 0.0)

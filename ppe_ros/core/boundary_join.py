@@ -45,6 +45,7 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.consolidation import (
+    BLOCKS_PER_THREAD,
     _add_pair,
     _add_ray,
     _find,
@@ -52,12 +53,14 @@ from ppe_ros.core.consolidation import (
     _piece_moments,
     _plane_of,
     _plane_rows,
+    _pool,
     _scatter,
     _union_deviation,
     checked_tolerances,
 )
 from ppe_ros.core.scan import RayScan
 from ppe_ros.core.sensor import check_boundary_join_points, check_step_factor
+from ppe_ros.core.thread_pool import run_tasks
 
 
 def _cache_probe():
@@ -146,7 +149,7 @@ def join_at_boundaries(
     ray_sigmas = np.where(np.isfinite(sigmas), np.asarray(sigmas, dtype=np.float64), 0.0)
     moments = _piece_moments(ids, scan.endpoints, ray_sigmas, n)
     large = moments[:, 0] >= points
-    pixel_pairs = _boundary_pixel_pairs(ids, large, scan.height, scan.width, bool(wrap_columns), int(max_gap))
+    pixel_pairs = _parallel_boundary_pixel_pairs(ids, large, scan.height, scan.width, bool(wrap_columns), int(max_gap))
     # (no early return without pairs: every kernel runs on each call, so that a JIT warm-up on a small
     # cloud compiles them all)
     keys = ids[pixel_pairs[:, 0]] * n + ids[pixel_pairs[:, 1]]
@@ -164,14 +167,36 @@ def join_at_boundaries(
     return out
 
 
+#: Pixels per thread below which the boundary pixel pairs are found in the calling thread alone (a pass
+#: cheaper per pixel than the candidate pairs': a 32 x 1024 sweep's is faster on one thread).
+PARALLEL_PAIRS_MIN_PIXELS = 32768
+
+
+def _parallel_boundary_pixel_pairs(ids, large, height: int, width: int, wrap: bool, max_gap: int) -> np.ndarray:
+    """:func:`_boundary_pixel_pairs` of all pixels: row blocks (consolidation.BLOCKS_PER_THREAD per thread) taken
+    in turn by numba's thread count of threads (the kernel releases the GIL), their pairs concatenated in
+    block order: the pairs and their order of one call over all pixels."""
+    threads = max(1, min(nb.get_num_threads(), len(ids) // PARALLEL_PAIRS_MIN_PIXELS))
+    n_blocks = min(threads * BLOCKS_PER_THREAD, height) if threads > 1 else 1
+    bounds = [width * round(i * height / n_blocks) for i in range(n_blocks + 1)]
+
+    def block(i: int) -> np.ndarray:
+        return _boundary_pixel_pairs(ids, large, height, width, wrap, max_gap, bounds[i], bounds[i + 1])
+
+    if n_blocks == 1:
+        return block(0)
+    return np.concatenate(run_tasks(block, range(n_blocks), threads, _pool))
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _boundary_pixel_pairs(ids, large, height, width, wrap, max_gap):
+def _boundary_pixel_pairs(ids, large, height, width, wrap, max_gap, first, last):
     """(m, 2) pixel pairs (k, l) on the boundary of two large surfaces, the smaller surface id's pixel
     first: l is the first pixel with a surface after k to its right (across the seam when wrap) or
-    below it, with at most max_gap pixels without one between them, and its surface is another."""
+    below it, with at most max_gap pixels without one between them, and its surface is another; for the
+    pixels k in first..last-1, in the order of k."""
     out = np.empty((64, 2), np.int64)
     n_out = 0
-    for k in range(height * width):
+    for k in range(first, last):
         a = ids[k]
         if a < 0 or not large[a]:
             continue
