@@ -206,7 +206,7 @@ def test_the_boundary_pixel_pairs_of_row_blocks_are_those_of_one_pass(wrap, monk
     import numba
     import reference_consolidation as reference
 
-    from ppe_ros.core import boundary_join
+    from ppe_ros.core import boundary_join, consolidation
 
     rng = np.random.default_rng(7)
     height, width = 64, 300
@@ -223,14 +223,14 @@ def test_the_boundary_pixel_pairs_of_row_blocks_are_those_of_one_pass(wrap, monk
     blocks = [_boundary_pixel_pairs(ids, large, height, width, wrap, 3, a, b) for a, b in itertools.pairwise(cuts)]
     np.testing.assert_array_equal(np.concatenate(blocks), whole)
     calls = []
-    run_tasks = boundary_join.run_tasks
+    run_tasks = consolidation.run_tasks
 
     def recording_run_tasks(run, order, threads, pool):
         calls.append((len(order), threads))
         return run_tasks(run, order, threads, pool)
 
     monkeypatch.setattr(boundary_join, 'PARALLEL_PAIRS_MIN_PIXELS', 1000)
-    monkeypatch.setattr(boundary_join, 'run_tasks', recording_run_tasks)
+    monkeypatch.setattr(consolidation, 'run_tasks', recording_run_tasks)
     before = numba.get_num_threads()
     numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
     try:
@@ -239,7 +239,7 @@ def test_the_boundary_pixel_pairs_of_row_blocks_are_those_of_one_pass(wrap, monk
         numba.set_num_threads(before)
     np.testing.assert_array_equal(got, whole)
     if numba.config.NUMBA_NUM_THREADS >= 2:
-        assert calls == [(2 * boundary_join.BLOCKS_PER_THREAD, 2)]
+        assert calls == [(2 * consolidation.BLOCKS_PER_THREAD, 2)]
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])

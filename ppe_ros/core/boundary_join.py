@@ -45,7 +45,6 @@ import numba as nb
 import numpy as np
 
 from ppe_ros.core.consolidation import (
-    BLOCKS_PER_THREAD,
     _add_pair,
     _add_ray,
     _find,
@@ -53,14 +52,13 @@ from ppe_ros.core.consolidation import (
     _piece_moments,
     _plane_of,
     _plane_rows,
-    _pool,
     _scatter,
     _union_deviation,
     checked_tolerances,
+    in_row_blocks,
 )
 from ppe_ros.core.scan import RayScan
 from ppe_ros.core.sensor import check_boundary_join_points, check_step_factor
-from ppe_ros.core.thread_pool import run_tasks
 
 
 def _cache_probe():
@@ -173,19 +171,13 @@ PARALLEL_PAIRS_MIN_PIXELS = 32768
 
 
 def _parallel_boundary_pixel_pairs(ids, large, height: int, width: int, wrap: bool, max_gap: int) -> np.ndarray:
-    """:func:`_boundary_pixel_pairs` of all pixels: row blocks (consolidation.BLOCKS_PER_THREAD per thread) taken
-    in turn by numba's thread count of threads (the kernel releases the GIL), their pairs concatenated in
-    block order: the pairs and their order of one call over all pixels."""
-    threads = max(1, min(nb.get_num_threads(), len(ids) // PARALLEL_PAIRS_MIN_PIXELS))
-    n_blocks = min(threads * BLOCKS_PER_THREAD, height) if threads > 1 else 1
-    bounds = [width * round(i * height / n_blocks) for i in range(n_blocks + 1)]
+    """:func:`_boundary_pixel_pairs` of all pixels in row blocks (consolidation.in_row_blocks): the pairs and
+    their order of one call over all pixels."""
 
-    def block(i: int) -> np.ndarray:
-        return _boundary_pixel_pairs(ids, large, height, width, wrap, max_gap, bounds[i], bounds[i + 1])
+    def block(first: int, last: int) -> np.ndarray:
+        return _boundary_pixel_pairs(ids, large, height, width, wrap, max_gap, first, last)
 
-    if n_blocks == 1:
-        return block(0)
-    return np.concatenate(run_tasks(block, range(n_blocks), threads, _pool))
+    return in_row_blocks(block, height, width, PARALLEL_PAIRS_MIN_PIXELS)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)

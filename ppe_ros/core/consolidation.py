@@ -53,6 +53,8 @@ kernel is tested against.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numba as nb
 import numpy as np
 
@@ -917,16 +919,28 @@ BLOCKS_PER_THREAD = 4
 _pool = SharedThreadPool('ppe-surfaces')
 
 
+def in_row_blocks(
+    pairs_of_pixels: Callable[[int, int], np.ndarray], height: int, width: int, min_pixels_per_thread: int
+) -> np.ndarray:
+    """``pairs_of_pixels(0, height * width)``, computed as row blocks (BLOCKS_PER_THREAD per thread) taken in
+    turn by numba's thread count of threads (at most one per min_pixels_per_thread pixels) and concatenated
+    in block order: ``pairs_of_pixels(first, last)`` gives the (m, 2) rows found from pixels first..last-1
+    (a kernel that releases the GIL), in pixel order."""
+    threads = max(1, min(nb.get_num_threads(), height * width // min_pixels_per_thread))
+    n_blocks = min(threads * BLOCKS_PER_THREAD, height) if threads > 1 else 1
+    if n_blocks == 1:
+        return pairs_of_pixels(0, height * width)
+    bounds = [width * round(i * height / n_blocks) for i in range(n_blocks + 1)]
+    blocks = run_tasks(lambda i: pairs_of_pixels(bounds[i], bounds[i + 1]), range(n_blocks), threads, _pool)
+    return np.concatenate(blocks)
+
+
 def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, max_gap, connected_only) -> np.ndarray:
-    """_candidate_pairs of all pixels: row blocks (BLOCKS_PER_THREAD per thread) taken in turn by numba's
-    thread count of threads (the kernel releases the GIL); the blocks' pairs are concatenated in block
-    order (consolidate_pieces sorts and dedupes them)."""
-    threads = max(1, min(nb.get_num_threads(), len(ids) // PARALLEL_MIN_PIXELS))
-    n_blocks = min(threads * BLOCKS_PER_THREAD, scan.height) if threads > 1 else 1
-    bounds = [scan.width * round(i * scan.height / n_blocks) for i in range(n_blocks + 1)]
+    """_candidate_pairs of all pixels in row blocks (:func:`in_row_blocks`; consolidate_pieces sorts and
+    dedupes them)."""
     no_return = _no_return_runs(scan.ranges, ids, scan.height, scan.width)
 
-    def block(i: int) -> np.ndarray:
+    def block(first: int, last: int) -> np.ndarray:
         return _candidate_pairs(
             ids,
             scan.endpoints,
@@ -941,13 +955,11 @@ def _parallel_candidate_pairs(ids, scan: RayScan, sigmas, normals, means, tau, m
             tau,
             max_gap,
             connected_only,
-            bounds[i],
-            bounds[i + 1],
+            first,
+            last,
         )
 
-    if n_blocks == 1:
-        return block(0)
-    return np.concatenate(run_tasks(block, range(n_blocks), threads, _pool))
+    return in_row_blocks(block, scan.height, scan.width, PARALLEL_MIN_PIXELS)
 
 
 def _unique_candidate_pairs(
