@@ -683,7 +683,7 @@ def test_profile_covariances_are_wider_than_the_fit_alone_on_a_biased_scan():
 def test_covariances_from_the_planarity_tests_sums_are_the_recomputed_ones():
     """whole_surfaces hands the planarity test's per-plane sums (of the planes it kept) to systematic_covariances
     when both use the same sigmas: the covariances are those it computes itself, and it does use what it gets."""
-    from ppe_ros.core.surfaces import _kept_planes, _plane_sums, systematic_covariances
+    from ppe_ros.core.surfaces import _kept_members, _kept_planes, _members, _plane_sums, systematic_covariances
 
     scan_data = _wall_behind_a_post(noise=0.01, seed=3)
     planes = extract_planes(scan_data.points, origins=scan_data.origins, sensor='lidar')
@@ -698,6 +698,21 @@ def test_covariances_from_the_planarity_tests_sums_are_the_recomputed_ones():
         scan, kept, sigmas, 1.0, quadrant_jackknife=True, sums=tuple(column[keep] for column in sums)
     )
     np.testing.assert_array_equal(given, expected)
+    # the planarity test's members, cut to the kept planes, are the kept planes' own
+    kept_members = _kept_members(_members(planes), keep)
+    for got, want in zip(kept_members, _members(kept), strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert len(kept_members[0]) == kept.point_counts.sum() < planes.point_counts.sum()
+    with_members = systematic_covariances(
+        scan,
+        kept,
+        sigmas,
+        1.0,
+        quadrant_jackknife=True,
+        sums=tuple(column[keep] for column in sums),
+        members=kept_members,
+    )
+    np.testing.assert_array_equal(with_members, expected)
     centroid, scatter, residual2, noise2, sigma2 = sums
     rougher = (centroid, scatter, residual2 + 1e-3, noise2, sigma2)  # 3 cm more RMS off each plane
     other = systematic_covariances(scan, planes, sigmas, 1.0, sums=rougher)

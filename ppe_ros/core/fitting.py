@@ -487,8 +487,8 @@ def fit_pixel_groups(
     out_w = np.empty((n_planes, 3))
     out_sse = np.empty(n_planes)
     out_info = np.empty((n_planes, 6))
-    metric = sigmas is not None and not residuals  # the sse in metres again, in the fits' pass
-    out_metric_sse = np.empty(n_planes if metric else 0)
+    metric_in_fits = sigmas is not None and not residuals  # the sse in metres again, in the fits' pass
+    out_metric_sse = np.empty(n_planes if metric_in_fits else 0)
     _fit_groups(
         scan.endpoints,
         scan.directions,
@@ -500,7 +500,7 @@ def fit_pixel_groups(
         out_w,
         out_sse,
         out_info,
-        np.ascontiguousarray(sigmas, dtype=np.float64) if metric else np.empty(0),
+        np.ascontiguousarray(sigmas, dtype=np.float64) if metric_in_fits else np.empty(0),
         out_metric_sse,
     )
     centroids = sums / point_counts[:, None] + scan.center
@@ -524,7 +524,7 @@ def fit_pixel_groups(
             residual_image[idx] = (np.einsum('ij,ij->i', scan.endpoints[idx], w_of_pixel) - 1.0) / np.einsum(
                 'ij,ij->i', scan.directions[idx], w_of_pixel
             )
-    sse = out_metric_sse if metric else out_sse.copy()
+    sse = out_metric_sse if metric_in_fits else out_sse.copy()
     if sigmas is not None and residual_image is not None:  # residuals in metres again
         residual_image *= sigmas
         on_plane = np.flatnonzero(labels > 0)

@@ -70,9 +70,9 @@ def whole_surfaces(
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     curvature_factor = np.inf if profile is None else profile.max_plane_curvature_factor
     min_width = None if profile is None else profile.min_plane_width
-    sums = None  # the planes' _plane_sums with ray_sigmas, when computed
+    sums = members = None  # the planes' _plane_sums with ray_sigmas and their _members, when computed
     if (np.isfinite(factor) or np.isfinite(curvature_factor) or min_width is not None) and planes.num_planes:
-        planes, sums = _drop_non_planar(
+        planes, sums, members = _drop_non_planar(
             unit_scan,
             planes,
             ray_sigmas,
@@ -96,6 +96,7 @@ def whole_surfaces(
                 profile.correlation_length,
                 quadrant_jackknife=profile.quadrant_jackknife,
                 sums=sums if independent is ray_sigmas else None,
+                members=members,
             ),
         )
     return planes
@@ -294,6 +295,7 @@ def systematic_covariances(
     quadrant_jackknife: bool = False,
     *,
     sums: tuple | None = None,
+    members: tuple | None = None,
 ) -> np.ndarray:
     """``(J, 3, 3)`` covariance (m^2) of each plane's closest point d n from errors that do not average out.
 
@@ -310,11 +312,12 @@ def systematic_covariances(
     when a different part of the surface is seen) is used too: its covariance of offset and tilts,
     with each variance raised to the independent-patch model's where that is larger. The result is
     mapped to d n to first order. ``sums``: the planes' :func:`_plane_sums` with these ``ray_sigmas``, if
-    already computed.
+    already computed; ``members``: their :func:`_members`, if already computed.
     """
     count = planes.point_counts.astype(np.float64)
     n_planes = planes.num_planes
-    members = _members(planes) if sums is None or quadrant_jackknife else None
+    if members is None and (sums is None or quadrant_jackknife):
+        members = _members(planes)
     if sums is None:
         sums = _plane_sums(scan, planes, ray_sigmas, count, members)
     centroid, scatter, residual2, noise2, _ = sums
@@ -357,7 +360,7 @@ def _drop_non_planar(
     curvature_factor: float = np.inf,
     min_width: float | None = None,
     curvature_max_size: float | None = None,
-) -> tuple[PlaneSet, tuple]:
+) -> tuple[PlaneSet, tuple, tuple]:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
     plus the sensor's noise along the normal (lambda: noise_factor), or whose best quadric surface
@@ -368,8 +371,9 @@ def _drop_non_planar(
     noise, which a tree's or a car's pieces are not; None: tau_D = tau. With ``curvature_max_size`` the
     curvature test judges only planes of a size D below it; ``min_width``: a plane whose points span less
     than that across (sqrt(12 l2), l2 the scatter's middle eigenvalue) is no plane. scan has unit directions.
-    Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), and
-    their :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas).
+    Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), their
+    :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas) and their
+    :func:`_members`.
     """
     members = _members(planes)
     sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1), members)
@@ -389,8 +393,18 @@ def _drop_non_planar(
     if min_width is not None:
         planar &= 12.0 * np.maximum(values[:, 1], 0.0) >= float(min_width) ** 2
     if planar.all():
-        return planes, sums
-    return _kept_planes(planes, planar), tuple(column[planar] for column in sums)
+        return planes, sums, members
+    return _kept_planes(planes, planar), tuple(column[planar] for column in sums), _kept_members(members, planar)
+
+
+def _kept_members(members: tuple, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_members` of ``_kept_planes(planes, keep)`` from the planes' own: the kept planes' runs, in
+    their order (the renumbering keeps the planes' order and each plane's pixel order)."""
+    pixels, starts = members
+    counts = np.diff(starts)
+    kept_starts = np.zeros(np.count_nonzero(keep) + 1, np.int64)
+    np.cumsum(counts[keep], out=kept_starts[1:])
+    return pixels[np.repeat(keep, counts)], kept_starts
 
 
 def curvature_rms(
