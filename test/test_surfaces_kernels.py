@@ -13,8 +13,8 @@ from ppe_ros.core.consolidation import (
     _candidate_pairs,
     _consolidate_kernel,
     _dense_ids,
-    _heap_insert,
-    _heap_pop,
+    _heap_remove,
+    _heap_set,
     _merge_pieces,
     _no_return_runs,
     _pair_costs,
@@ -142,27 +142,73 @@ def test_unique_pairs_equal_numpy_unique_rows():
     assert _unique_pairs(np.zeros((0, 2), np.int64), 3).shape == (0, 2)
 
 
-def test_the_heap_pops_in_the_order_of_heapq():
+def test_the_indexed_heap_keeps_one_entry_per_edge_and_its_first_is_the_least():
+    """_heap_set / _heap_remove against a dict of edge -> (cost, a, b) whose least value is the first;
+    few distinct costs, so that ties are decided by the pieces; positions stay consistent."""
     rng = np.random.default_rng(6)
-    hkey, hint, size = np.empty(3000), np.empty((3000, 4), np.int64), 0
-    reference, popped, want = [], [], []
-    for _ in range(3000):
-        if size and rng.random() < 0.4:
-            a, b, va, vb, size = _heap_pop(hkey, hint, size)
-            popped.append((a, b, va, vb))
-            want.append(heapq.heappop(reference)[1:])
-        else:  # few distinct costs and ids: ties decided by the ids and versions
-            entry = (float(rng.integers(0, 5)) / 4, *(int(x) for x in rng.integers(0, 3, 4)))
-            size = _heap_insert(hkey, hint, size, *entry)
-            heapq.heappush(reference, entry)
-    while size:
-        a, b, va, vb, size = _heap_pop(hkey, hint, size)
-        popped.append((a, b, va, vb))
-        want.append(heapq.heappop(reference)[1:])
-    assert popped == want and len(popped) > 1000
+    m = 400
+    hkey, hpair, hedge, where = np.empty(m), np.empty((m, 2), np.int64), np.empty(m, np.int64), np.full(m, -1)
+    size, reference, popped = 0, {}, 0
+    for _ in range(20000):
+        e = int(rng.integers(0, m))
+        action = rng.random()
+        if action < 0.55:
+            key = (float(rng.integers(0, 5)) / 4, e % 7, e)  # (cost, a, b): b = e keeps (a, b) unique
+            size = _heap_set(hkey, hpair, hedge, where, size, e, *key)
+            reference[e] = key
+        elif action < 0.8:
+            size = _heap_remove(hkey, hpair, hedge, where, size, e)
+            reference.pop(e, None)
+        elif size:
+            first = int(hedge[0])
+            assert reference[first] == min(reference.values())
+            assert (hkey[0], hpair[0, 0], hpair[0, 1]) == reference.pop(first)
+            size = _heap_remove(hkey, hpair, hedge, where, size, first)
+            popped += 1
+        assert size == len(reference)
+        queued = {int(hedge[i]): (hkey[i], hpair[i, 0], hpair[i, 1]) for i in range(size)}
+        assert queued == reference
+        assert all(where[hedge[i]] == i for i in range(size)) and np.sum(where >= 0) == size
+    assert popped > 2000
 
 
-def test_a_full_merge_heap_runs_the_kernel_again_with_a_larger_one():
+def _lazy_heap_merges(moments, pairs, tau2, noise_factor2):
+    """The merge loop with Python's heapq and lazy deletion (versions): the definition the kernel's
+    indexed heap must reproduce."""
+    mom = [row.copy() for row in moments]
+    parent, version = list(range(len(mom))), [0] * len(mom)
+    neighbours = [set() for _ in mom]
+    heap = []
+
+    def find(x):
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    def push(a, b):
+        lo, hi = min(a, b), max(a, b)
+        cost = consolidation.merge_cost(mom[lo], mom[hi], np.sqrt(tau2), np.sqrt(noise_factor2))
+        if cost <= 1.0:
+            heapq.heappush(heap, (cost, lo, hi, version[lo], version[hi]))
+
+    for a, b in pairs:
+        neighbours[a].add(int(b))
+        neighbours[b].add(int(a))
+        push(int(a), int(b))
+    while heap:
+        _, a, b, va, vb = heapq.heappop(heap)
+        if parent[a] != a or parent[b] != b or (version[a], version[b]) != (va, vb):
+            continue
+        parent[b] = a
+        mom[a] = mom[a] + mom[b]
+        version[a] += 1
+        neighbours[a] = {find(c) for c in neighbours[a] | neighbours[b]} - {a}
+        for c in sorted(neighbours[a]):
+            push(a, c)
+    return np.array([find(x) for x in range(len(mom))])
+
+
+def test_the_merge_loop_equals_a_lazy_heapq_loop_on_a_scene_of_many_pieces():
     scan, ids, sigmas = _scene(9, rows=64)
     labels, dense = _dense_ids(ids)
     sig = np.ascontiguousarray(np.nan_to_num(sigmas))
@@ -174,10 +220,10 @@ def test_a_full_merge_heap_runs_the_kernel_again_with_a_larger_one():
         normals, means, 0.05, 16, False, 0, scan.size,
     )  # fmt: skip
     pairs = _unique_pairs(found, len(labels))
-    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0, 1.0)
-    assert len(_consolidate_kernel(moments, pairs, plane_rows, costs, 0.05**2, 1.0, 1.0, 1)) == 0  # m entries: full
     roots = _merge_pieces(moments, pairs, 0.05**2, 1.0)
-    np.testing.assert_array_equal(_merge_pieces(moments, pairs, 0.05**2, 1.0, heap_capacity=1), roots)
+    np.testing.assert_array_equal(roots, _lazy_heap_merges(moments, pairs, 0.05**2, 1.0))
+    plane_rows, costs = _pair_costs(moments, pairs, 0.05**2, 1.0, 1.0)
+    np.testing.assert_array_equal(_consolidate_kernel(moments, pairs, plane_rows, costs, 0.05**2, 1.0, 1.0), roots)
     assert len(np.unique(roots)) < len(labels) / 2  # the scene's blocks merge into surfaces
 
 

@@ -498,73 +498,90 @@ def _find(parent, x):
     return x
 
 
+# The merge loop's queue: a binary min-heap of candidate pairs (edges) in lexicographic order of
+# (cost, a, b), indexed by edge: where[e] is edge e's position (-1: not queued), so that a re-valued
+# pair's entry is re-keyed in place and an inadmissible or dead one removed. Each live pair of pieces
+# then has at most one entry and the loop pops merges only (no stale entries). Arrays: hkey (costs),
+# hpair (m, 2) (a, b), hedge (edge ids), where (m,).
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _heap_before(hkey, hint, i, key, a, b, va, vb):
-    """Heap entry i before the entry (key, a, b, va, vb): (cost, a, b, version a, version b) in
-    lexicographic order."""
+def _heap_before(hkey, hpair, i, key, a, b):
+    """Heap entry i before the entry (key, a, b): (cost, a, b) in lexicographic order."""
     if hkey[i] != key:
         return hkey[i] < key
-    if hint[i, 0] != a:
-        return hint[i, 0] < a
-    if hint[i, 1] != b:
-        return hint[i, 1] < b
-    if hint[i, 2] != va:
-        return hint[i, 2] < va
-    return hint[i, 3] < vb
+    if hpair[i, 0] != a:
+        return hpair[i, 0] < a
+    return hpair[i, 1] < b
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _heap_put(hkey, hint, i, key, a, b, va, vb):
+def _heap_put(hkey, hpair, hedge, where, i, key, a, b, e):
     hkey[i] = key
-    hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3] = a, b, va, vb
+    hpair[i, 0], hpair[i, 1] = a, b
+    hedge[i] = e
+    where[e] = i
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _heap_sift_down(hkey, hint, size, i):
-    """Move entry i down the heap hkey[:size], hint[:size] to its place (children moved up into the hole)."""
-    key, a, b, va, vb = hkey[i], hint[i, 0], hint[i, 1], hint[i, 2], hint[i, 3]
+def _heap_sift_up(hkey, hpair, hedge, where, i, key, a, b, e):
+    """Put the entry (key, a, b) of edge e into the hole at i, moving the parents after it down."""
+    while i > 0:
+        parent = (i - 1) // 2
+        if _heap_before(hkey, hpair, parent, key, a, b):
+            break
+        _heap_put(hkey, hpair, hedge, where, i, hkey[parent], hpair[parent, 0], hpair[parent, 1], hedge[parent])
+        i = parent
+    _heap_put(hkey, hpair, hedge, where, i, key, a, b, e)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _heap_sift_down(hkey, hpair, hedge, where, size, i, key, a, b, e):
+    """Put the entry (key, a, b) of edge e into the hole at i of heap[:size], moving the children before it up."""
     while True:
         child = 2 * i + 1
         if child >= size:
             break
         right = child + 1
-        if right < size and _heap_before(
-            hkey, hint, right, hkey[child], hint[child, 0], hint[child, 1], hint[child, 2], hint[child, 3]
-        ):
+        if right < size and _heap_before(hkey, hpair, right, hkey[child], hpair[child, 0], hpair[child, 1]):
             child = right
-        if not _heap_before(hkey, hint, child, key, a, b, va, vb):
+        if not _heap_before(hkey, hpair, child, key, a, b):
             break
-        _heap_put(hkey, hint, i, hkey[child], hint[child, 0], hint[child, 1], hint[child, 2], hint[child, 3])
+        _heap_put(hkey, hpair, hedge, where, i, hkey[child], hpair[child, 0], hpair[child, 1], hedge[child])
         i = child
-    _heap_put(hkey, hint, i, key, a, b, va, vb)
+    _heap_put(hkey, hpair, hedge, where, i, key, a, b, e)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _heap_insert(hkey, hint, size, cost, a, b, va, vb):
-    """Push (cost, a, b, va, vb) onto the binary min-heap hkey[:size], hint[:size], which must have room
-    (size < len(hkey)); returns the new size."""
-    i = size
-    while i > 0:  # parents after the new entry move down into the hole
-        parent = (i - 1) // 2
-        if _heap_before(hkey, hint, parent, cost, a, b, va, vb):
-            break
-        _heap_put(hkey, hint, i, hkey[parent], hint[parent, 0], hint[parent, 1], hint[parent, 2], hint[parent, 3])
-        i = parent
-    _heap_put(hkey, hint, i, cost, a, b, va, vb)
-    return size + 1
+def _heap_fill(hkey, hpair, hedge, where, size, i, key, a, b, e):
+    """Put the entry of edge e into the hole at i of heap[:size], up or down to its place."""
+    if i > 0 and not _heap_before(hkey, hpair, (i - 1) // 2, key, a, b):
+        _heap_sift_up(hkey, hpair, hedge, where, i, key, a, b, e)
+    else:
+        _heap_sift_down(hkey, hpair, hedge, where, size, i, key, a, b, e)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
-def _heap_pop(hkey, hint, size):
-    """Remove the first entry of the heap hkey[:size], hint[:size]; returns (a, b, va, vb, size)."""
-    a, b, va, vb = hint[0, 0], hint[0, 1], hint[0, 2], hint[0, 3]
+def _heap_set(hkey, hpair, hedge, where, size, e, key, a, b):
+    """Queue edge e as (key, a, b), or re-key its entry; returns the heap's new size (room for every edge)."""
+    if where[e] < 0:
+        _heap_sift_up(hkey, hpair, hedge, where, size, key, a, b, e)
+        return size + 1
+    _heap_fill(hkey, hpair, hedge, where, size, where[e], key, a, b, e)
+    return size
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, _nrt=False)
+def _heap_remove(hkey, hpair, hedge, where, size, e):
+    """Take edge e's entry (if queued) out of heap[:size]; returns the new size."""
+    i = where[e]
+    if i < 0:
+        return size
+    where[e] = -1
     size -= 1
-    if size > 0:
-        hkey[0] = hkey[size]
-        for c in range(4):
-            hint[0, c] = hint[size, c]
-        _heap_sift_down(hkey, hint, size, 0)
-    return a, b, va, vb, size
+    if i < size:  # the last entry fills the hole
+        _heap_fill(hkey, hpair, hedge, where, size, i, hkey[size], hpair[size, 0], hpair[size, 1], hedge[size])
+    return size
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
@@ -611,23 +628,9 @@ def _pair_cost_rows(moments, plane, pairs, first, stop, tau2, noise_factor2, ste
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, step_factor2, heap_capacity):
-    """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
-
-    A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2,
-    step_factor2 = kappa^2).
-    plane_rows, costs: the pieces' _plane_of rows and the pairs' costs (:func:`_pair_costs`). The queue
-    is a binary heap ordered by (cost, a, b, version a, version b): every order of pushes pops the
-    same sequence. It holds at most max(heap_capacity, m) entries: when it is full the kernel returns an
-    empty array, and :func:`_merge_pieces` runs it again with a larger heap (a heap array reassigned in
-    the loop would cost a reference count increment and decrement per valuation).
-    """
-    n = moments.shape[0]
-    mom = moments.copy()
-    plane = plane_rows.copy()
-    parent = np.arange(n)
-    version = np.zeros(n, np.int64)
-    # half-edges: a linked list of neighbours per root (head, tail, next)
+def _neighbour_lists(pairs, n):
+    """Half-edges of the candidate pairs (m, 2) of n pieces: a linked list of neighbours per piece
+    (head, tail (n,), next, other (2 m,)); half-edge 2 e + side of edge e belongs to pairs[e, side]."""
     m = pairs.shape[0]
     other = np.empty(2 * m, np.int64)
     nxt = np.full(2 * m, -1, np.int64)
@@ -643,28 +646,48 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
             else:
                 nxt[tail[u]] = h
             tail[u] = h
-    capacity = max(heap_capacity, m)
-    hkey = np.empty(capacity)
-    hint = np.empty((capacity, 4), np.int64)
+    return head, tail, nxt, other
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, step_factor2):
+    """Greedy agglomeration of pieces (moments (K, 11), candidate pairs (m, 2) unique) -> root of each piece.
+
+    A pair is admissible when its :func:`_merge_cost` is at most 1 (tau2 = tau^2, noise_factor2 = lambda^2,
+    step_factor2 = kappa^2).
+    plane_rows, costs: the pieces' _plane_of rows and the pairs' costs (:func:`_pair_costs`). The queue
+    is the indexed heap above, ordered by (cost, a, b): every live pair of pieces has at most one
+    candidate edge (dead[e]: a duplicate of another edge between the same two pieces, or inside one),
+    which holds its latest admissible cost, so the first entry is always the next merge.
+    """
+    n = moments.shape[0]
+    m = pairs.shape[0]
+    mom = moments.copy()
+    plane = plane_rows.copy()
+    parent = np.arange(n)
+    head, tail, nxt, other = _neighbour_lists(pairs, n)
+    dead = np.zeros(m, np.bool_)
+    hkey = np.empty(m)
+    hpair = np.empty((m, 2), np.int64)
+    hedge = np.empty(m, np.int64)
+    where = np.full(m, -1, np.int64)
     size = 0
     for e in range(m):
         if costs[e] <= 1.0:
-            hkey[size] = costs[e]
-            hint[size, 0], hint[size, 1], hint[size, 2], hint[size, 3] = pairs[e, 0], pairs[e, 1], 0, 0
+            _heap_put(hkey, hpair, hedge, where, size, costs[e], pairs[e, 0], pairs[e, 1], e)
             size += 1
     for i in range(size // 2 - 1, -1, -1):
-        _heap_sift_down(hkey, hint, size, i)
+        _heap_sift_down(hkey, hpair, hedge, where, size, i, hkey[i], hpair[i, 0], hpair[i, 1], hedge[i])
     stamp = np.full(n, -1, np.int64)
     n_merges = 0
     while size > 0:
-        a, b, va, vb, size = _heap_pop(hkey, hint, size)
-        if parent[a] != a or parent[b] != b or version[a] != va or version[b] != vb:
-            continue
+        a, b, first = hpair[0, 0], hpair[0, 1], hedge[0]
+        size = _heap_remove(hkey, hpair, hedge, where, size, first)
+        dead[first] = True
         # merge b into a (a < b: the smaller id survives)
         parent[b] = a
         mom[a] += mom[b]
         _plane_of(mom[a], plane[a])
-        version[a] += 1
         n_merges += 1
         if head[b] >= 0:
             if head[a] < 0:
@@ -673,14 +696,15 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
                 nxt[tail[a]] = head[b]
             tail[a] = tail[b]
         # re-value a's pairs with every distinct neighbour root; the list keeps one half-edge per
-        # distinct neighbour (self-loops and repeats dropped), so its length stays the degree
+        # distinct neighbour (dead edges, self-loops and repeats dropped), so its length stays the degree
         h = head[a]
         head[a] = -1
         tail[a] = -1
         while h >= 0:
             following = nxt[h]
-            c = _find(parent, other[h])
-            if c != a and stamp[c] != n_merges:
+            e = h >> 1
+            c = -1 if dead[e] else _find(parent, other[h])
+            if c >= 0 and c != a and stamp[c] != n_merges:
                 stamp[c] = n_merges
                 other[h] = c
                 nxt[h] = -1
@@ -693,9 +717,12 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
                 hi = max(a, c)
                 value = _merge_cost(mom, plane, lo, hi, tau2, noise_factor2, step_factor2)
                 if value <= 1.0:
-                    if size == len(hkey):
-                        return np.empty(0, np.int64)  # the heap is full
-                    size = _heap_insert(hkey, hint, size, value, lo, hi, version[lo], version[hi])
+                    size = _heap_set(hkey, hpair, hedge, where, size, e, value, lo, hi)
+                else:
+                    size = _heap_remove(hkey, hpair, hedge, where, size, e)
+            elif c >= 0:  # a self-loop or a second edge to c: dead (its other half-edge is dropped later)
+                dead[e] = True
+                size = _heap_remove(hkey, hpair, hedge, where, size, e)
             h = following
     roots = np.empty(n, np.int64)
     for x in range(n):
@@ -704,23 +731,12 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
 
 
 def _merge_pieces(
-    moments: np.ndarray,
-    pairs: np.ndarray,
-    tau2: float,
-    noise_factor2: float,
-    step_factor2: float = 1.0,
-    heap_capacity: int | None = None,
+    moments: np.ndarray, pairs: np.ndarray, tau2: float, noise_factor2: float, step_factor2: float = 1.0
 ) -> np.ndarray:
     """The root of each piece after :func:`_consolidate_kernel` merged the pieces (moments (K, 11)) along
-    their unique candidate pairs (m, 2), valued by :func:`_pair_costs`; with a heap of heap_capacity
-    entries (default 4 m + 16: enough for the real scans) doubled until the kernel does not run out of it."""
+    their unique candidate pairs (m, 2), valued by :func:`_pair_costs`."""
     plane_rows, costs = _pair_costs(moments, pairs, tau2, noise_factor2, step_factor2)
-    capacity = 4 * len(pairs) + 16 if heap_capacity is None else int(heap_capacity)
-    while True:
-        roots = _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, step_factor2, capacity)
-        if len(roots) == len(moments):
-            return roots
-        capacity = 2 * capacity + 16
+    return _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, step_factor2)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
