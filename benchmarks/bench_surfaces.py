@@ -54,7 +54,7 @@ TIMED = (
     ('surfaces:consolidate_pieces', '    consolidate_pieces'),
     ('surfaces:absorb_rays', '    absorb_rays'),
     ('surfaces:join_at_boundaries', '    join_at_boundaries (boundary round)'),
-    ('surfaces:fit_pixel_groups', '  fit_pixel_groups (all calls)'),
+    ('surfaces:fit_pixel_groups_with_members', '  plane fits (fit_pixel_groups_with_members)'),
     ('surfaces:_drop_non_planar', '  _drop_non_planar'),
     ('surfaces:_plane_sums', '    _plane_sums (all calls)'),
     ('surfaces:_independent_sigmas', '  _independent_sigmas'),

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from ppe_ros.core.chunks import group_chunks, plane_members
-from ppe_ros.core.fitting import FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE, _fit_groups, fit_pixel_groups
+from ppe_ros.core.fitting import (
+    FIT_MAX_ITERATIONS,
+    FIT_RELATIVE_TOLERANCE,
+    _fit_groups,
+    fit_pixel_groups,
+    fit_pixel_groups_with_members,
+)
 from ppe_ros.core.quadrants import _jackknife_kernel
 from ppe_ros.core.scan import make_ray_scan
 from ppe_ros.core.surfaces import _plane_sums_kernel, _quadric_reduction_kernel
@@ -70,6 +76,30 @@ def _grouped_scene(seed):
     ids = np.where(y < 0.2, 0, 1 + (np.arange(90)[None, :] // 7) + 20 * (np.arange(40)[:, None] // 9))
     planes, _ = fit_pixel_groups(make_ray_scan(points), ids.reshape(-1), min_plane_points=4, residuals=False)
     return points, planes
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_the_fits_members_are_plane_members_of_their_labels(seed):
+    """fit_pixel_groups_with_members hands on its own grouping of the pixels by plane: it must be what
+    plane_members makes of the labels (the planarity test and the covariances use it instead), with
+    invalid rays and groups below min_plane_points left out."""
+    points, _ = _grouped_scene(seed)
+    points[3, 5] = np.nan
+    scan = make_ray_scan(points)
+    ids = np.where(np.arange(scan.size) % 97 == 0, 5000, 0) + np.arange(scan.size) // 400
+    planes, residuals, (members, starts) = fit_pixel_groups_with_members(
+        scan, ids, min_plane_points=300, residuals=False, sigmas=None
+    )
+    assert residuals is None and 2 < planes.num_planes < len(np.unique(ids))
+    want_members, want_starts = plane_members(planes.labels.reshape(-1), planes.num_planes)
+    np.testing.assert_array_equal(members, want_members)
+    np.testing.assert_array_equal(starts, want_starts)
+    same, _ = fit_pixel_groups(scan, ids, min_plane_points=300, residuals=False)
+    np.testing.assert_array_equal(same.labels, planes.labels)
+    _, _, (no_members, no_starts) = fit_pixel_groups_with_members(
+        scan, ids, min_plane_points=10**6, residuals=False, sigmas=None
+    )
+    assert len(no_members) == 0 and list(no_starts) == [0]
 
 
 @pytest.mark.parametrize('seed', [0, 1])

@@ -463,6 +463,23 @@ def fit_pixel_groups(
     model): the fits minimise the normalised residuals, the covariances follow from that weighted
     fit, and sse, rmse and the residual image are in metres again.
     """
+    planes, residual_image, _ = fit_pixel_groups_with_members(
+        scan, plane_ids, min_plane_points=min_plane_points, residuals=residuals, sigmas=sigmas, **meta
+    )
+    return planes, residual_image
+
+
+def fit_pixel_groups_with_members(
+    scan: RayScan,
+    plane_ids: np.ndarray,
+    *,
+    min_plane_points: int,
+    residuals: bool,
+    sigmas: np.ndarray | None,
+    **meta,
+) -> tuple[PlaneSet, np.ndarray | None, tuple[np.ndarray, np.ndarray]]:
+    """:func:`fit_pixel_groups`, and the planes' pixels grouped by plane in pixel order (members, starts
+    (J + 1,)): what chunks.plane_members of the labels gives, from the fits' own grouping."""
     height, width = scan.height, scan.width
     ids = np.where(scan.valid, plane_ids, -1).astype(np.int64)
     if ids.size and ids.max() >= scan.size:  # ids beyond the pixel count (labels): renumber them
@@ -474,7 +491,7 @@ def fit_pixel_groups(
     n_planes = len(order)
     if n_planes == 0:
         empty_residuals = np.full((height, width), np.nan) if residuals else None
-        return PlaneSet.empty((height, width), **meta), empty_residuals
+        return PlaneSet.empty((height, width), **meta), empty_residuals, (np.empty(0, np.int64), np.zeros(1, np.int64))
     rank = np.full(scan.size, -1, np.int64)
     rank[order] = np.arange(n_planes)
     point_counts = counts[order]
@@ -541,7 +558,8 @@ def fit_pixel_groups(
         covariances=covariances,
         **meta,
     )
-    return planes, None if residual_image is None else residual_image.reshape(height, width)
+    residual_image = None if residual_image is None else residual_image.reshape(height, width)
+    return planes, residual_image, (members, starts)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)

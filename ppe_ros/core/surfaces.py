@@ -18,7 +18,7 @@ import numpy as np
 from ppe_ros.core.boundary_join import BOUNDARY_GAP, join_at_boundaries
 from ppe_ros.core.chunks import group_chunks, plane_members
 from ppe_ros.core.consolidation import _reusable, columns_wrap, consolidated_surfaces, rows_wrap
-from ppe_ros.core.fitting import fit_pixel_groups
+from ppe_ros.core.fitting import fit_pixel_groups_with_members
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.quadrants import jackknife_of_members
 from ppe_ros.core.scan import RayScan
@@ -64,7 +64,7 @@ def whole_surfaces(
             step_factor,
             boundary_points,
         )
-    planes, _ = fit_pixel_groups(
+    planes, _, fitted_members = fit_pixel_groups_with_members(
         scan, ids, min_plane_points=min_plane_points, residuals=False, sigmas=sigmas, actions=steps, **cut
     )
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
@@ -83,6 +83,7 @@ def whole_surfaces(
             curvature_factor,
             min_width,
             profile.curvature_max_size,
+            fitted_members,
         )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         independent = _independent_sigmas(unit_scan, ray_sigmas, profile)
@@ -360,6 +361,7 @@ def _drop_non_planar(
     curvature_factor: float = np.inf,
     min_width: float | None = None,
     curvature_max_size: float | None = None,
+    members: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[PlaneSet, tuple, tuple]:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
@@ -370,12 +372,13 @@ def _drop_non_planar(
     surface's deviation from flatness grows with its size, so a small patch must be flat to the
     noise, which a tree's or a car's pieces are not; None: tau_D = tau. With ``curvature_max_size`` the
     curvature test judges only planes of a size D below it; ``min_width``: a plane whose points span less
-    than that across (sqrt(12 l2), l2 the scatter's middle eigenvalue) is no plane. scan has unit directions.
+    than that across (sqrt(12 l2), l2 the scatter's middle eigenvalue) is no plane. scan has unit directions;
+    ``members``: the planes' :func:`_members`, if already known (the fits group them).
     Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), their
     :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas) and their
     :func:`_members`.
     """
-    members = _members(planes)
+    members = _members(planes) if members is None else members
     sums = _plane_sums(scan, planes, ray_sigmas, np.maximum(planes.point_counts, 1), members)
     centroid, scatter, mean_d2, noise2, sigma2 = sums
     tau2 = np.full(planes.num_planes, tau**2)
