@@ -576,7 +576,8 @@ def _run(argv: list[str]) -> int:
     exit_code = 0
     try:
         node = ExtractorNode()
-        rclpy.spin(node)
+        if context.ok():  # else a signal stopped the start-up: an executor built on a shut-down context
+            rclpy.spin(node)  # fails half-made and prints a traceback when it is collected
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:
