@@ -1204,6 +1204,7 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
     e = 0.05 if noise is None else 16.0
     kwargs = {'max_error_increment': e, 'noise': model}
     tiled = extract_plane_hierarchy(points, tiles=3, threads=1, **kwargs)
+    assert 'actions' not in vars(tiled)  # built when first read
     ok_right, _ = _edge_masks(make_ray_scan(points), np.inf)
     bounds = _placed_borders(_tile_bounds(60, 3), ok_right, 40, 60)
     assert bounds[0] == 0 and bounds[-1] == 60 and len(bounds) == 4
@@ -1216,9 +1217,15 @@ def test_tiles_are_the_strips_extracted_alone_in_order_of_their_running_maximum(
     for t in range(3):
         joint_running[strip_of == t] = np.maximum.accumulate(tiled.actions['increment'][strip_of == t])
     assert np.all(np.diff(joint_running) >= 0), "the joint log is ordered by each strip's running maximum"
-    # the cut at any e is the union of the strips' own cuts at e
+    # the cut at any e is the union of the strips' own cuts at e; steps_for_error and
+    # plane_ids_for_error take it from the strips' runs without the joint log
+    whole = extract_plane_hierarchy(points, **kwargs)
     for cut in (e / 100, e / 10, e):
+        over = np.flatnonzero(tiled.actions['increment'] > cut)
+        assert tiled.steps_for_error(cut) == (int(over[0]) if len(over) else len(tiled.actions))
         ids = tiled.plane_ids(tiled.steps_for_error(cut)).reshape(points.shape[:2])
+        np.testing.assert_array_equal(tiled.plane_ids_for_error(cut), ids.reshape(-1))
+        np.testing.assert_array_equal(whole.plane_ids_for_error(cut), whole.plane_ids(whole.steps_for_error(cut)))
         for t, log in enumerate(logs):
             c0, c1 = bounds[t], bounds[t + 1]
             over = np.flatnonzero(log['increment'] > cut)

@@ -39,9 +39,10 @@ def whole_surfaces(
     """One snapshot of the greedy, consolidated into whole surfaces and filtered for planarity."""
     if 'max_error_increment' in cut:
         steps = hierarchy.steps_for_error(cut['max_error_increment'])
+        ids = hierarchy.plane_ids_for_error(cut['max_error_increment'])
     else:
         steps = hierarchy.steps_for_count(cut['max_planes'])
-    ids = hierarchy.plane_ids(steps)
+        ids = hierarchy.plane_ids(steps)
     scan = hierarchy.scan
     sigmas = hierarchy.sigmas
     unit_scan = scan if sigmas is None else replace(scan, directions=_unit_directions(scan, sigmas))

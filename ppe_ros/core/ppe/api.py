@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -19,7 +21,7 @@ from ppe_ros.core.ppe.layout import (
 )
 from ppe_ros.core.ppe.options import DEFAULT_OPTIONS, GreedyOptions
 from ppe_ros.core.ppe.seeds import _edge_masks, _seed_stage
-from ppe_ros.core.ppe.tiles import _placed_borders, _tile_bounds, _tiled_greedy
+from ppe_ros.core.ppe.tiles import _placed_borders, _tile_bounds, _tiled_greedy, joint_order
 from ppe_ros.core.scan import RayScan, make_ray_scan, range_noise_scaled
 from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, sensor_profile
 from ppe_ros.core.surfaces import whole_surfaces
@@ -53,28 +55,69 @@ class PlaneHierarchy:
 
     Attributes:
         scan: the ray model the run used.
-        actions: structured array (kind, a, b, increment) with kind 0 create (a = anchor pixel id,
-            b = tetromino config 0..16), 1 extend (a = plane id, b = pixel id), 2 merge
-            (a = surviving id = min, b = removed id); increments in m^2. Pixel id = row * W + col.
-        plane_counts: J after each action (atomic rays + regular planes).
+        log: the greedy's actions as arrays (kinds, a, b, increments): one greedy's log, or the strips'
+            logs one after another (``tiles``), each in its own order.
+        run_starts: ``(R + 1,)`` start of each run (one greedy or one strip) in ``log``.
         initial_plane_count: J before the first action (the number of valid rays).
         complete: True when the run went on until no action was left.
         seconds: wall time of the run (seeds + greedy), excluding JIT compilation of a first call.
+        actions (property): structured array (kind, a, b, increment) with kind 0 create (a = anchor
+            pixel id, b = tetromino config 0..16), 1 extend (a = plane id, b = pixel id), 2 merge
+            (a = surviving id = min, b = removed id); increments in m^2. Pixel id = row * W + col.
+            The strips' logs interleaved by each strip's running maximum increment (built when first
+            read: a cut at e does not need it).
+        plane_counts (property): J after each of ``actions``.
     """
 
     scan: RayScan
-    actions: np.ndarray
-    plane_counts: np.ndarray
+    log: tuple
+    run_starts: np.ndarray
     initial_plane_count: int
     complete: bool
     seconds: float = 0.0
     stats: dict | None = None
     sigmas: np.ndarray | None = None
 
+    @cached_property
+    def actions(self) -> np.ndarray:
+        kinds, a_ids, b_ids, increments = self.log
+        if len(self.run_starts) > 2:
+            order = joint_order(increments, self.run_starts)
+            kinds, a_ids, b_ids, increments = kinds[order], a_ids[order], b_ids[order], increments[order]
+        return _action_log(kinds, a_ids, b_ids, increments)
+
+    @cached_property
+    def plane_counts(self) -> np.ndarray:
+        return self.initial_plane_count - np.cumsum(np.where(self.actions['kind'] == KIND_CREATE, 3, 1))
+
+    def _run_steps_for_error(self, max_error_increment: float) -> np.ndarray:
+        """Actions of each run before its first one whose increment exceeds e."""
+        increments = self.log[3]
+        steps = np.diff(self.run_starts)
+        for r, (first, stop) in enumerate(itertools.pairwise(self.run_starts)):
+            over = np.flatnonzero(increments[first:stop] > max_error_increment)
+            if len(over):
+                steps[r] = over[0]
+        return steps
+
     def steps_for_error(self, max_error_increment: float) -> int:
-        """Number of actions before the first one whose increment exceeds e (m^2)."""
-        over = np.flatnonzero(self.actions['increment'] > max_error_increment)
-        return int(over[0]) if len(over) else len(self.actions)
+        """Number of actions before the first one whose increment exceeds e (m^2): the runs' own counts
+        added up (a strip's actions below its running maximum's first excess come first in ``actions``)."""
+        return int(self._run_steps_for_error(max_error_increment).sum())
+
+    def plane_ids_for_error(self, max_error_increment: float) -> np.ndarray:
+        """``plane_ids(steps_for_error(e))`` from each run's own cut, without building ``actions``."""
+        kinds, a_ids, b_ids, _ = self.log
+        return _replay(
+            kinds,
+            a_ids,
+            b_ids,
+            np.asarray(self.run_starts, np.int64),
+            self._run_steps_for_error(max_error_increment).astype(np.int64),
+            self.scan.height,
+            self.scan.width,
+            TETROMINO_OFFSETS,
+        )
 
     def steps_for_count(self, max_planes: int) -> int:
         """Number of actions until J <= n first holds."""
@@ -90,7 +133,8 @@ class PlaneHierarchy:
             np.ascontiguousarray(a['kind']),
             np.ascontiguousarray(a['a']),
             np.ascontiguousarray(a['b']),
-            int(steps),
+            np.array([0, len(a)], np.int64),
+            np.array([int(steps)], np.int64),
             self.scan.height,
             self.scan.width,
             TETROMINO_OFFSETS,
@@ -210,22 +254,19 @@ def extract_plane_hierarchy(
     )
     inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, seed_sse, seed_best, seed_key)
     if len(tile_columns) == 2:
-        kinds, a_ids, b_ids, incs, stats = _greedy(inputs, scan.height, scan.width, options, stop_increment, stop_count)
+        *log, stats = _greedy(inputs, scan.height, scan.width, options, stop_increment, stop_count)
+        run_starts = np.array([0, len(log[0])], np.int64)
     else:
-        kinds, a_ids, b_ids, incs, stats = _tiled_greedy(
+        log, run_starts, stats = _tiled_greedy(
             inputs, scan.height, scan.width, tile_columns, options, stop_increment, stop_count, threads
         )
     seconds = time.perf_counter() - start
-    actions = _action_log(kinds, a_ids, b_ids, incs)
-    reduction = np.where(kinds == KIND_CREATE, 3, 1)
-    n_valid = int(scan.valid.sum())
-    plane_counts = n_valid - np.cumsum(reduction)
     complete = stop_increment == np.inf and stop_count < 0
     return PlaneHierarchy(
         scan=scan,
-        actions=actions,
-        plane_counts=plane_counts,
-        initial_plane_count=n_valid,
+        log=tuple(log),
+        run_starts=run_starts,
+        initial_plane_count=int(scan.valid.sum()),
         complete=complete,
         seconds=seconds,
         stats=dict(zip(STAT_NAMES, (int(x) for x in stats), strict=True)),

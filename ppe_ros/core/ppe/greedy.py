@@ -1258,24 +1258,27 @@ def _ppe_kernel(
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _replay(kinds, a_ids, b_ids, n_steps, height, width, offsets):
-    """Plane id of every pixel after the first n_steps actions (-1 = atomic or no return)."""
+def _replay(kinds, a_ids, b_ids, run_starts, run_steps, height, width, offsets):
+    """Plane id of every pixel (-1 = atomic or no return) after the first run_steps[r] actions of each
+    run r of the log (actions run_starts[r]:run_starts[r + 1]: one greedy's log, or the logs of strips
+    whose pixels are disjoint, which the runs' cuts replay as the joint log's cut does)."""
     n_pixels = height * width
     parent = np.arange(n_pixels)
     owner = np.full(n_pixels, -1, np.int64)
-    for s in range(n_steps):
-        kind = kinds[s]
-        a = a_ids[s]
-        b = b_ids[s]
-        if kind == KIND_CREATE:
-            i = a // width
-            j = a % width
-            for t in range(4):
-                owner[(i + offsets[b, t, 0]) * width + (j + offsets[b, t, 1])] = a
-        elif kind == KIND_EXTEND:
-            owner[b] = a
-        else:
-            parent[b] = a
+    for r in range(len(run_steps)):
+        for s in range(run_starts[r], run_starts[r] + run_steps[r]):
+            kind = kinds[s]
+            a = a_ids[s]
+            b = b_ids[s]
+            if kind == KIND_CREATE:
+                i = a // width
+                j = a % width
+                for t in range(4):
+                    owner[(i + offsets[b, t, 0]) * width + (j + offsets[b, t, 1])] = a
+            elif kind == KIND_EXTEND:
+                owner[b] = a
+            else:
+                parent[b] = a
     out = np.full(n_pixels, -1, np.int64)
     for k in range(n_pixels):
         if owner[k] >= 0:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numba as nb
 import numpy as np
 
@@ -93,13 +95,15 @@ def _tiled_greedy(
     stop_count: int,
     threads: int | None,
 ) -> tuple:
-    """The greedy on each column strip separately (up to ``threads`` at once), as one action log.
+    """The greedy on each column strip separately (up to ``threads`` at once): the strips' action logs
+    one after another in strip order (kinds, a, b, increments), the start of each strip's run in them
+    (``(T + 1,)``) and the summed stats.
 
     The strips' grid edges across a border were cut before the seeds, so each strip is an independent
     problem; its log is translated to the whole grid's pixel ids (a tile's row-major order is the
-    grid's, so "a merge keeps the smaller id" still holds). The logs are interleaved by each strip's
-    running maximum increment (stable: strip order breaks ties), so that for every e the cut at e of
-    the joint log is the union of every strip's own cut at e. The result does not depend on threads.
+    grid's, so "a merge keeps the smaller id" still holds). :func:`joint_order` interleaves the runs
+    into one log whose cut at every e is the union of every strip's own cut at e. The result does
+    not depend on threads.
     """
     n_tiles = len(bounds) - 1
 
@@ -118,19 +122,19 @@ def _tiled_greedy(
     # left for one thread at the end
     strip_order = _largest_first(inputs[7], height, width, bounds) if threads > 1 else range(n_tiles)
     results = run_tasks(run, strip_order, threads, _tile_pool)
-    kinds = np.concatenate([r[0] for r in results])
-    running_max = np.concatenate([np.maximum.accumulate(r[3]) if len(r[3]) else r[3] for r in results])
     run_starts = np.cumsum([0] + [len(r[3]) for r in results])
-    order = _merged_runs_order(running_max, run_starts)
     stats = np.sum([r[4] for r in results], axis=0)
     stats[_ST_HEAP_PEAK] = max(int(r[4][_ST_HEAP_PEAK]) for r in results)
-    return (
-        kinds[order],
-        np.concatenate([r[1] for r in results])[order],
-        np.concatenate([r[2] for r in results])[order],
-        np.concatenate([r[3] for r in results])[order],
-        stats,
-    )
+    log = tuple(np.concatenate([r[column] for r in results]) for column in range(4))
+    return log, run_starts, stats
+
+
+def joint_order(increments: np.ndarray, run_starts: np.ndarray) -> np.ndarray:
+    """The order of the actions of the runs (strip logs one after another) in the joint log: by each
+    strip's running maximum increment, stable (strip order breaks ties), so that for every e the joint
+    log's cut at e is the union of every strip's own cut at e."""
+    running_max = np.concatenate([np.maximum.accumulate(increments[a:b]) for a, b in itertools.pairwise(run_starts)])
+    return _merged_runs_order(running_max, np.asarray(run_starts, np.int64))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
