@@ -40,7 +40,7 @@ TIMED = (
     ('extract:make_ray_scan', '  make_ray_scan'),
     ('extract:_noise_scaled', '  _noise_scaled'),
     ('extract:whole_surfaces', 'whole_surfaces'),
-    ('extract:PlaneHierarchy.plane_ids', '  plane_ids (replay)'),
+    ('extract:PlaneHierarchy.plane_ids_for_error', '  plane ids at e (replay of the runs)'),
     ('surfaces:_consolidate', '  _consolidate'),
     ('surfaces:columns_wrap', '    columns_wrap'),
     ('surfaces:rows_wrap', '    rows_wrap'),
