@@ -148,11 +148,13 @@ class PlaneHierarchy:
             raise ValueError('cut needs exactly one of max_error_increment or max_planes')
         if max_error_increment is not None:
             steps = self.steps_for_error(max_error_increment)
+            ids = self.plane_ids_for_error(max_error_increment)
         else:
             steps = self.steps_for_count(max_planes)
+            ids = self.plane_ids(steps)
         planes, _ = fit_pixel_groups(
             self.scan,
-            self.plane_ids(steps),
+            ids,
             min_plane_points=min_plane_points,
             residuals=False,
             sigmas=self.sigmas,
@@ -300,10 +302,10 @@ _NO_PROFILE_DEFAULTS = PROFILES['none']
 
 def _final_planes(hierarchy: PlaneHierarchy, min_plane_points: int) -> PlaneSet:
     """The planes after every action of the hierarchy (no threshold given)."""
-    steps = len(hierarchy.actions)
+    steps = len(hierarchy.log[0])
     planes, _ = fit_pixel_groups(
         hierarchy.scan,
-        hierarchy.plane_ids(steps),
+        hierarchy.plane_ids_for_error(np.inf),
         sigmas=hierarchy.sigmas,
         min_plane_points=min_plane_points,
         residuals=False,
