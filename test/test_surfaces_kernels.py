@@ -246,9 +246,68 @@ def test_the_pairs_first_costs_are_merge_cost_of_each_pair_in_every_block():
     for g in range(n_pieces):
         consolidation._plane_of(moments[g], expected_rows[g])
     np.testing.assert_array_equal(plane_rows, expected_rows)
-    expected = [consolidation.merge_cost(moments[i], moments[j], 0.05, 1.0) for i, j in pairs]
-    np.testing.assert_array_equal(costs, expected)
-    assert 0 < np.count_nonzero(costs <= 1.0) < len(costs)  # both kinds of pairs
+    expected = np.array([consolidation.merge_cost(moments[i], moments[j], 0.05, 1.0) for i, j in pairs])
+    admissible = expected <= 1.0
+    assert 0 < np.count_nonzero(admissible) < len(costs)  # both kinds of pairs
+    # an admissible pair gets its cost; an inadmissible one a value above 1 (the cost or a bound of it)
+    np.testing.assert_array_equal(costs[admissible], expected[admissible])
+    assert np.all(costs[~admissible] > 1.0)
+    assert np.all(costs[~admissible] <= expected[~admissible] * (1 + 1e-9))
+
+
+def _piece_pair_moments(rng, n_pairs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Moments of random pairs of planar pieces side by side (20-400 points each, 1 cm noise, up to 60 m
+    out): the second tilted against the first by up to 3 deg (half of the pairs) or 10-90 deg, and
+    raised by up to 15 cm along the first's normal."""
+    moments = np.zeros((2, n_pairs, 11))
+    for p in range(n_pairs):
+        center = rng.uniform(-60.0, 60.0, 3)
+        normal = rng.normal(size=3)
+        normal /= np.linalg.norm(normal)
+        along = np.cross(normal, rng.normal(size=3))
+        along /= np.linalg.norm(along)
+        tilt = np.radians(rng.uniform(0.0, 3.0) if p % 2 else rng.uniform(10.0, 90.0))
+        for side in (0, 1):
+            n_side = np.cos(side * tilt) * normal + np.sin(side * tilt) * along
+            u = np.cross(n_side, along if side == 0 else normal)
+            u /= np.linalg.norm(u)
+            w = np.cross(n_side, u)
+            count = int(rng.integers(20, 400))
+            extent = rng.uniform(0.2, 3.0)
+            s, t = rng.uniform(-extent, extent, (2, count))
+            origin = center + (side - 0.5) * 2.0 * extent * along + side * rng.uniform(0.0, 0.15) * normal
+            points = origin + np.outer(s, u) + np.outer(t, w) + np.outer(rng.normal(0.0, 0.01, count), n_side)
+            one_piece = np.zeros(count, np.int64)
+            moments[side, p] = consolidation._piece_moments(one_piece, points, np.full(count, 0.02), 1)[0]
+    return moments[0], moments[1]
+
+
+def test_the_deviation_bound_is_below_the_merge_cost_and_decides_many_inadmissible_pairs():
+    """_deviation_bound (no eigen solve) never exceeds the deviation part of _merge_cost, so a pair it puts
+    above 1 is inadmissible; _merge_cost_or_bound returns the cost where that is at most 1 and a value above
+    1 otherwise. The bound must decide a good share of the inadmissible pairs (else it saves nothing)."""
+    rng = np.random.default_rng(3)
+    first, second = _piece_pair_moments(rng, 400)
+    decided = inadmissible = 0
+    for lam2 in (0.0, 9.0):
+        for m_a, m_b in zip(first, second, strict=True):
+            mom = np.stack([m_a, m_b])
+            plane = np.empty((2, 13))
+            consolidation._plane_of(mom[0], plane[0])
+            consolidation._plane_of(mom[1], plane[1])
+            cost = consolidation._merge_cost(mom, plane, 0, 1, 0.05**2, lam2, 1.0)
+            deviation, allowed, _, _, _ = consolidation._union_deviation(mom, plane, 0, 1, 0.05**2, lam2)
+            bound = consolidation._deviation_bound(mom, plane, 0, 1, 0.05**2, lam2)
+            assert bound <= deviation / allowed * (1 + 1e-9) + 1e-12
+            value = consolidation._merge_cost_or_bound(mom, plane, 0, 1, 0.05**2, lam2, 1.0)
+            if cost <= 1.0:
+                assert value == cost
+            else:
+                assert value > 1.0
+                inadmissible += 1
+                decided += bound > 1.0 + consolidation._BOUND_MARGIN
+    assert inadmissible > 200
+    assert decided > 0.3 * inadmissible
 
 
 @pytest.mark.parametrize('seed', [0, 1])

@@ -46,7 +46,8 @@ The pass merges candidate pairs greedily, cheapest first (cost: the largest of t
 squared ratios to their tolerance, ties by
 the smaller then the larger piece id), re-valuing a merged piece's pairs with all the neighbours of
 both pieces, until no admissible pair is left. Candidate pairs are found once, from the greedy's
-pieces. Moments (count, sums, sums of products) make every valuation O(1).
+pieces. Moments (count, sums, sums of products) make every valuation O(1); a lower bound of the
+deviation test without the union's eigen solve (:func:`_deviation_bound`) settles most inadmissible pairs.
 :func:`consolidate_reference` (test/reference_consolidation.py) is the brute-force definition the
 kernel is tested against.
 """
@@ -264,6 +265,45 @@ def _merge_cost(mom, plane, a, b, tau2, noise_factor2, step_factor2):
     step_at_b = _along_normal(plane_a, plane_b[0], plane_b[1], plane_b[2], u0, u1, u2)
     step2 = min(step_at_a * step_at_a, step_at_b * step_at_b)
     return max(deviation / allowed, step2 / (step_factor2 * allowed))
+
+
+#: A pair whose deviation bound (:func:`_deviation_bound`) exceeds 1 by more than this is inadmissible
+#: without its exact cost; the margin covers rounding (the bound and the cost are computed differently).
+_BOUND_MARGIN = 1e-6
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _deviation_bound(mom, plane, a, b, tau2, noise_factor2):
+    """A lower bound of the deviation part of :func:`_merge_cost` (max dev(P, U)^2 / t^2, P = A, B),
+    without the eigen solve.
+
+    The union's points lie N lambda_U from U in squares (lambda_U: the smallest eigenvalue of its
+    per-point scatter), of which N_P s_P^2 is each piece's scatter about its own plane, so
+    ``N_A dev_A^2 + N_B dev_B^2 >= N lambda_U - N_A s_A^2 - N_B s_B^2`` and the larger of the two is at
+    least that over N. ``lambda_U >= det / c`` (the eigenvalues' product over the sum of their pairwise
+    products, which is at least the two larger ones' product). 0 where c is not positive."""
+    _, sc = _union_scatter(mom, a, b)
+    s00, s01, s02, s11, s12, s22 = sc
+    pairwise = s00 * s11 + s00 * s22 + s11 * s22 - s01 * s01 - s02 * s02 - s12 * s12
+    if not pairwise > 0.0:
+        return 0.0
+    det = s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02) + s02 * (s01 * s12 - s11 * s02)
+    n_a, n_b = mom[a, 0], mom[b, 0]
+    plane_a, plane_b = plane[a], plane[b]
+    excess = det / pairwise - (n_a * plane_a[9] + n_b * plane_b[9]) / (n_a + n_b)
+    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / n_a, mom[b, 10] / n_b))
+    return excess / (tau2 + noise_factor2 * scatter)
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _merge_cost_or_bound(mom, plane, a, b, tau2, noise_factor2, step_factor2):
+    """:func:`_merge_cost` where it may be admissible (<= 1); a value above 1 (a lower bound of it) where
+    :func:`_deviation_bound` already shows that it is not. The merge loops only compare a cost with 1 and
+    order the admissible ones, so they take the same merges with either."""
+    bound = _deviation_bound(mom, plane, a, b, tau2, noise_factor2)
+    if bound > 1.0 + _BOUND_MARGIN:
+        return bound
+    return _merge_cost(mom, plane, a, b, tau2, noise_factor2, step_factor2)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -586,7 +626,7 @@ def _heap_remove(hkey, hpair, hedge, where, size, e):
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)
 def _pair_costs(moments, pairs, tau2, noise_factor2, step_factor2):
-    """_plane_of rows (K, 13) of the pieces and the _merge_cost of every pair (m,), in blocks of
+    """_plane_of rows (K, 13) of the pieces and the _merge_cost_or_bound of every pair (m,), in blocks of
     _COST_BLOCK in parallel (each value on its own: the same for any thread count)."""
     n = moments.shape[0]
     m = pairs.shape[0]
@@ -622,9 +662,9 @@ def _plane_rows(moments, plane, first, stop):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _pair_cost_rows(moments, plane, pairs, first, stop, tau2, noise_factor2, step_factor2, costs):
-    """_merge_cost of the pairs first..stop-1 into costs."""
+    """_merge_cost_or_bound of the pairs first..stop-1 into costs."""
     for e in range(first, stop):
-        costs[e] = _merge_cost(moments, plane, pairs[e, 0], pairs[e, 1], tau2, noise_factor2, step_factor2)
+        costs[e] = _merge_cost_or_bound(moments, plane, pairs[e, 0], pairs[e, 1], tau2, noise_factor2, step_factor2)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -715,7 +755,7 @@ def _consolidate_kernel(moments, pairs, plane_rows, costs, tau2, noise_factor2, 
                 tail[a] = h
                 lo = min(a, c)
                 hi = max(a, c)
-                value = _merge_cost(mom, plane, lo, hi, tau2, noise_factor2, step_factor2)
+                value = _merge_cost_or_bound(mom, plane, lo, hi, tau2, noise_factor2, step_factor2)
                 if value <= 1.0:
                     size = _heap_set(hkey, hpair, hedge, where, size, e, value, lo, hi)
                 else:
