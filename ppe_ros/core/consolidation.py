@@ -47,7 +47,8 @@ squared ratios to their tolerance, ties by
 the smaller then the larger piece id), re-valuing a merged piece's pairs with all the neighbours of
 both pieces, until no admissible pair is left. Candidate pairs are found once, from the greedy's
 pieces. Moments (count, sums, sums of products) make every valuation O(1); a lower bound of the
-deviation test without the union's eigen solve (:func:`_deviation_bound`) settles most inadmissible pairs.
+deviation test without the union's eigen solve (:func:`_deviation_bound`) settles about half of the
+inadmissible pairs of a lidar sweep.
 :func:`consolidate_reference` (test/reference_consolidation.py) is the brute-force definition the
 kernel is tested against.
 """
