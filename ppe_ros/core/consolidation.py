@@ -46,9 +46,9 @@ The pass merges candidate pairs greedily, cheapest first (cost: the largest of t
 squared ratios to their tolerance, ties by
 the smaller then the larger piece id), re-valuing a merged piece's pairs with all the neighbours of
 both pieces, until no admissible pair is left. Candidate pairs are found once, from the greedy's
-pieces. Moments (count, sums, sums of products) make every valuation O(1); lower bounds of the step
-and deviation tests without the union's eigen solve (:func:`_step_bound`, :func:`_deviation_bound`)
-settle about nine in ten of the inadmissible pairs of a lidar sweep.
+pieces. Moments (count, sums, sums of products) make every valuation O(1); a lower bound of the step
+test without the union's eigen solve (:func:`_step_bound`) settles about nine in ten of the
+inadmissible pairs of a lidar sweep.
 :func:`consolidate_reference` (test/reference_consolidation.py) is the brute-force definition the
 kernel is tested against.
 """
@@ -268,33 +268,9 @@ def _merge_cost(mom, plane, a, b, tau2, noise_factor2, step_factor2):
     return max(deviation / allowed, step2 / (step_factor2 * allowed))
 
 
-#: A pair whose step or deviation bound (:func:`_step_bound`, :func:`_deviation_bound`) exceeds 1 by more than
-#: this is inadmissible without its exact cost; the margin covers rounding (the bounds and the cost are
-#: computed differently).
+#: A pair whose step bound (:func:`_step_bound`) exceeds 1 by more than this is inadmissible without its
+#: exact cost; the margin covers rounding (the bound and the cost are computed differently).
 _BOUND_MARGIN = 1e-6
-
-
-@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _deviation_bound(mom, plane, a, b, tau2, noise_factor2):
-    """A lower bound of the deviation part of :func:`_merge_cost` (max dev(P, U)^2 / t^2, P = A, B),
-    without the eigen solve.
-
-    The union's points lie N lambda_U from U in squares (lambda_U: the smallest eigenvalue of its
-    per-point scatter), of which N_P s_P^2 is each piece's scatter about its own plane, so
-    ``N_A dev_A^2 + N_B dev_B^2 >= N lambda_U - N_A s_A^2 - N_B s_B^2`` and the larger of the two is at
-    least that over N. ``lambda_U >= det / c`` (the eigenvalues' product over the sum of their pairwise
-    products, which is at least the two larger ones' product). 0 where c is not positive."""
-    _, sc = _union_scatter(mom, a, b)
-    s00, s01, s02, s11, s12, s22 = sc
-    pairwise = s00 * s11 + s00 * s22 + s11 * s22 - s01 * s01 - s02 * s02 - s12 * s12
-    if not pairwise > 0.0:
-        return 0.0
-    det = s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02) + s02 * (s01 * s12 - s11 * s02)
-    n_a, n_b = mom[a, 0], mom[b, 0]
-    plane_a, plane_b = plane[a], plane[b]
-    excess = det / pairwise - (n_a * plane_a[9] + n_b * plane_b[9]) / (n_a + n_b)
-    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / n_a, mom[b, 10] / n_b))
-    return excess / (tau2 + noise_factor2 * scatter)
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -313,12 +289,9 @@ def _step_bound(mom, plane, a, b, tau2, noise_factor2, step_factor2):
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def _merge_cost_or_bound(mom, plane, a, b, tau2, noise_factor2, step_factor2):
     """:func:`_merge_cost` where it may be admissible (<= 1); a value above 1 (a lower bound of it) where
-    :func:`_step_bound` or :func:`_deviation_bound` already shows that it is not. The merge loops only
-    compare a cost with 1 and order the admissible ones, so they take the same merges with either."""
+    :func:`_step_bound` already shows that it is not. The merge loops only compare a cost with 1 and order
+    the admissible ones, so they take the same merges with either."""
     bound = _step_bound(mom, plane, a, b, tau2, noise_factor2, step_factor2)
-    if bound > 1.0 + _BOUND_MARGIN:
-        return bound
-    bound = _deviation_bound(mom, plane, a, b, tau2, noise_factor2)
     if bound > 1.0 + _BOUND_MARGIN:
         return bound
     return _merge_cost(mom, plane, a, b, tau2, noise_factor2, step_factor2)
