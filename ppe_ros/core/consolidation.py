@@ -239,12 +239,18 @@ def _union_deviation(mom, plane, a, b, tau2, noise_factor2):
     mean_u, sc = _union_scatter(mom, a, b)
     _, u0, u1, u2 = _smallest_eigen(sc[0], sc[1], sc[2], sc[3], sc[4], sc[5])
     plane_a, plane_b = plane[a], plane[b]
-    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
     deviation = max(
         _deviation(plane_a, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]),
         _deviation(plane_b, u0, u1, u2, mean_u[0], mean_u[1], mean_u[2]),
     )
-    return deviation, tau2 + noise_factor2 * scatter, u0, u1, u2
+    return deviation, _tolerance2(mom, plane, a, b, tau2, noise_factor2), u0, u1, u2
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _tolerance2(mom, plane, a, b, tau2, noise_factor2):
+    """t^2 (m^2) of pieces A and B: tau^2 + lambda^2 min(max(s_A^2, s_B^2), max(sigma_A^2, sigma_B^2))."""
+    scatter = min(max(plane[a, 9], plane[b, 9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
+    return tau2 + noise_factor2 * scatter
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
@@ -282,8 +288,7 @@ def _step_bound(mom, plane, a, b, tau2, noise_factor2, step_factor2):
     d0, d1, d2 = plane_b[0] - plane_a[0], plane_b[1] - plane_a[1], plane_b[2] - plane_a[2]
     at_a = plane_b[10] * d0 + plane_b[11] * d1 + plane_b[12] * d2
     at_b = plane_a[10] * d0 + plane_a[11] * d1 + plane_a[12] * d2
-    scatter = min(max(plane_a[9], plane_b[9]), max(mom[a, 10] / mom[a, 0], mom[b, 10] / mom[b, 0]))
-    return min(at_a * at_a, at_b * at_b) / (step_factor2 * (tau2 + noise_factor2 * scatter))
+    return min(at_a * at_a, at_b * at_b) / (step_factor2 * _tolerance2(mom, plane, a, b, tau2, noise_factor2))
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
