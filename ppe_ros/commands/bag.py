@@ -25,4 +25,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     # from the process's own command line, signals after the run are ignored until it has exited (as process_bag)
-    return run(args, prog='ppe bag', keep_signal_handlers=getattr(args, 'own_command_line', False))
+    return run(args, prog='ppe bag', ignore_later_signals=getattr(args, 'own_command_line', False))

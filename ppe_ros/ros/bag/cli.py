@@ -257,12 +257,12 @@ def read_params_file(path: str | os.PathLike[str]) -> tuple[ExtractorParams, lis
     return params, unknown
 
 
-def run(args: argparse.Namespace, prog: str = 'process_bag', *, keep_signal_handlers: bool = False) -> int:
+def run(args: argparse.Namespace, prog: str = 'process_bag', *, ignore_later_signals: bool = False) -> int:
     """Run from parsed arguments; print the plan, warnings, summary and errors; return the exit code.
 
-    keep_signal_handlers: leave the command's SIGINT / SIGTERM handlers in place after the run, where
-    they ignore further signals (for the process's own command line: a signal that arrives while
-    Python exits would otherwise kill the process and replace the exit code 128 + signal).
+    ignore_later_signals: ignore SIGINT and SIGTERM after the run (for the process's own command line: a
+    signal that arrives while Python exits would otherwise kill the process and replace the exit code
+    128 + signal); else the handlers found before the run are put back.
     """
     signals = CommandSignals()
     signals.install()
@@ -270,7 +270,9 @@ def run(args: argparse.Namespace, prog: str = 'process_bag', *, keep_signal_hand
         return _run_command(args, prog, signals)
     finally:
         signals.done = True
-        if not keep_signal_handlers:
+        if ignore_later_signals:
+            signals.ignore()
+        else:
             signals.restore()
 
 
@@ -325,4 +327,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     if '--ros-args' in arguments:  # ros2 launch appends ROS arguments; they mean nothing here
         arguments = arguments[: arguments.index('--ros-args')]
     # the process's own command line: signals after the run are ignored until it has exited
-    return run(build_parser().parse_args(arguments), keep_signal_handlers=argv is None)
+    return run(build_parser().parse_args(arguments), ignore_later_signals=argv is None)

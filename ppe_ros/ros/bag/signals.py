@@ -32,6 +32,14 @@ class _SignalHandlers:
             signal.signal(signum, handler)
         self._previous.clear()
 
+    def ignore(self) -> None:
+        """Ignore the signals whose handlers install() set (SIG_IGN), for a process that is about to exit:
+        the interpreter's shutdown puts SIG_DFL back for signals with a Python handler (a signal after
+        that would kill the process and replace its exit code), but leaves ignored ones ignored."""
+        for signum in self._previous:
+            signal.signal(signum, signal.SIG_IGN)
+        self._previous.clear()
+
     def _handle(self, signum: int, frame: Any) -> None:
         raise NotImplementedError
 
