@@ -766,8 +766,9 @@ def test_default_settings_segment_synpeb_crops_like_exact_settings(shared_data, 
     assert abs(correct[0] - correct[1]) <= 1, f'correct planes, default / exact settings: {correct}'
 
 
-def _seed_errors_one_by_one(scan, ok_right, ok_down):
-    """Slow reference: every in-grid seed fitted with the general Gauss-Newton, inf where invalid."""
+def _seed_errors_one_by_one(scan, ok_right, ok_down, tolerance=1e-13):
+    """Slow reference: every in-grid seed fitted with the general Gauss-Newton (relative tolerance
+    ``tolerance``), inf where invalid."""
     h, w = scan.height, scan.width
     out = np.full((h * w, 17), np.inf)
     for anchor in range(h * w):
@@ -786,14 +787,15 @@ def _seed_errors_one_by_one(scan, ok_right, ok_down):
                         a, b = min(idx[t], idx[u]), max(idx[t], idx[u])
                         edges_ok &= bool(ok_right[a] if b == a + 1 else ok_down[a])
             if edges_ok:
-                sse = fit_rays(scan.endpoints, scan.directions, idx, 4, np.nan, np.nan, np.nan, 50, 1e-13)[0]
+                sse = fit_rays(scan.endpoints, scan.directions, idx, 4, np.nan, np.nan, np.nan, 50, tolerance)[0]
                 out[anchor, c] = sse if np.isfinite(sse) else np.inf
     return out
 
 
-@pytest.mark.parametrize('lmax', [0.3, np.inf])
-def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
-    """The vectorised four-ray fits (and their fall-backs) against fit_rays on each seed.
+@pytest.mark.parametrize(('lmax', 'tolerance'), [(0.3, 1e-13), (np.inf, 1e-13), (np.inf, 1e-6)])
+def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax, tolerance):
+    """The vectorised four-ray fits (and their fall-backs) against fit_rays on each seed, at the exact
+    greedy's relative tolerance and at the lidar profile's.
 
     The scene has noise, no-returns, ray starts off the origin and exactly collinear rays (a
     degenerate seed the straight-line fit cannot finish).
@@ -822,10 +824,15 @@ def test_seed_errors_are_bit_identical_to_fitting_every_seed(lmax):
         fast,
         best_config,
         best_key,
+        np.inf,
+        tolerance,
     )
-    slow = _seed_errors_one_by_one(scan, ok_right, ok_down)
+    slow = _seed_errors_one_by_one(scan, ok_right, ok_down, tolerance)
     assert np.isfinite(slow).sum() > 5000 and np.isinf(slow).sum() > 1000
     np.testing.assert_array_equal(fast, slow)
+    if tolerance != 1e-13:  # the tolerance matters: some seeds stop earlier than at 1e-13
+        exact = _seed_errors_one_by_one(scan, ok_right, ok_down)
+        assert (fast != exact).sum() > 100
     # each anchor's initial seed: its first config of least SSE, none where no seed is valid
     none = np.isinf(slow).all(axis=1)
     assert none.sum() > 10

@@ -19,6 +19,7 @@ from ppe_ros.core.ppe.layout import (
     DEFAULT_EXACT_PLANE_SIZE,
     MERGE_LOOP_GROWTH,
     REFINED_MERGE_GROWTH,
+    TETROMINO_OFFSETS,
 )
 from ppe_ros.core.ppe.state import _candidate_increment, _hybrid_merge, _one_step_sse, _set_exact_state, _union_fit
 from ppe_ros.core.sensor import LIDAR_NOISE, PROFILES, SensorProfile
@@ -228,3 +229,30 @@ def test_fit_tolerance_reaches_the_union_fit_and_the_hybrid_merge():
     tight = _hybrid_merge(endpoints, directions, pf, 0, rays, 12, *start, 1e-13)
     loose = _hybrid_merge(endpoints, directions, pf, 0, rays, 12, *start, 0.5)
     assert tight[0] < loose[0] <= tight[0] * 1.01
+
+
+@pytest.mark.parametrize('seed_shapes', ['all', 'square'])
+def test_fit_tolerance_reaches_the_seeds(seed_shapes):
+    """Every create's increment is its tetromino's fit at the options' fit_tolerance (bit for bit), and with
+    a loose tolerance some creates differ from the exact greedy's seed fits."""
+    scan_in = room_scan(rows=30, cols=40, noise=0.02, seed=3)
+    increments = {}
+    for tolerance in (1e-13, 1e-6):
+        options = GreedyOptions(seed_shapes=seed_shapes, fit_tolerance=tolerance)
+        hierarchy = extract_plane_hierarchy(scan_in.points, origins=scan_in.origins, options=options)
+        creates = hierarchy.actions[hierarchy.actions['kind'] == 0]
+        assert len(creates) > 50
+        scan = hierarchy.scan
+        for anchor, config, increment in zip(creates['a'], creates['b'], creates['increment'], strict=True):
+            i, j = divmod(int(anchor), scan.width)
+            idx = ((i + TETROMINO_OFFSETS[config, :, 0]) * scan.width + j + TETROMINO_OFFSETS[config, :, 1]).astype(
+                np.int64
+            )
+            sse = fit_with_information(scan.endpoints, scan.directions, idx, 4, np.nan, np.nan, np.nan, 50, tolerance)[
+                0
+            ]
+            assert increment == sse, (tolerance, anchor, config)
+            increments[tolerance, int(anchor), int(config)] = increment
+    loose = [key for key in increments if key[0] == 1e-6 and (1e-13, *key[1:]) in increments]
+    assert len(loose) > 50
+    assert sum(increments[key] != increments[(1e-13, *key[1:])] for key in loose) > 0

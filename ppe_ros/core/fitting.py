@@ -240,8 +240,9 @@ def _fit4_pass(P, V, rays, w0, w1, w2):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def _fit4_step(P, V, rays, state):
-    """One iteration of :func:`_gauss_newton` with a full step, as selects instead of returns.
+def _fit4_step(P, V, rays, state, tolerance):
+    """One iteration of :func:`_gauss_newton` (relative_tolerance ``tolerance``) with a full step, as selects
+    instead of returns.
 
     state = (w, system, stopped, fallback) with w = (w0, w1, w2) and system = gn_pass at w;
     stopped when _gauss_newton would have returned, fallback when it would have halved the step.
@@ -249,7 +250,7 @@ def _fit4_step(P, V, rays, state):
     w, system, stopped, fallback = state
     sse, a00, a01, a02, a11, a12, a22, b0, b1, b2 = system
     d0, d1, d2, ok = solve_sym3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
-    stop_now = (not ok) | (not (d0 * b0 + d1 * b1 + d2 * b2 > FIT_RELATIVE_TOLERANCE * sse))
+    stop_now = (not ok) | (not (d0 * b0 + d1 * b1 + d2 * b2 > tolerance * sse))
     trial_w = (w[0] - d0, w[1] - d1, w[2] - d2)
     trial = _fit4_pass(P, V, rays, trial_w[0], trial_w[1], trial_w[2])
     active = (not stopped) & (not stop_now)
@@ -262,8 +263,9 @@ def _fit4_step(P, V, rays, state):
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def fit4(P, V, k0, k1, k2, k3):
-    """:func:`fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code.
+def fit4(P, V, k0, k1, k2, k3, tolerance=FIT_RELATIVE_TOLERANCE):
+    """:func:`fit_rays` of the rays k0..k3 from the algebraic start, in straight-line code (relative_tolerance
+    ``tolerance``).
 
     Runs the algebraic start and up to three Gauss-Newton iterations exactly as :func:`fit_with_information` would
     (most seed fits converge within three; the rest go to the general fit, which a fourth
@@ -279,9 +281,9 @@ def fit4(P, V, k0, k1, k2, k3):
     system = _fit4_pass(P, V, rays, w0, w1, w2)
     good = ok & np.isfinite(system[0])
     state = ((w0, w1, w2), system, False, False)
-    state = _fit4_step(P, V, rays, state)  # written out three times: LLVM vectorises the
-    state = _fit4_step(P, V, rays, state)  # caller's loop over anchors only when no loop is left
-    state = _fit4_step(P, V, rays, state)
+    state = _fit4_step(P, V, rays, state, tolerance)  # written out three times: LLVM vectorises the
+    state = _fit4_step(P, V, rays, state, tolerance)  # caller's loop over anchors only when no loop is left
+    state = _fit4_step(P, V, rays, state, tolerance)
     return state[1][0], good & state[2] & (not state[3])
 
 

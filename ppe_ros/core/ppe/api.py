@@ -252,7 +252,12 @@ def extract_plane_hierarchy(
     for column in tile_columns[1:-1]:  # no seed or join crosses a tile border
         ok_right[column - 1 :: scan.width] = False
     seed_sse, seed_best, seed_key = _seed_stage(
-        scan, ok_right, ok_down, _run_cutoff(stop_increment, stop_count, scan.size), options.seed_shapes
+        scan,
+        ok_right,
+        ok_down,
+        _run_cutoff(stop_increment, stop_count, scan.size),
+        options.seed_shapes,
+        options.fit_tolerance,
     )
     inputs = (scan.endpoints, scan.directions, scan.valid, ok_right, ok_down, seed_sse, seed_best, seed_key)
     if len(tile_columns) == 2:

@@ -155,6 +155,7 @@ def _seed_errors(
     best_config,
     best_key,
     cutoff=np.inf,
+    tolerance=_FIT_TOLERANCE,
 ):
     """SSE (m^2) of every tetromino seed (anchor pixel, config) into out; inf where the seed is invalid.
 
@@ -172,10 +173,12 @@ def _seed_errors(
     _SEED_BLOCK anchors that holds at least _SEED_BLOCK_MIN valid seeds (a vectorised loop); the
     valid seeds of the other blocks (sparse rows such as a 32-beam lidar's with a distance limit) and
     the seeds the loop did not finish are fitted by the general Gauss-Newton. The values are
-    bit-identical to fitting every seed with fit_rays, except that a seed left to the general fit
-    whose SSE provably exceeds cutoff (m^2; _seed_exceeds) is not fitted and gets inf: a run
-    that stops at cutoff never creates it (at lmax inf, most seeds the loop does not finish span a
-    depth step or meet a surface at a grazing angle, with SSEs far above any useful e).
+    bit-identical to fitting every seed with fit_rays at the relative tolerance ``tolerance`` (the
+    greedy's fit_tolerance: a relaxed one lets most seeds stop within the loop's three iterations),
+    except that a seed left to the general fit whose SSE provably exceeds cutoff (m^2; _seed_exceeds)
+    is not fitted and gets inf: a run that stops at cutoff never creates it (at lmax inf, most seeds
+    the loop does not finish span a depth step or meet a surface at a grazing angle, with SSEs far
+    above any useful e).
     """
     edges = _tetromino_edges(offsets, width)
     for i in nb.prange(height):
@@ -225,7 +228,7 @@ def _seed_errors(
                         # unsigned ids: no negative-index wraparound test, which would stop vectorisation
                         a = base + j
                         sse, done = fit4(
-                            P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2), np.uint64(a + o3)
+                            P, V, np.uint64(a + o0), np.uint64(a + o1), np.uint64(a + o2), np.uint64(a + o3), tolerance
                         )
                         row[j] = sse if done else np.nan
             for j in range(j_lo, j_hi):
@@ -237,7 +240,7 @@ def _seed_errors(
                     if cutoff < np.inf and _seed_exceeds(endpoints, directions, idx, cutoff):
                         continue  # errors[c, j] stays inf: never a create in this run
                     sse, _, _, _ = fit_rays(
-                        endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS, _FIT_TOLERANCE
+                        endpoints, directions, idx, 4, np.nan, np.nan, np.nan, _FIT_ITERATIONS, tolerance
                     )
                 errors[column, j] = sse if np.isfinite(sse) else np.inf
         _store_row(errors, configs, base, width, out, best_config, best_key)
@@ -325,9 +328,10 @@ def _block_seeds(endpoints, directions, ok_right, ok_down, square_sse, height, w
     internal 4-neighbour pairs are all admissible edges and whose exact fit (fit_rays at ``tolerance``
     from the algebraic start, rays in row order) has an SSE of at most max_sse, in (SSE, anchor) order.
 
-    square_sse: each anchor's 2 x 2 square seed SSE (inf: invalid or above the run's cutoff). The four
-    squares of a block are disjoint, so their sum is a lower bound of the block's SSE: a block whose
-    sum exceeds max_sse (by more than rounding) is not fitted.
+    square_sse: each anchor's 2 x 2 square seed SSE (inf: invalid or above the run's cutoff), fitted at
+    ``tolerance`` too (so above its least SSE by about ``tolerance`` of itself at most). The four squares
+    of a block are disjoint, so the sum of their least SSEs is a lower bound of the block's SSE: a block
+    whose sum, lowered by twice ``tolerance``, exceeds max_sse (by more than rounding) is not fitted.
     """
     side = BLOCK_SIDE
     rows = height // side
@@ -348,7 +352,7 @@ def _block_seeds(endpoints, directions, ok_right, ok_down, square_sse, height, w
             if not joined:
                 continue
             lower = square_sse[a] + square_sse[a + 2] + square_sse[a + 2 * width] + square_sse[a + 2 * width + 2]
-            if not lower <= max_sse * (1.0 + 1e-9):
+            if not lower * (1.0 - 2.0 * tolerance) <= max_sse * (1.0 + 1e-9):
                 continue
             for t in range(side * side):
                 idx[t] = a + (t // side) * width + t % side
@@ -395,11 +399,17 @@ def _distance(endpoints, a, b):
 
 
 def _seed_stage(
-    scan: RayScan, ok_right: np.ndarray, ok_down: np.ndarray, cutoff: float, seed_shapes: str = 'all'
+    scan: RayScan,
+    ok_right: np.ndarray,
+    ok_down: np.ndarray,
+    cutoff: float,
+    seed_shapes: str = 'all',
+    fit_tolerance: float = _FIT_TOLERANCE,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every anchor's tetromino seed errors, its best config and key (reused work memory); seeds above
     ``cutoff`` (the greedy's, :func:`_run_cutoff`) are never created. Only the configs of ``seed_shapes``
-    (SEED_SHAPES) are evaluated: the table has a column per config of that set, in its order."""
+    (SEED_SHAPES) are evaluated: the table has a column per config of that set, in its order. The seeds are
+    fitted to the relative tolerance ``fit_tolerance`` (GreedyOptions.fit_tolerance)."""
     configs = SEED_SHAPES[seed_shapes]
     seed_sse = _reusable('seeds', scan.size * len(configs), np.float64).reshape(scan.size, len(configs))
     seed_best = _reusable('seed_best', scan.size, np.int32)
@@ -421,5 +431,6 @@ def _seed_stage(
         seed_best,
         seed_key,
         cutoff,
+        fit_tolerance,
     )
     return seed_sse, seed_best, seed_key
