@@ -196,8 +196,8 @@ def test_the_one_step_greedy_follows_the_exact_one_until_increments_this_close_r
 
 def test_the_profiles_greedy_options():
     """The lidar profile runs the greedy with squares and one-step candidates at a 1e-6 fit tolerance (block
-    seeds when its copy asks for them); the depth camera and the paper's profile with the exact greedy's
-    candidates."""
+    seeds when its copy asks for them); the depth camera profile with the exact greedy's candidates at a 1e-9
+    fit tolerance, the paper's profile with the exact greedy."""
     assert _profile_greedy_options(PROFILES['lidar']) == GreedyOptions(
         seed_shapes='square', candidate_fits='one_step', fit_tolerance=1e-6
     )
@@ -205,7 +205,7 @@ def test_the_profiles_greedy_options():
     assert _profile_greedy_options(with_blocks) == GreedyOptions(
         seed_shapes='square', candidate_fits='one_step', fit_tolerance=1e-6, block_seeds=True
     )
-    assert _profile_greedy_options(PROFILES['depth_camera']) == GreedyOptions()
+    assert _profile_greedy_options(PROFILES['depth_camera']) == GreedyOptions(fit_tolerance=1e-9)
     assert _profile_greedy_options(PROFILES['paper']) == GreedyOptions()
     with pytest.raises(ValueError, match='candidate_fits'):
         SensorProfile(name='mine', candidate_fits='fast')

@@ -207,10 +207,7 @@ def _seed_errors(
             e1 = ok_right if edges[c, 1, 1] == 0 else ok_down
             e2 = ok_right if edges[c, 2, 1] == 0 else ok_down
             e3 = ok_right if edges[c, 3, 1] == 0 else ok_down
-            f0 = edges[c, 0, 0]
-            f1 = edges[c, 1, 0]
-            f2 = edges[c, 2, 0]
-            f3 = edges[c, 3, 0]
+            f0, f1, f2, f3 = edges[c, 0, 0], edges[c, 1, 0], edges[c, 2, 0], edges[c, 3, 0]
             for j in range(j_lo, j_hi):
                 a = base + j
                 ok[j] = e0[a + f0] & e1[a + f1] & e2[a + f2] & e3[a + f3]
