@@ -257,7 +257,7 @@ def test_bucket_index_from_float_bits_equals_the_frexp_formula():
 def test_seed_sort_equals_a_stable_argsort():
     """The radix sort of the seed keys gives the anchors in the order of a stable argsort (ties by
     anchor id), infinite keys (no seed) left out, on keys with ties, zeros, -0.0, subnormals and
-    keys spread over many octaves (every 16-bit digit used)."""
+    keys spread over many octaves (every digit used)."""
     rng = np.random.default_rng(5)
     cases = [
         np.array([], float),

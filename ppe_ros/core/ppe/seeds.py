@@ -272,13 +272,19 @@ def _ray_columns(endpoints, directions, P, V):
                 V[c, k] = directions[k, c]
 
 
+#: Bits per digit of the seed keys' radix sort: 2048 buckets (a tile's few thousand keys would pay more for
+#: clearing and summing 65536 buckets than for the extra pass), 6 passes over 64 bits.
+_RADIX_BITS = 11
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _sort_seed_keys(seed_key, cutoff=np.inf):
     """Anchors with a finite seed key <= cutoff, in the order of (key, anchor): a stable LSD radix sort.
 
-    Keys are >= 0, so their IEEE bits order like the keys; 16-bit digits, and a digit that all
-    keys share is skipped (the exponents of a scan's seeds span a few octaves). Returns (anchors,
-    their keys). The same order as a stable argsort of the keys, in O(n) instead of O(n log n).
+    Keys are >= 0, so their IEEE bits order like the keys; _RADIX_BITS-bit digits, all counted in one
+    pass, and a digit that all keys share is skipped (the exponents of a scan's seeds span a few
+    octaves). Returns (anchors, their keys). The same order as a stable argsort of the keys, in O(n)
+    instead of O(n log n).
     """
     n = seed_key.shape[0]
     m = 0
@@ -287,27 +293,32 @@ def _sort_seed_keys(seed_key, cutoff=np.inf):
             m += 1
     order = np.empty(m, np.int64)
     bits = np.empty(m, np.uint64)
+    buckets = 1 << _RADIX_BITS
+    passes = (64 + _RADIX_BITS - 1) // _RADIX_BITS
+    mask = np.uint64(buckets - 1)
+    count = np.zeros((passes, buckets + 1), np.int64)
     m = 0
     for k in range(n):
         if seed_key[k] < np.inf and seed_key[k] <= cutoff:
             order[m] = k
-            bits[m] = np.uint64(_float_bits(seed_key[k] + 0.0))  # + 0.0: -0.0 becomes +0.0
+            b = np.uint64(_float_bits(seed_key[k] + 0.0))  # + 0.0: -0.0 becomes +0.0
+            bits[m] = b
+            for digit in range(passes):
+                count[digit, ((b >> np.uint64(digit * _RADIX_BITS)) & mask) + 1] += 1
             m += 1
     order2 = np.empty(m, np.int64)
     bits2 = np.empty(m, np.uint64)
-    count = np.empty(65537, np.int64)
-    for shift in range(0, 64, 16):
-        count[:] = 0
+    for digit in range(passes):
+        shift = np.uint64(digit * _RADIX_BITS)
+        if m == 0 or count[digit, ((bits[0] >> shift) & mask) + 1] == m:
+            continue  # every key has this digit: the pass would not move anything
+        start = count[digit]
+        for d in range(buckets):
+            start[d + 1] += start[d]
         for t in range(m):
-            count[((bits[t] >> np.uint64(shift)) & np.uint64(0xFFFF)) + 1] += 1
-        if m == 0 or count.max() == m:
-            continue
-        for d in range(65536):
-            count[d + 1] += count[d]
-        for t in range(m):
-            d = (bits[t] >> np.uint64(shift)) & np.uint64(0xFFFF)
-            pos = count[d]
-            count[d] = pos + 1
+            d = (bits[t] >> shift) & mask
+            pos = start[d]
+            start[d] = pos + 1
             order2[pos] = order[t]
             bits2[pos] = bits[t]
         order, order2 = order2, order
