@@ -49,9 +49,10 @@ class GreedyOptions:
             executed is then fitted exactly, so plane states stay exact; the action order may differ
             from the exact greedy's where increments are that close (the lidar profile's choice).
         fit_tolerance: relative convergence tolerance of the greedy's exact fits (the tetromino seeds,
-            small planes' states and exact candidates, union fits, merge refinements): a fit stops when the Gauss-Newton
-            predicted decrease is at most this fraction of its SSE (the default, 1e-13, is the exact
-            greedy's; the lidar profile uses 1e-6, far below its increments' resolution).
+            small planes' states and exact candidates, union fits, merge refinements): a fit stops when the
+            Gauss-Newton predicted decrease is at most this fraction of its SSE (the default, 1e-13, is the
+            exact greedy's; the lidar profile uses 1e-6, far below its increments' resolution, the depth
+            camera profile 1e-9).
         seed_shapes: the tetrominoes that seed a plane (create actions): 'all' the paper's 17 (every
             tetromino but the straight I), 'square' the 2 x 2 square alone (a 17th of the seed fits and of
             the seeds the greedy re-queues; the sensor profiles' choice for spinning lidars).
