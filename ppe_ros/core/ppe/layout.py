@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ppe_ros.core.fitting import FIT_MAX_ITERATIONS, FIT_RELATIVE_TOLERANCE
+
 KIND_CREATE = 0
 KIND_EXTEND = 1
 KIND_MERGE = 2
@@ -61,8 +63,8 @@ BOUND_SLACK = 1e-7
 #: Scans must have fewer rays than this (the greedy stores ids, versions and stamps in 32 bits).
 MAX_RAYS = 2**26
 
-_FIT_ITERATIONS = 50
-_FIT_TOLERANCE = 1e-13
+_FIT_ITERATIONS = FIT_MAX_ITERATIONS  # the exact greedy's fits stop as fitting's own
+_FIT_TOLERANCE = FIT_RELATIVE_TOLERANCE
 
 # global heap entry kinds (sorted so that create < extend < merge on equal keys)
 _G_SEED = 0
