@@ -11,14 +11,20 @@ from lidar_sweeps import HDL_LIKE_ELEVATIONS, room_sweep, shuffled
 from ppe_ros.core.extraction import extract_planes
 from ppe_ros.core.projection import (
     _claim_cells,
+    _phase_sums,
     _point_labels_kernel,
+    _rays,
+    _ring_rows,
+    _rows_below_edges,
     _sharpness,
+    _sharpness_of_offsets,
     beam_elevations,
     extract_planes_unorganized,
     fit_beam_origin_offset,
     matched_label_agreement,
     project_points,
 )
+from ppe_ros.core.scan import MAX_RANGE, MIN_RANGE
 
 # ------------------------------------------------------------------ kernels against references
 
@@ -70,6 +76,89 @@ def test_sharpness_is_the_sum_of_squared_histogram_counts():
     elevation = np.arctan2(z - 0.1, rho - 0.02)
     counts = np.bincount(((elevation + math.pi / 2) / width).astype(np.int64))
     assert _sharpness(rho, z, 0.1, 0.02, width) == float((counts.astype(float) ** 2).sum())
+
+
+def test_ray_geometry_is_numpys_bit_for_bit():
+    """_rays (one parallel kernel) against the numpy it replaced: p - s, the lengths of sqrt(einsum) and hypot."""
+    rng = np.random.default_rng(8)
+    points = rng.normal(0, 20, (3000, 3))
+    points[::50] = np.nan
+    points[1::50] = 0.0  # below MIN_RANGE
+    points[2::50] *= 1e6  # beyond MAX_RANGE
+    for origins in (None, np.array([0.1, -0.2, 0.03]), rng.normal(0, 0.05, points.shape)):
+        rays_in = points.copy() if origins is None else points - origins
+        length = np.sqrt(np.einsum('ij,ij->i', rays_in, rays_in))
+        with np.errstate(invalid='ignore'):
+            valid = (length >= MIN_RANGE) & (length <= MAX_RANGE)
+        rays_in[~valid] = 0.0
+        rays, got_valid, ranges, rho = _rays(points, origins)
+        np.testing.assert_array_equal(got_valid, valid)
+        assert 0 < valid.sum() < len(points) - 100
+        np.testing.assert_array_equal(rays, rays_in)
+        np.testing.assert_array_equal(ranges, np.sqrt(np.einsum('ij,ij->i', rays_in, rays_in)))
+        np.testing.assert_array_equal(rho, np.hypot(rays_in[:, 0], rays_in[:, 1]))
+
+
+@pytest.mark.parametrize('n_edges', [0, 1, 2, 127, 300])
+def test_rows_below_edges_are_searchsorted(n_edges):
+    """The bucketed search against np.searchsorted(side='left'), with values on the edges, between, beyond."""
+    rng = np.random.default_rng(n_edges)
+    edges = np.sort(rng.uniform(-0.5, 0.3, n_edges))
+    if n_edges >= 3:
+        edges[n_edges // 3 : n_edges // 3 + 2] = edges[n_edges // 3]  # a repeated edge
+    values = np.concatenate([rng.uniform(-0.7, 0.5, 4000), edges, np.nextafter(edges, np.inf), [np.inf, -np.inf]])
+    elevation = -values  # the kernel takes the negated elevations' ascending edges
+    valid = rng.random(len(values)) < 0.9
+    row_of = np.full(len(values), -1, np.int64)
+    _rows_below_edges(edges, elevation, valid, row_of)
+    expected = np.where(valid, np.searchsorted(edges, values, side='left'), -1)
+    np.testing.assert_array_equal(row_of, expected)
+
+
+def test_phase_sums_are_a_loop_over_the_points_in_order():
+    rng = np.random.default_rng(9)
+    azimuth = rng.uniform(-math.pi, math.pi, 5000)
+    row_of = rng.integers(-1, 40, 5000)
+    step = 2 * math.pi / 1024
+    sin, cos = np.zeros(40), np.zeros(40)
+    for a, r in zip(azimuth, row_of, strict=True):
+        if r >= 0:
+            phase = 2 * math.pi / step * (a + math.pi)
+            sin[r] += math.sin(phase)
+            cos[r] += math.cos(phase)
+    got_sin, got_cos = _phase_sums(azimuth, row_of, 40, step)
+    np.testing.assert_array_equal(got_sin, sin)
+    np.testing.assert_array_equal(got_cos, cos)
+
+
+@pytest.mark.parametrize('upwards', [True, False])
+def test_ring_rows_follow_numpys_bincount_of_the_rings(upwards):
+    """Rows from rings against the numpy definition (bincount means, ring order flipped when rings count upwards)."""
+    rng = np.random.default_rng(10)
+    rings = rng.integers(-1, 64, 6000)
+    rings[rings == 17] = 18  # an absent ring inside the range: an empty row
+    elevation = (rings if upwards else -rings) * 0.01 + rng.normal(0, 0.001, len(rings))
+    valid = rng.random(len(rings)) < 0.95
+    ok = valid & (rings >= 0)
+    counts = np.bincount(rings[ok])
+    present = np.flatnonzero(counts)
+    means = (np.bincount(rings[ok], elevation[ok]) / np.maximum(counts, 1))[present]
+    low, high = int(present[0]), int(present[-1])
+    assert (np.corrcoef(present.astype(float), means)[0, 1] > 0) == upwards
+    expected = np.full(len(rings), -1, np.int64)
+    expected[ok] = (high - rings[ok]) if upwards else (rings[ok] - low)
+    row_of, n_rows = _ring_rows(rings, elevation, valid)
+    np.testing.assert_array_equal(row_of, expected)
+    assert n_rows == high - low + 1
+
+
+def test_sharpness_of_offsets_is_sharpness_at_each():
+    rng = np.random.default_rng(11)
+    rho, z = rng.uniform(0.5, 30, 700), rng.uniform(-10, 10, 700)
+    hs, ns = rng.uniform(-0.3, 0.3, 25), rng.uniform(-0.1, 0.1, 25)
+    width = math.radians(0.02)
+    got = _sharpness_of_offsets(rho, z, hs, ns, width)
+    np.testing.assert_array_equal(got, [_sharpness(rho, z, h, n, width) for h, n in zip(hs, ns, strict=True)])
 
 
 # ------------------------------------------------------------------ the projection

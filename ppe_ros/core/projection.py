@@ -151,20 +151,43 @@ def _as_points(points: np.ndarray, name: str = 'points') -> np.ndarray:
     return np.ascontiguousarray(array, dtype=np.float64)
 
 
-def _rays(points: np.ndarray, origins: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Ray vectors p - s ``(N, 3)`` and validity (finite, MIN_RANGE <= |p - s| <= MAX_RANGE)."""
+def _rays(points: np.ndarray, origins: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ray vectors p - s ``(N, 3)`` (0 where invalid), validity (finite, MIN_RANGE <= |p - s| <= MAX_RANGE),
+    lengths |p - s| (m; 0 where invalid) and horizontal lengths hypot(x, y) of the rays (m)."""
     if origins is None:
-        rays = points.copy()
+        starts = np.zeros((1, 3))
     else:
         starts = np.asarray(origins, dtype=np.float64)
         if starts.shape not in ((3,), points.shape):
             raise ValueError(f'origins must be None, (3,) or (N, 3) like points {points.shape}; got {starts.shape}')
-        rays = points - starts
-    with np.errstate(invalid='ignore', over='ignore'):
-        length = np.sqrt(np.einsum('ij,ij->i', rays, rays))
-        valid = (length >= MIN_RANGE) & (length <= MAX_RANGE)
-    rays[~valid] = 0.0
-    return rays, valid
+        starts = np.ascontiguousarray(starts).reshape(-1, 3)
+    n = len(points)
+    rays, valid, ranges, rho = np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n), np.empty(n)
+    _ray_geometry(points, starts, rays, valid, ranges, rho)
+    return rays, valid, ranges, rho
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _ray_geometry(points, starts, rays, valid, ranges, rho):
+    """rays, valid, ranges and rho of :func:`_rays` in one parallel pass; starts ``(1, 3)`` (one for every
+    point) or ``(N, 3)``. Bit for bit numpy's ``p - s``, ``sqrt(einsum('ij,ij->i'))`` (which adds x^2 + z^2,
+    then y^2) and ``hypot``."""
+    step = 0 if starts.shape[0] == 1 else 1
+    for k in nb.prange(points.shape[0]):
+        s = k * step
+        x = points[k, 0] - starts[s, 0]
+        y = points[k, 1] - starts[s, 1]
+        z = points[k, 2] - starts[s, 2]
+        length = np.sqrt((x * x + z * z) + y * y)
+        ok = length >= MIN_RANGE and length <= MAX_RANGE  # False for NaN
+        valid[k] = ok
+        if not ok:
+            x = y = z = 0.0
+        rays[k, 0] = x
+        rays[k, 1] = y
+        rays[k, 2] = z
+        ranges[k] = length if ok else 0.0
+        rho[k] = math.hypot(x, y)
 
 
 def project_points(
@@ -197,21 +220,21 @@ def project_points(
     ring_values = None if method != 'rings' else _as_rings(rings, len(pts))
     if azimuth_bins is not None and (int(azimuth_bins) != azimuth_bins or not 1 <= azimuth_bins <= 1_000_000):
         raise ValueError(f'azimuth_bins must be an integer in [1, 1000000] or None; got {azimuth_bins!r}')
-    rays, valid = _rays(pts, origins)
+    rays, valid, ranges, rho = _rays(pts, origins)
     offset = (0.0, 0.0)
     if method == 'angular_grid':
         if not (np.isfinite(angular_resolution) and 0.01 <= angular_resolution <= 10.0):
             raise ValueError(f'angular_resolution must be in [0.01, 10] deg; got {angular_resolution!r}')
-        elevation = np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1]))
+        elevation = np.arctan2(rays[:, 2], rho)
         row_of, n_rows = _grid_rows(elevation, valid, math.radians(angular_resolution))
         bins = round(360.0 / angular_resolution)
     else:
         if method == 'rings':
-            elevation = np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1]))
+            elevation = np.arctan2(rays[:, 2], rho)
             row_of, n_rows = _ring_rows(ring_values, elevation, valid)
         else:
             offset = fit_beam_origin_offset(rays, valid)
-            elevation = _elevations(rays, offset)
+            elevation = np.arctan2(rays[:, 2] - offset[0], rho - offset[1])  # seen from the beam origin
             row_of, n_rows = _elevation_rows(elevation, valid)
         bins = None if azimuth_bins is None else int(azimuth_bins)
     azimuth = np.arctan2(rays[:, 1], rays[:, 0])
@@ -227,7 +250,6 @@ def project_points(
             'give azimuth_bins or a coarser angular_resolution'
         )
     cells = np.where(row_of >= 0, row_of * n_columns + column_of, -1).astype(np.int64)
-    ranges = np.sqrt(np.einsum('ij,ij->i', rays, rays))
     winners = _claim_cells(cells, ranges, n_rows * n_columns)
     held = winners[winners >= 0]
     row_elevations = _group_means(row_of[held], elevation[held], n_rows)
@@ -274,18 +296,41 @@ def _ring_rows(rings: np.ndarray, elevation: np.ndarray, valid: np.ndarray) -> t
     """Row of each point from its ring: every ring value from the smallest to the largest is a row (an
     absent one is an empty row), in ring order, top beam first (drivers number rings by elevation;
     whether upwards or downwards is read from the rings' mean elevations)."""
-    ok = valid & (rings >= 0)
     row_of = np.full(len(rings), -1, np.int64)
-    if not ok.any():
-        return row_of, 0
-    counts = np.bincount(rings[ok])
+    counts, sums = _ring_sums(rings, elevation, valid)
     present = np.flatnonzero(counts)
-    means = (np.bincount(rings[ok], elevation[ok]) / np.maximum(counts, 1))[present]
+    if len(present) == 0:
+        return row_of, 0
+    means = (sums / np.maximum(counts, 1))[present]
     low, high = int(present[0]), int(present[-1])
-    index = rings[ok] - low
     upwards = len(present) > 1 and np.corrcoef(present.astype(np.float64), means)[0, 1] > 0
-    row_of[ok] = (high - low) - index if upwards else index
+    _rows_of_rings(rings, valid, low, high, upwards, row_of)
     return row_of, high - low + 1
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _ring_sums(rings, elevation, valid):
+    """Per ring value 0 .. max, the count and the sum of the elevations (in the points' order) of the valid
+    points with a ring (>= 0): np.bincount's counts and weighted sums of those points."""
+    top = -1
+    for k in range(rings.shape[0]):
+        if valid[k] and rings[k] > top:
+            top = rings[k]
+    counts = np.zeros(top + 1, np.int64)
+    sums = np.zeros(top + 1)
+    for k in range(rings.shape[0]):
+        if valid[k] and rings[k] >= 0:
+            counts[rings[k]] += 1
+            sums[rings[k]] += elevation[k]
+    return counts, sums
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _rows_of_rings(rings, valid, low, high, upwards, row_of):
+    """row_of[k] = the row of ring rings[k] (rings low .. high, the top beam's row 0) for valid points with a ring."""
+    for k in nb.prange(rings.shape[0]):
+        if valid[k] and rings[k] >= 0:
+            row_of[k] = (high - rings[k]) if upwards else (rings[k] - low)
 
 
 def _group_means(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
@@ -294,12 +339,6 @@ def _group_means(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.nda
     sums = np.bincount(group, values, minlength=n_groups)
     with np.errstate(invalid='ignore', divide='ignore'):
         return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
-
-
-def _elevations(rays: np.ndarray, offset: tuple[float, float]) -> np.ndarray:
-    """Elevation (rad) of each ray seen from a beam origin ``h`` above and ``n`` out from the sensor's."""
-    h, n = offset
-    return np.arctan2(rays[:, 2] - h, np.hypot(rays[:, 0], rays[:, 1]) - n)
 
 
 def fit_beam_origin_offset(rays: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
@@ -320,10 +359,19 @@ def fit_beam_origin_offset(rays: np.ndarray, valid: np.ndarray) -> tuple[float, 
     for ((h_half, h_step), (n_half, n_step)), every in ((_OFFSET_COARSE, 4), (_OFFSET_FINE, 1)):
         r, height = rho[::every], z[::every]  # the coarse search on a quarter of the points
         grid = np.arange(-h_half, h_half + h_step / 2, h_step)
-        h = h + grid[int(np.argmax([_sharpness(r, height, h + dh, n, width) for dh in grid]))]
+        h = h + grid[int(np.argmax(_sharpness_of_offsets(r, height, h + grid, np.full(len(grid), n), width)))]
         grid = np.arange(-n_half, n_half + n_step / 2, n_step)
-        n = n + grid[int(np.argmax([_sharpness(r, height, h, n + dn, width) for dn in grid]))]
+        n = n + grid[int(np.argmax(_sharpness_of_offsets(r, height, np.full(len(grid), h), n + grid, width)))]
     return (float(h), float(n))
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _sharpness_of_offsets(rho, z, hs, ns, width):
+    """:func:`_sharpness` at each offset (hs[i], ns[i]) (m), in parallel."""
+    out = np.empty(len(hs))
+    for i in nb.prange(len(hs)):
+        out[i] = _sharpness(rho, z, hs[i], ns[i], width)
+    return out
 
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
@@ -347,8 +395,40 @@ def _elevation_rows(elevation: np.ndarray, valid: np.ndarray) -> tuple[np.ndarra
         return row_of, 0
     centres = beam_elevations(elevation[valid])
     edges = (centres[1:] + centres[:-1]) / 2  # descending
-    row_of[valid] = np.searchsorted(-edges, -elevation[valid], side='left')
+    _rows_below_edges(-edges, elevation, valid, row_of)
     return row_of, len(centres)
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _rows_below_edges(negated_edges, elevation, valid, row_of):
+    """row_of[k] = np.searchsorted(negated_edges, -elevation[k], side='left') for the valid points (the
+    number of edges above the point's elevation; negated_edges ascending, NaN-free), in parallel. A table
+    over 8 buckets per edge gives each point a start next to its answer, from which it steps to it."""
+    n = negated_edges.shape[0]
+    if n == 0:
+        for k in nb.prange(elevation.shape[0]):
+            if valid[k]:
+                row_of[k] = 0
+        return
+    low = negated_edges[0]
+    buckets = 8 * n
+    width = (negated_edges[n - 1] - low) / buckets
+    start = np.empty(buckets + 1, np.int64)  # start[b]: about the answer at low + b * width
+    i = 0
+    for bucket in range(buckets + 1):
+        while i < n and negated_edges[i] < low + bucket * width:
+            i += 1
+        start[bucket] = i
+    for k in nb.prange(elevation.shape[0]):
+        if valid[k]:
+            value = -elevation[k]
+            bucket = (value - low) / width if width > 0.0 else 0.0
+            at = start[min(max(int(bucket), 0), buckets)] if bucket == bucket else 0
+            while at > 0 and negated_edges[at - 1] >= value:  # exact whatever the start
+                at -= 1
+            while at < n and negated_edges[at] < value:
+                at += 1
+            row_of[k] = at
 
 
 def beam_elevations(elevation: np.ndarray) -> np.ndarray:
@@ -425,18 +505,34 @@ def _azimuth_columns(
     return column_of, bins, step, step / 2
 
 
+def _phase_sums(azimuth: np.ndarray, row_of: np.ndarray, n_rows: int, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the sums of sin and cos of 2 pi (azimuth + pi) / step over its points (row_of >= 0), each
+    in the points' order (the sines and cosines in parallel, then the sums)."""
+    sines, cosines = np.empty(len(azimuth)), np.empty(len(azimuth))
+    _phases(azimuth, row_of, 2 * math.pi / step, sines, cosines)
+    return _row_sums(row_of, n_rows, sines, cosines)
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _phases(azimuth, row_of, scale, sines, cosines):
+    """sin and cos of scale (azimuth + pi) of the points with a row (row_of >= 0)."""
+    for k in nb.prange(azimuth.shape[0]):
+        if row_of[k] >= 0:
+            phase = scale * (azimuth[k] + math.pi)
+            sines[k] = math.sin(phase)
+            cosines[k] = math.cos(phase)
+
+
 @nb.njit(cache=True, error_model='numpy', nogil=True)
-def _phase_sums(azimuth, row_of, n_rows, step):
-    """Per row, the sums of sin and cos of 2 pi (azimuth + pi) / step over its points (row_of >= 0)."""
+def _row_sums(row_of, n_rows, sines, cosines):
+    """Per row, the sums of sines and cosines over its points (row_of >= 0), in the points' order."""
     sin = np.zeros(n_rows)
     cos = np.zeros(n_rows)
-    scale = 2 * math.pi / step
-    for k in range(azimuth.shape[0]):
+    for k in range(row_of.shape[0]):
         r = row_of[k]
         if r >= 0:
-            phase = scale * (azimuth[k] + math.pi)
-            sin[r] += math.sin(phase)
-            cos[r] += math.cos(phase)
+            sin[r] += sines[k]
+            cos[r] += cosines[k]
     return sin, cos
 
 
@@ -462,7 +558,9 @@ def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
     """
     counts = np.bincount(row_of)
     fullest = np.argsort(-counts, kind='stable')[:STEP_ROWS]  # a few beams tell the step
-    chosen = np.isin(row_of, fullest[counts[fullest] > 1])
+    is_chosen_row = np.zeros(len(counts), np.bool_)
+    is_chosen_row[fullest[counts[fullest] > 1]] = True
+    chosen = is_chosen_row[row_of]
     azimuth, row_of = azimuth[chosen], row_of[chosen]
     order = np.lexsort((azimuth, row_of))
     steps = np.diff(azimuth[order])
