@@ -8,9 +8,10 @@ classes. The planes are found once, untimed.
 Input (``--cloud``): by default a synthetic 128 x 1024 spinning-lidar scan of a 28-sided room with
 floor and ceiling: 30 planes fitted to the true faces, 98 % of pixels planar (the worst case for
 the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` (or
-``$PPE_SHARED_DATA/ouster``) with the planes that ``extract_planes`` finds (about a thousand small
-ones: the worst case for the number of markers); or ``depth``: a generated 640 x 480 Kinect-like
-depth frame of a furnished room (optical frame, NaN invalid), with the planes the node finds.
+``$PPE_SHARED_DATA/ouster``) with the planes the node finds (with a params file of ``sensor: none``
+about a thousand small ones, the worst case for the number of markers); or ``depth``: a generated
+640 x 480 Kinect-like depth frame of a furnished room (optical frame, NaN invalid), with the planes
+the node finds.
 
     .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster|depth]
         [--params FILE.yaml]
@@ -39,7 +40,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ppe_ros.core.extraction import extract_planes
 from ppe_ros.core.fitting import fit_labeled_planes
 from ppe_ros.core.synthetic import polygon_room_lidar_scan
 from ppe_ros.ros.messages import StampedFrame, rclpy_message_types
@@ -163,13 +163,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         points = np.load(OUSTER / OUSTER_FILE).astype(np.float64)
         msg = driver_message(points, types)
-        planes = extract_planes(
-            cloud_points(msg, params),
-            max_error_increment=params.max_error_increment,
-            max_neighbor_distance=params.max_neighbor_distance,
-            min_plane_points=params.min_plane_points,
-        )
-        description = f'Ouster {OUSTER_FILE}, planes from extract_planes'
+        # the planes the node finds with these params (its e / lmax / min_plane_points of 0 are the profile's)
+        planes = process_cloud(msg, params, types, outputs=OutputSelection(False, False, False)).planes
+        description = f'Ouster {OUSTER_FILE}, planes from the node (sensor {params.sensor})'
     elif args.cloud == 'depth':  # what the node finds with these params
         from ppe_ros.core.synthetic_real import generate_depth_scan
 

@@ -618,3 +618,23 @@ def test_bench_extraction_node_rows_use_the_settings_the_node_runs_with():
     profile = PROFILES[PARAM_SPEC_BY_NAME['sensor'].default]
     assert module.NODE_E == profile.max_error_increment > 0
     assert module.NODE_LMAX == profile.max_neighbor_distance > 0
+
+
+def test_bench_node_overhead_runs_on_the_ouster_sweep_with_the_nodes_settings(shared_data, capsys, monkeypatch):
+    """bench_node_overhead --cloud ouster finds the planes with the node's own settings (whose e / lmax /
+    min_plane_points of 0 mean the profile's: passing them to extract_planes as they are is an error) and
+    prints its table."""
+    import importlib.util
+    from pathlib import Path
+
+    benchmarks = Path(__file__).resolve().parents[1] / 'benchmarks'
+    monkeypatch.syspath_prepend(str(benchmarks))
+    monkeypatch.setenv('PPE_SHARED_DATA', str(shared_data))
+    spec = importlib.util.spec_from_file_location(
+        'bench_node_overhead_under_test', benchmarks / 'bench_node_overhead.py'
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(['--cloud', 'ouster', '--repeats', '1']) == 0
+    out = capsys.readouterr().out
+    assert 'planes from the node (sensor none)' in out and '| **total overhead** |' in out
