@@ -10,6 +10,7 @@ import pytest
 from ppe_ros.core.planes import PlaneSet
 from ppe_ros.core.synthetic import polygon_room_lidar_scan
 from ppe_ros.ros.markers import (
+    _LARGE_BLOCK,
     ARROW,
     DELETEALL,
     LINE_LIST,
@@ -373,6 +374,29 @@ def test_marker_bytes_are_exact_for_every_alignment(frame_id):
     assert bytes(types.typestore.serialize_cdr(decoded, 'visualization_msgs/msg/MarkerArray')) == cdr
     assert {m.header.frame_id for m in decoded.markers} == {frame_id}
     assert {m.header.stamp.sec for m in decoded.markers} == {-5}
+
+
+@pytest.mark.parametrize('frame_id', ['a', 'abcd', 'base_link'])
+def test_large_vertex_blocks_left_in_place_give_the_same_bytes(frame_id):
+    """A plane whose mesh and outline take _LARGE_BLOCK bytes or more (its vertices stay a chunk of their own)
+    beside small ones: the bytes re-serialize unchanged and the large mesh holds the geometry's triangles."""
+    labels = np.ones((40, 48), np.int32)  # plane 1: about 3600 triangles, a mesh of 260 kB
+    labels[:6, 44:] = 2  # plane 2: a few cells
+    labels[6:, 44:] = 0
+    labels[3, 46] = 0
+    points, planes = flat_scene(labels)
+    geometry = plane_geometry(points, planes)
+    assert 72 * geometry.triangle_counts[0] >= _LARGE_BLOCK and 48 * geometry.segment_counts[0] >= _LARGE_BLOCK
+    assert 72 * geometry.triangle_counts[1] < _LARGE_BLOCK
+    cdr = marker_array_cdr(geometry, planes, StampedFrame(3, 4, frame_id), colors=np.array([5, 6]))
+    types = rosbags_message_types()
+    decoded = types.decode_markers(cdr)
+    assert bytes(types.typestore.serialize_cdr(decoded, 'visualization_msgs/msg/MarkerArray')) == cdr
+    mesh = decoded.markers[1]
+    assert (mesh.ns, mesh.id, len(mesh.points)) == (MESH_NAMESPACE, 1, 3 * geometry.triangle_counts[0])
+    last = mesh.points[-1]
+    np.testing.assert_array_equal([last.x, last.y, last.z], geometry.triangles[geometry.triangle_counts[0] - 1, 2])
+    assert [m.id for m in decoded.markers] == [0, 1, 1, 1, 2, 2, 2]
 
 
 def test_plane_without_triangles_gets_only_its_arrow():

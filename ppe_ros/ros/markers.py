@@ -21,13 +21,13 @@ frame_id. All coordinates are metres in the frame of the input cloud.
 from __future__ import annotations
 
 import math
-import struct
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.core.work_memory import WorkMemory
 from ppe_ros.ros.messages import CDR_LE_HEADER, CdrWriter, StampedFrame
 
 MESH_NAMESPACE = 'plane_mesh'
@@ -427,171 +427,76 @@ def _write_marker(
 
 
 class _MarkerEncoder:
-    """Serializes ADD markers that have points, with one ``struct.pack`` each (thousands per frame).
+    """Serializes the planes' ADD markers (thousands per frame) in one numba kernel.
 
-    Everything before the vertices is one precompiled struct per (namespace, alignment phase); the
-    vertices are referenced without copying; everything after them is the same bytes for every
-    marker of the frame, because a vertex block (24 bytes per point) starts and ends 8-byte aligned.
-    Produces exactly the bytes of :func:`_write_marker`. Chunks collect here and go to the writer
-    in :meth:`flush`.
+    Everything after a marker's vertices is the same bytes for every marker of the frame, because a
+    vertex block (24 bytes per point) starts and ends 8-byte aligned. Produces exactly the bytes of
+    :func:`_write_marker`. Chunks collect here and go to the writer in :meth:`flush`.
     """
 
     def __init__(self, writer: CdrWriter, stamped: StampedFrame) -> None:
         self._writer = writer
         self._size = writer.size
         self._chunks: list[bytes | memoryview] = []
-        self._head = (
-            stamped.sec,
-            stamped.nanosec,
-            len(frame_id := stamped.frame_id.encode('utf-8') + b'\x00'),
-            frame_id,
-        )
-        self._frame_id_length = len(frame_id)
+        self._head = (stamped.sec, stamped.nanosec, stamped.frame_id.encode('utf-8') + b'\x00')
         tail = CdrWriter()
         _write_marker_tail(tail, stamped)
         self._tail = tail.getvalue()[len(CDR_LE_HEADER) :]
 
-    def _prefix(self, ns: bytes, phase: int) -> struct.Struct:
-        """Everything of an ADD marker before its vertices, in namespace ``ns``, starting at ``phase`` (mod 8)."""
-        parts = ['<']
-        offset = phase
-
-        def add(code: str, size: int, alignment: int) -> None:
-            nonlocal offset
-            pad = -offset % alignment
-            if pad:
-                parts.append(f'{pad}x')
-            parts.append(code)
-            offset += pad + size
-
-        add('iI', 8, 4)  # header.stamp
-        add(f'I{self._frame_id_length}s', 4 + self._frame_id_length, 4)  # header.frame_id
-        add(f'I{len(ns)}s', 4 + len(ns), 4)  # ns
-        add('iii', 12, 4)  # id, type, action
-        add('7d', 56, 8)  # pose
-        add('3d', 24, 8)  # scale
-        add('4f', 16, 4)  # color
-        add('iI', 8, 4)  # lifetime
-        add('B', 1, 1)  # frame_locked
-        add('I', 4, 4)  # len(points)
-        add('', 0, 8)  # the vertex block is 8-byte aligned
-        return struct.Struct(''.join(parts))
-
-    def packers(self, ns: bytes) -> list:
-        """The bound ``pack`` of the prefix struct of namespace ``ns`` for each alignment phase 0..7."""
-        return [self._prefix(ns, phase).pack for phase in range(8)]
-
     def write_planes(
         self,
         namespaces: tuple[bytes, bytes, bytes],
-        rgb: list,
+        rgb: np.ndarray,
         alphas: tuple[float, float],
         line_width: float,
-        lengths: list,
-        blocks: tuple[memoryview, memoryview, memoryview],
-        ends: tuple[list, list],
+        lengths: np.ndarray,
+        blocks: tuple[np.ndarray, np.ndarray, np.ndarray],
+        ends: tuple[np.ndarray, np.ndarray],
     ) -> None:
         """Per plane j (id j + 1): its mesh if it has triangles, its outline if it has segments, its
-        arrow; each byte for byte what :func:`_write_marker` writes for an ADD marker, with the loop's
-        lookups hoisted (thousands of markers per frame)."""
-        mesh_ns, outline_ns, normal_ns = namespaces
-        mesh_pack, outline_pack, normal_pack = (self.packers(ns) for ns in namespaces)
-        mesh_head = (*self._head, len(mesh_ns), mesh_ns)
-        outline_head = (*self._head, len(outline_ns), outline_ns)
-        normal_head = (*self._head, len(normal_ns), normal_ns)
+        arrow; each byte for byte what :func:`_write_marker` writes for an ADD marker, written by one
+        numba kernel (:func:`_plane_markers_kernel`; thousands of markers per frame)."""
+        mesh_ns, outline_ns, normal_ns = (np.frombuffer(ns, np.uint8) for ns in namespaces)
         triangle_bytes, segment_bytes, arrow_bytes = blocks
         triangle_ends, segment_ends = ends
-        mesh_alpha, line_alpha = alphas
-        tail = self._tail
-        tail_length = len(tail)
-        chunks = self._chunks
-        size = self._size
-        for j, length in enumerate(lengths):
-            plane_id = j + 1
-            r, g, b = rgb[j]
-            start, end = triangle_ends[j], triangle_ends[j + 1]
-            if end > start:
-                head = mesh_pack[size & 7](
-                    *mesh_head,
-                    plane_id,
-                    TRIANGLE_LIST,
-                    ADD,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    1.0,
-                    1.0,
-                    1.0,
-                    1.0,
-                    r,
-                    g,
-                    b,
-                    mesh_alpha,
-                    0,
-                    0,
-                    0,
-                    (end - start) // 24,
-                )
-                chunks += (head, triangle_bytes[start:end], tail)
-                size += len(head) + end - start + tail_length
-            start, end = segment_ends[j], segment_ends[j + 1]
-            if end > start:
-                head = outline_pack[size & 7](
-                    *outline_head,
-                    plane_id,
-                    LINE_LIST,
-                    ADD,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    1.0,
-                    line_width,
-                    1.0,
-                    1.0,
-                    r,
-                    g,
-                    b,
-                    line_alpha,
-                    0,
-                    0,
-                    0,
-                    (end - start) // 24,
-                )
-                chunks += (head, segment_bytes[start:end], tail)
-                size += len(head) + end - start + tail_length
-            head = normal_pack[size & 7](
-                *normal_head,
-                plane_id,
-                ARROW,
-                ADD,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                1.0,
-                0.1 * length,
-                0.2 * length,
-                0.3 * length,
-                r,
-                g,
-                b,
-                line_alpha,
-                0,
-                0,
-                0,
-                2,
-            )
-            chunks += (head, arrow_bytes[48 * j : 48 * j + 48], tail)
-            size += len(head) + 48 + tail_length
-        self._size = size
+        sec, nanosec, frame_id = self._head
+        tail = np.frombuffer(self._tail, np.uint8)
+        # the fixed fields, the strings and all padding of a marker take less than 200 bytes more than its strings
+        per_marker = 200 + len(frame_id) + max(len(mesh_ns), len(outline_ns), len(normal_ns)) + len(tail)
+        bound = 3 * len(lengths) * per_marker + sum(len(block) for block in blocks)
+        # work memory: fresh memory would cost a page fault per 4 KiB (the bytes are joined before the next call)
+        out = _work_memory.array('markers', bound, np.uint8)
+        breaks = _work_memory.array('marker_breaks', 4 * (2 * len(lengths) + 1), np.int64).reshape(-1, 4)
+        used, n_breaks = _plane_markers_kernel(
+            out,
+            breaks,
+            self._size,
+            sec,
+            nanosec,
+            np.frombuffer(frame_id, np.uint8),
+            mesh_ns,
+            outline_ns,
+            normal_ns,
+            tail,
+            np.ascontiguousarray(rgb, dtype=np.float64),
+            float(alphas[0]),
+            float(alphas[1]),
+            float(line_width),
+            np.ascontiguousarray(lengths, dtype=np.float64),
+            triangle_bytes,
+            segment_bytes,
+            arrow_bytes,
+            np.ascontiguousarray(triangle_ends, dtype=np.int64),
+            np.ascontiguousarray(segment_ends, dtype=np.int64),
+        )
+        # the bytes between large vertex blocks, and the blocks themselves without a copy
+        view, block_views, written = memoryview(out), (memoryview(triangle_bytes), memoryview(segment_bytes)), 0
+        for pos, which, first, stop in breaks[:n_breaks].tolist():
+            self._chunks += (view[written:pos], block_views[which][first:stop])
+            self._size += pos - written + stop - first
+            written = pos
+        self._chunks.append(view[written:used])
+        self._size += used - written
 
     def flush(self) -> None:
         """Hand the collected chunks to the writer."""
@@ -599,9 +504,156 @@ class _MarkerEncoder:
         self._chunks = []
 
 
-def _byte_view(values: np.ndarray) -> memoryview:
-    """The bytes of ``values`` as little-endian float64, without a copy when already so."""
-    return memoryview(np.ascontiguousarray(values, dtype='<f8').reshape(-1).view(np.uint8))
+def _byte_view(values: np.ndarray) -> np.ndarray:
+    """The bytes of ``values`` as little-endian float64 (a uint8 array), without a copy when already so."""
+    return np.ascontiguousarray(values, dtype='<f8').reshape(-1).view(np.uint8)
+
+
+#: The marker bytes' buffer, one per thread (the markers of a 128 x 1024 sweep take up to about 20 MB).
+_work_memory = WorkMemory()
+
+
+# The plane markers in one kernel. CDR aligns every primitive to its size counted from the start of the
+# payload (after the 4-byte encapsulation header): ``size`` is the payload's length before the first
+# marker, so a field at buffer position pos is aligned when (size + pos) is.
+
+
+@nb.njit(cache=True, nogil=True, inline='always')
+def _pad(out, pos, size, alignment):
+    """Zero bytes up to the next multiple of ``alignment`` of the payload offset; the new position."""
+    while (size + pos) % alignment:
+        out[pos] = 0
+        pos += 1
+    return pos
+
+
+@nb.njit(cache=True, nogil=True, inline='always')
+def _put_u32(out, pos, value):
+    """The low 32 bits of the integer ``value``, little-endian (two's complement for a negative one)."""
+    value = np.int64(value)
+    for k in range(4):
+        out[pos + k] = (value >> (8 * k)) & 0xFF
+    return pos + 4
+
+
+@nb.njit(cache=True, nogil=True, inline='always')
+def _put_bytes(out, pos, data, first, stop):
+    out[pos : pos + stop - first] = data[first:stop]
+    return pos + stop - first
+
+
+@nb.njit(cache=True, nogil=True)
+def _marker_head(out, pos, size, sec, nanosec, frame_id, ns, marker_id, marker_type, doubles, floats, count):
+    """An ADD marker up to its points (lifetime 0, not frame-locked, ``count`` points), aligned for the
+    8-byte vertex block that follows: doubles (10,) the pose (identity) and the scale, floats (4,) float32
+    the colour; the new position."""
+    pos = _pad(out, pos, size, 4)
+    pos = _put_u32(out, pos, sec)
+    pos = _put_u32(out, pos, nanosec)
+    pos = _put_u32(out, pos, len(frame_id))
+    pos = _put_bytes(out, pos, frame_id, 0, len(frame_id))
+    pos = _pad(out, pos, size, 4)
+    pos = _put_u32(out, pos, len(ns))
+    pos = _put_bytes(out, pos, ns, 0, len(ns))
+    pos = _pad(out, pos, size, 4)
+    pos = _put_u32(out, pos, marker_id)
+    pos = _put_u32(out, pos, marker_type)
+    pos = _put_u32(out, pos, ADD)
+    pos = _pad(out, pos, size, 8)
+    pos = _put_bytes(out, pos, doubles.view(np.uint8), 0, 80)
+    pos = _put_bytes(out, pos, floats.view(np.uint8), 0, 16)
+    pos = _put_u32(out, pos, 0)  # lifetime.sec
+    pos = _put_u32(out, pos, 0)  # lifetime.nanosec
+    out[pos] = 0  # frame_locked
+    pos = _pad(out, pos + 1, size, 4)
+    pos = _put_u32(out, pos, count)
+    return _pad(out, pos, size, 8)
+
+
+#: Vertex blocks of at least this many bytes stay where they are (a chunk of their own) instead of being copied.
+_LARGE_BLOCK = 4096
+
+
+@nb.njit(cache=True, nogil=True)
+def _plane_markers_kernel(
+    out,
+    breaks,
+    size,
+    sec,
+    nanosec,
+    frame_id,
+    mesh_ns,
+    outline_ns,
+    normal_ns,
+    tail,
+    rgb,
+    mesh_alpha,
+    line_alpha,
+    line_width,
+    lengths,
+    triangle_bytes,
+    segment_bytes,
+    arrow_bytes,
+    triangle_ends,
+    segment_ends,
+):
+    """The CDR bytes of every plane's markers (see :meth:`_MarkerEncoder.write_planes`) into out (long enough),
+    the payload being ``size`` bytes long before them, except the mesh and outline vertex blocks of
+    _LARGE_BLOCK bytes or more: each is a row (position in out, 0 triangles / 1 segments, first, stop byte)
+    of breaks, to be put at that position. Returns (bytes written, rows of breaks). A vertex block's length
+    is a multiple of 8, so leaving one out does not change any later field's alignment."""
+    n = len(lengths)
+    pos = 0
+    n_breaks = 0
+    doubles = np.zeros(10)  # pose (x y z, qx qy qz qw), scale
+    doubles[6] = 1.0
+    floats = np.empty(4, np.float32)
+    for j in range(n):
+        floats[0], floats[1], floats[2] = rgb[j, 0], rgb[j, 1], rgb[j, 2]
+        for kind in range(3):
+            if kind == 0:
+                first, stop, block, ns, marker_type = (
+                    triangle_ends[j],
+                    triangle_ends[j + 1],
+                    triangle_bytes,
+                    mesh_ns,
+                    TRIANGLE_LIST,
+                )
+                doubles[7], doubles[8], doubles[9], floats[3] = 1.0, 1.0, 1.0, mesh_alpha
+            elif kind == 1:
+                first, stop, block, ns, marker_type = (
+                    segment_ends[j],
+                    segment_ends[j + 1],
+                    segment_bytes,
+                    outline_ns,
+                    LINE_LIST,
+                )
+                doubles[7], doubles[8], doubles[9], floats[3] = line_width, 1.0, 1.0, line_alpha
+            else:
+                first, stop, block, ns, marker_type = 48 * j, 48 * j + 48, arrow_bytes, normal_ns, ARROW
+                doubles[7], doubles[8], doubles[9], floats[3] = (
+                    0.1 * lengths[j],
+                    0.2 * lengths[j],
+                    0.3 * lengths[j],
+                    line_alpha,
+                )
+            if stop == first:
+                continue  # a plane without triangles has no mesh and no outline
+            pos = _marker_head(
+                out, pos, size, sec, nanosec, frame_id, ns, j + 1, marker_type, doubles, floats, (stop - first) // 24
+            )
+            if kind < 2 and stop - first >= _LARGE_BLOCK:
+                breaks[n_breaks, 0], breaks[n_breaks, 1], breaks[n_breaks, 2], breaks[n_breaks, 3] = (
+                    pos,
+                    kind,
+                    first,
+                    stop,
+                )
+                n_breaks += 1
+            else:
+                pos = _put_bytes(out, pos, block, first, stop)
+            pos = _put_bytes(out, pos, tail, 0, len(tail))
+    return pos, n_breaks
 
 
 def marker_array_cdr(
@@ -634,15 +686,14 @@ def marker_array_cdr(
         )
     if not 0.0 <= mesh_alpha <= 1.0:
         raise ValueError(f'mesh_alpha must lie in [0, 1]; got {mesh_alpha}')
-    rgb = rgb_floats(colors).tolist()
+    rgb = rgb_floats(colors)
     lengths = arrow_lengths(geometry.areas)
     arrows = np.stack([planes.centroids, planes.centroids + lengths[:, None] * planes.normals], axis=1)
-    # byte views of the vertex blocks: slicing a memoryview costs far less than slicing an array
     triangle_bytes = _byte_view(geometry.triangles)
     segment_bytes = _byte_view(geometry.segments)
     arrow_bytes = _byte_view(arrows)  # (J, 2, 3): centroid, tip
-    triangle_ends = (72 * np.concatenate([[0], np.cumsum(geometry.triangle_counts)])).tolist()
-    segment_ends = (48 * np.concatenate([[0], np.cumsum(geometry.segment_counts)])).tolist()
+    triangle_ends = 72 * np.concatenate([[0], np.cumsum(geometry.triangle_counts)]).astype(np.int64)
+    segment_ends = 48 * np.concatenate([[0], np.cumsum(geometry.segment_counts)]).astype(np.int64)
     markers_per_plane = (geometry.triangle_counts > 0).astype(int) + (geometry.segment_counts > 0) + 1
     writer = CdrWriter()
     writer.uint32(1 + int(markers_per_plane.sum()))
@@ -666,7 +717,7 @@ def marker_array_cdr(
         rgb,
         (float(mesh_alpha), 1.0),
         float(line_width),
-        lengths.tolist(),
+        lengths,
         (triangle_bytes, segment_bytes, arrow_bytes),
         (triangle_ends, segment_ends),
     )
