@@ -10,6 +10,7 @@ from lidar_sweeps import HDL_LIKE_ELEVATIONS, room_sweep, shuffled
 
 from ppe_ros.core.extraction import extract_planes
 from ppe_ros.core.projection import (
+    _beam_steps,
     _claim_cells,
     _phase_sums,
     _point_labels_kernel,
@@ -150,6 +151,25 @@ def test_ring_rows_follow_numpys_bincount_of_the_rings(upwards):
     row_of, n_rows = _ring_rows(rings, elevation, valid)
     np.testing.assert_array_equal(row_of, expected)
     assert n_rows == high - low + 1
+
+
+def test_beam_steps_are_the_diffs_of_the_points_sorted_by_row_and_azimuth():
+    """_beam_steps against the numpy definition it replaced (lexsort by row then azimuth, np.diff within rows,
+    steps above 1e-7 rad), with repeated azimuths and rows left out."""
+    rng = np.random.default_rng(12)
+    row_of = rng.integers(0, 20, 6000)
+    azimuth = rng.choice(np.linspace(-math.pi, math.pi, 2048, endpoint=False), 6000)  # many repeats
+    counts = np.bincount(row_of)
+    rows = np.array([2, 3, 7, 11, 19])
+    chosen = np.isin(row_of, rows)
+    order = np.lexsort((azimuth[chosen], row_of[chosen]))
+    a, r = azimuth[chosen][order], row_of[chosen][order]
+    steps = np.diff(a)
+    expected = steps[(r[1:] == r[:-1]) & (steps > 1e-7)]
+    got = _beam_steps(azimuth, row_of, rows, counts)
+    assert len(expected) > 1000
+    np.testing.assert_array_equal(got, expected)
+    assert len(_beam_steps(azimuth, row_of, rows[:0], counts)) == 0
 
 
 def test_sharpness_of_offsets_is_sharpness_at_each():

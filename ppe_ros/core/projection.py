@@ -558,14 +558,7 @@ def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
     """
     counts = np.bincount(row_of)
     fullest = np.argsort(-counts, kind='stable')[:STEP_ROWS]  # a few beams tell the step
-    is_chosen_row = np.zeros(len(counts), np.bool_)
-    is_chosen_row[fullest[counts[fullest] > 1]] = True
-    chosen = is_chosen_row[row_of]
-    azimuth, row_of = azimuth[chosen], row_of[chosen]
-    order = np.lexsort((azimuth, row_of))
-    steps = np.diff(azimuth[order])
-    same_row = row_of[order][1:] == row_of[order][:-1]
-    steps = steps[same_row & (steps > 1e-7)]
+    steps = _beam_steps(azimuth, row_of, np.sort(fullest[counts[fullest] > 1]), counts)
     if steps.size == 0:
         return 2 * math.pi
     median = float(np.median(steps))
@@ -575,6 +568,35 @@ def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
     if abs(per_revolution - round(per_revolution)) <= 0.05:  # a twentieth of a step in a revolution
         return 2 * math.pi / max(round(per_revolution), 1)
     return step
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _beam_steps(azimuth, row_of, rows, counts):
+    """The steps of more than 1e-7 rad between consecutive azimuths of each beam in ``rows`` (ascending; counts:
+    the points per row), beam after beam, each beam's in ascending azimuth: the order in which np.diff of the
+    points sorted by (row, azimuth) has them."""
+    slot = np.full(len(counts), -1, np.int64)
+    start = np.zeros(len(rows) + 1, np.int64)
+    for t in range(len(rows)):
+        slot[rows[t]] = t
+        start[t + 1] = start[t] + counts[rows[t]]
+    values = np.empty(start[-1])
+    fill = start[:-1].copy()
+    for k in range(len(azimuth)):
+        t = slot[row_of[k]]
+        if t >= 0:
+            values[fill[t]] = azimuth[k]
+            fill[t] += 1
+    steps = np.empty(start[-1])
+    n = 0
+    for t in range(len(rows)):
+        beam = np.sort(values[start[t] : start[t + 1]])
+        for i in range(1, len(beam)):
+            step = beam[i] - beam[i - 1]
+            if step > 1e-7:
+                steps[n] = step
+                n += 1
+    return steps[:n].copy()
 
 
 def _crop_columns(column_of: np.ndarray, ok: np.ndarray, bins: int, start_bin: int) -> tuple[np.ndarray, int]:
