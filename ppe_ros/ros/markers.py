@@ -515,7 +515,9 @@ _work_memory = WorkMemory()
 
 # The plane markers in one kernel. CDR aligns every primitive to its size counted from the start of the
 # payload (after the 4-byte encapsulation header): ``size`` is the payload's length before the first
-# marker, so a field at buffer position pos is aligned when (size + pos) is.
+# marker, so a field at buffer position pos is aligned when (size + pos) is. The message is little-endian
+# (CDR_LE_HEADER): integers are written byte by byte, the pose, scale and colour as the host's float bytes,
+# which are little-endian on every platform ROS 2 runs on (x86-64, arm64).
 
 
 @nb.njit(cache=True, nogil=True, inline='always')
