@@ -12,6 +12,7 @@ from ppe_ros.core.extraction import extract_planes
 from ppe_ros.core.projection import (
     _beam_steps,
     _claim_cells,
+    _gather_cells,
     _phase_sums,
     _point_labels_kernel,
     _rays,
@@ -170,6 +171,20 @@ def test_beam_steps_are_the_diffs_of_the_points_sorted_by_row_and_azimuth():
     assert len(expected) > 1000
     np.testing.assert_array_equal(got, expected)
     assert len(_beam_steps(azimuth, row_of, rows[:0], counts)) == 0
+
+
+@pytest.mark.parametrize('fill', [np.nan, 0.0])
+def test_gather_cells_is_numpys_fancy_indexing(fill):
+    rng = np.random.default_rng(13)
+    values = rng.normal(size=(500, 3))
+    cell_points = np.where(rng.random(800) < 0.6, rng.integers(0, 500, 800), -1)
+    expected = np.full((800, 3), fill)
+    held = cell_points >= 0
+    expected[held] = values[cell_points[held]]
+    out = np.empty((800, 3))
+    _gather_cells(values, cell_points, fill, out)
+    np.testing.assert_array_equal(out, expected)
+    assert 0 < held.sum() < 800
 
 
 def test_sharpness_of_offsets_is_sharpness_at_each():

@@ -109,9 +109,8 @@ class RangeImageProjection:
         values = np.asarray(values, dtype=np.float64)
         if values.ndim != 2 or len(values) != len(self.point_cells):
             raise ValueError(f'values must be (N, k) with N = {len(self.point_cells)}; got shape {values.shape}')
-        out = np.full((self.rows * self.columns, values.shape[1]), fill)
-        held = self.cell_points >= 0
-        out[held] = values[self.cell_points[held]]
+        out = np.empty((self.rows * self.columns, values.shape[1]))
+        _gather_cells(np.ascontiguousarray(values), self.cell_points, float(fill), out)
         return out.reshape(self.rows, self.columns, values.shape[1])
 
     def point_labels(
@@ -140,6 +139,15 @@ class RangeImageProjection:
             np.ascontiguousarray(offsets, dtype=np.float64).reshape(-1),
             float(tolerance),
         )
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _gather_cells(values, cell_points, fill, out):
+    """out[c] = values[cell_points[c]], or ``fill`` where the cell is empty (cell_points[c] < 0), in parallel."""
+    for c in nb.prange(cell_points.shape[0]):
+        k = cell_points[c]
+        for j in range(values.shape[1]):
+            out[c, j] = values[k, j] if k >= 0 else fill
 
 
 def _as_points(points: np.ndarray, name: str = 'points') -> np.ndarray:
