@@ -413,14 +413,9 @@ def _rows_below_edges(negated_edges, elevation, valid, row_of):
     number of edges above the point's elevation; negated_edges ascending, NaN-free), in parallel. A table
     over 8 buckets per edge gives each point a start next to its answer, from which it steps to it."""
     n = negated_edges.shape[0]
-    if n == 0:
-        for k in nb.prange(elevation.shape[0]):
-            if valid[k]:
-                row_of[k] = 0
-        return
-    low = negated_edges[0]
+    low = negated_edges[0] if n > 0 else 0.0
     buckets = 8 * n
-    width = (negated_edges[n - 1] - low) / buckets
+    width = (negated_edges[n - 1] - low) / buckets if n > 1 else 0.0  # 0: every point starts at bucket 0
     start = np.empty(buckets + 1, np.int64)  # start[b]: about the answer at low + b * width
     i = 0
     for bucket in range(buckets + 1):
