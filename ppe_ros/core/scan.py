@@ -9,7 +9,7 @@ the sensor passes through the internal origin, which the ``w = n / d`` plane par
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -164,38 +164,3 @@ def _rays(points, starts, ranges, valid, center, endpoints, directions):
             else:
                 endpoints[k, c] = 0.0
                 directions[k, c] = 0.0
-
-
-def range_noise_scaled(
-    scan: RayScan, constant: float, proportional: float, minimum: float
-) -> tuple[RayScan, np.ndarray]:
-    """The scan with each ray's direction scaled by sigma_k = max(sqrt(constant^2 + (proportional r_k)^2),
-    minimum) (m; a noise model of the range only, ppe_ros.core.sensor.NoiseModel without depth_quadratic),
-    and the sigmas ``(H*W,)`` (NaN: invalid rays, whose directions stay 0). Bit for bit what NoiseModel.sigmas
-    and numpy give, in one parallel pass."""
-    sigmas = np.empty(scan.size)
-    directions = np.empty_like(scan.directions)
-    _range_noise_scaled(
-        scan.ranges,
-        scan.directions,
-        scan.valid,
-        float(constant) ** 2,
-        float(proportional),
-        float(minimum),
-        sigmas,
-        directions,
-    )
-    return replace(scan, directions=directions), sigmas
-
-
-@nb.njit(cache=True, error_model='numpy', parallel=True)
-def _range_noise_scaled(ranges, directions, valid, constant2, proportional, minimum, sigmas, out):
-    for k in nb.prange(ranges.shape[0]):
-        if valid[k]:
-            scaled = proportional * ranges[k]
-            sigma = max(np.sqrt(constant2 + scaled * scaled), minimum)
-        else:
-            sigma = np.nan
-        sigmas[k] = sigma
-        for c in range(3):
-            out[k, c] = directions[k, c] * sigma if valid[k] else directions[k, c] * 0.0

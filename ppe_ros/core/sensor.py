@@ -1,6 +1,6 @@
 """Sensor models: the range noise of each ray, and the extraction profile of each kind of sensor.
 
-Pure numpy; no ROS import. A :class:`NoiseModel` gives every ray k a standard deviation sigma_k (m) of
+Pure numpy/numba; no ROS import. A :class:`NoiseModel` gives every ray k a standard deviation sigma_k (m) of
 its measured length r_k; the extractor then minimises the sum of squared *normalised* residuals
 ((r_k - rhat_k) / sigma_k)^2, so that its error increments are dimensionless (chi^2 units). The
 paper's model is the special case sigma_k = 1 m: the increments are the paper's m^2, bit for bit.
@@ -28,6 +28,7 @@ from __future__ import annotations
 import numbers
 from dataclasses import dataclass, replace
 
+import numba as nb
 import numpy as np
 
 #: The depth cameras' optical axis in their optical frame (x right, y down, z forward).
@@ -86,6 +87,43 @@ class NoiseModel:
             variance += along_ray**2
         return np.maximum(np.sqrt(variance), self.minimum)
 
+    def ray_sigmas(
+        self, ranges: np.ndarray, directions: np.ndarray, valid: np.ndarray, scaled_directions: np.ndarray | None = None
+    ) -> np.ndarray:
+        """:meth:`sigmas` (m) of the ``valid`` rays of ``ranges`` (n,, m) and unit ``directions`` (n, 3), NaN
+        for the others, in one parallel pass (the same values: bit for bit with an optical axis along x, y
+        or z).
+
+        scaled_directions: None, or a C-contiguous (n, 3) float64 array that receives
+        ``directions * sigma_k`` (times 0 for the rays that are not valid): a scan's rays scaled to unit noise.
+        """
+        r = np.ascontiguousarray(ranges, dtype=np.float64)
+        d = np.ascontiguousarray(directions, dtype=np.float64)
+        ok = np.ascontiguousarray(valid, dtype=np.bool_)
+        if r.ndim != 1 or d.shape != (len(r), 3) or ok.shape != r.shape:
+            raise ValueError(f'ranges (n,), directions (n, 3), valid (n,); got {r.shape}, {d.shape}, {ok.shape}')
+        scale = scaled_directions is not None
+        if scale and not (
+            scaled_directions.shape == d.shape
+            and scaled_directions.dtype == np.float64
+            and scaled_directions.flags.c_contiguous
+        ):
+            raise ValueError(f'scaled_directions must be a C-contiguous float64 array of shape {d.shape}')
+        sigmas = np.empty(len(r))
+        _ray_sigmas_kernel(r, d, ok, *self._terms(), sigmas, scaled_directions if scale else d, scale)
+        return sigmas
+
+    def _terms(self) -> tuple:
+        """(constant^2, proportional, depth_quadratic, unit optical axis (3,), minimum) for the kernels."""
+        axis = np.asarray(self.optical_axis, dtype=np.float64)
+        return (
+            float(self.constant) ** 2,
+            float(self.proportional),
+            float(self.depth_quadratic),
+            axis / np.linalg.norm(axis),
+            float(self.minimum),
+        )
+
     def scaled(self, factor: float) -> NoiseModel:
         """The model with every sigma_k multiplied by ``factor`` (> 0), the floor too."""
         factor = float(factor)
@@ -98,6 +136,48 @@ class NoiseModel:
             depth_quadratic=self.depth_quadratic * factor,
             minimum=self.minimum * factor,
         )
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _ray_sigma(r, d0, d1, d2, constant2, proportional, depth_quadratic, axis, minimum):
+    """NoiseModel.sigmas of one ray of length r and unit direction d: its operations in its order."""
+    variance = constant2
+    if proportional != 0.0:
+        scaled = proportional * r
+        variance = variance + scaled * scaled
+    if depth_quadratic != 0.0:
+        cos = abs((d0 * axis[0] + d1 * axis[1]) + d2 * axis[2])
+        z = r * cos
+        along = depth_quadratic * z * z / cos if cos > 1e-3 else depth_quadratic * r * r
+        variance = variance + along * along
+    sigma = np.sqrt(variance)
+    return minimum if sigma < minimum else sigma  # np.maximum: NaN stays NaN
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _ray_sigmas_kernel(
+    ranges, directions, valid, constant2, proportional, depth_quadratic, axis, minimum, sigmas, scaled, scale
+):
+    """sigmas[k] (NaN: not valid[k]) and, when scale, scaled[k] = directions[k] * sigma_k (* 0: not valid)."""
+    for k in nb.prange(len(ranges)):
+        if valid[k]:
+            sigma = _ray_sigma(
+                ranges[k],
+                directions[k, 0],
+                directions[k, 1],
+                directions[k, 2],
+                constant2,
+                proportional,
+                depth_quadratic,
+                axis,
+                minimum,
+            )
+        else:
+            sigma = np.nan
+        sigmas[k] = sigma
+        if scale:
+            for c in range(3):
+                scaled[k, c] = directions[k, c] * sigma if valid[k] else directions[k, c] * 0.0
 
 
 def estimate_noise_scale(ranges: np.ndarray, sigmas: np.ndarray) -> float:
@@ -121,10 +201,75 @@ def estimate_noise_scale(ranges: np.ndarray, sigmas: np.ndarray) -> float:
     second = r[:, :-2] - 2.0 * r[:, 1:-1] + r[:, 2:]
     with np.errstate(invalid='ignore', divide='ignore'):
         ratio = np.abs(second) / (np.sqrt(6.0) * sig[:, 1:-1])
-    ratio = ratio[np.isfinite(ratio)]
-    if len(ratio) < 100:
+    return _scale_of_ratios(ratio[np.isfinite(ratio)])
+
+
+def _scale_of_ratios(ratios: np.ndarray) -> float:
+    """estimate_noise_scale from its finite ratios |second difference| / (sqrt(6) sigma_k) (any order)."""
+    if len(ratios) < 100:
         return float('nan')
-    return float(np.median(ratio) / 0.6744897501960817)
+    return float(np.median(ratios) / 0.6744897501960817)
+
+
+def _scan_noise_scale(noise: NoiseModel, points: np.ndarray, starts: np.ndarray) -> float:
+    """``estimate_noise_scale(ranges, sigmas)`` of an organized scan (H, W, 3) with ray starts (3,) or
+    (H, W, 3): the ranges |p - s| (m) and noise.sigmas of the valid rays (finite, length > 0), the
+    ratios in one parallel pass (the same values as numpy's, so the same median)."""
+    height, width = points.shape[:2]
+    ranges = np.empty((height, width))
+    sigmas = np.empty((height, width))
+    ratios = np.empty((height, max(width - 2, 0)))
+    _second_difference_ratios(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(np.reshape(starts, (-1, 3)), dtype=np.float64),
+        *noise._terms(),
+        ranges,
+        sigmas,
+        ratios,
+    )
+    return _scale_of_ratios(_finite_values(ratios.reshape(-1)))
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _second_difference_ratios(
+    points, starts, constant2, proportional, depth_quadratic, axis, minimum, ranges, sigmas, ratios
+):
+    """Each ray's range |p - s| (m; norm's (x^2 + y^2) + z^2) and sigma (NaN unless the range is finite and
+    > 0), then along each row |(r[j-1] - 2 r[j]) + r[j+1]| / (sqrt(6) sigma[j]) into ratios[:, j-1].
+    starts: (1, 3), or (H*W, 3) one per ray."""
+    height, width = ranges.shape
+    per_ray = starts.shape[0] > 1
+    for i in nb.prange(height):
+        for j in range(width):
+            s = i * width + j if per_ray else 0
+            x = points[i, j, 0] - starts[s, 0]
+            y = points[i, j, 1] - starts[s, 1]
+            z = points[i, j, 2] - starts[s, 2]
+            r = np.sqrt((x * x + y * y) + z * z)
+            ranges[i, j] = r
+            inverse = r if r > 0.0 else np.nan
+            d0, d1, d2 = x / inverse, y / inverse, z / inverse
+            if np.isfinite(r) and r > 0.0 and np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2):
+                sigmas[i, j] = _ray_sigma(r, d0, d1, d2, constant2, proportional, depth_quadratic, axis, minimum)
+            else:
+                sigmas[i, j] = np.nan
+    root6 = np.sqrt(6.0)
+    for i in nb.prange(height):
+        for j in range(1, width - 1):
+            second = (ranges[i, j - 1] - 2.0 * ranges[i, j]) + ranges[i, j + 1]
+            ratios[i, j - 1] = abs(second) / (root6 * sigmas[i, j])
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _finite_values(values):
+    """The finite entries of values (1-D), in order."""
+    out = np.empty(len(values))
+    n = 0
+    for v in values:
+        if np.isfinite(v):
+            out[n] = v
+            n += 1
+    return out[:n]
 
 
 def check_step_factor(step_factor: float) -> float:
@@ -276,15 +421,7 @@ class SensorProfile:
         starts = np.zeros(3) if origins is None else np.asarray(origins, dtype=np.float64)
         if points.ndim != 3 or points.shape[-1] != 3 or starts.shape not in ((3,), points.shape):
             return self.noise  # not an organized scan: the extractor's own checks report it
-        rays = points - starts
-        with np.errstate(invalid='ignore'):
-            ranges = np.linalg.norm(rays, axis=-1)
-            directions = rays / np.where(ranges > 0, ranges, np.nan)[..., None]
-        flat_r, flat_v = ranges.reshape(-1), directions.reshape(-1, 3)
-        sigmas = np.full(flat_r.shape, np.nan)
-        valid = np.isfinite(flat_r) & (flat_r > 0) & np.all(np.isfinite(flat_v), axis=1)
-        sigmas[valid] = self.noise.sigmas(flat_r[valid], flat_v[valid])
-        scale = estimate_noise_scale(ranges.reshape(points.shape[:2]), sigmas.reshape(points.shape[:2]))
+        scale = _scan_noise_scale(self.noise, points, starts)
         if not np.isfinite(scale):
             return self.noise
         low, high = self.noise_scale_bounds

@@ -189,10 +189,8 @@ def _independent_sigmas(unit_scan: RayScan, ray_sigmas: np.ndarray, profile: Sen
     the scale also see structured errors (lateral jitter on slanted surfaces, disparity steps)."""
     if profile.noise is None or profile.noise_scale_bounds is None:
         return ray_sigmas  # the greedy's sigmas are the model's
-    model = np.full(unit_scan.size, np.nan)
-    valid = unit_scan.valid
-    model[valid] = profile.noise.sigmas(unit_scan.ranges[valid], unit_scan.directions[valid])
-    return np.fmin(ray_sigmas, model)
+    model = profile.noise.ray_sigmas(unit_scan.ranges, unit_scan.directions, unit_scan.valid)
+    return np.fmin(ray_sigmas, model, out=model)
 
 
 @nb.njit(cache=True, error_model='numpy', parallel=True)

@@ -22,7 +22,7 @@ from ppe_ros.core.ppe.layout import (
 from ppe_ros.core.ppe.options import DEFAULT_OPTIONS, GreedyOptions
 from ppe_ros.core.ppe.seeds import _edge_masks, _seed_stage
 from ppe_ros.core.ppe.tiles import _placed_borders, _tile_bounds, _tiled_greedy, joint_order
-from ppe_ros.core.scan import RayScan, make_ray_scan, range_noise_scaled
+from ppe_ros.core.scan import RayScan, make_ray_scan
 from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, sensor_profile
 from ppe_ros.core.surfaces import whole_surfaces
 
@@ -286,10 +286,8 @@ def _noise_scaled(scan: RayScan, noise: NoiseModel) -> tuple[RayScan, np.ndarray
 
     The residual (w . p - 1) / (w . v) of a plane w then is (r_k - rhat_k) / sigma_k exactly.
     """
-    if noise.depth_quadratic == 0.0:  # a lidar's model of the range only: one parallel pass, same bits
-        return range_noise_scaled(scan, noise.constant, noise.proportional, noise.minimum)
-    sigmas = np.where(scan.valid, noise.sigmas(scan.ranges, scan.directions), np.nan)
-    directions = scan.directions * np.where(scan.valid, sigmas, 0.0)[:, None]
+    directions = np.empty_like(scan.directions)
+    sigmas = noise.ray_sigmas(scan.ranges, scan.directions, scan.valid, scaled_directions=directions)
     return replace(scan, directions=directions), sigmas
 
 
