@@ -90,9 +90,9 @@ class NoiseModel:
     def ray_sigmas(
         self, ranges: np.ndarray, directions: np.ndarray, valid: np.ndarray, scaled_directions: np.ndarray | None = None
     ) -> np.ndarray:
-        """:meth:`sigmas` (m) of the ``valid`` rays of ``ranges`` (n,, m) and unit ``directions`` (n, 3), NaN
-        for the others, in one parallel pass (the same values: bit for bit with an optical axis along x, y
-        or z).
+        """:meth:`sigmas` (m) of the ``valid`` rays of lengths ``ranges`` ((n,), m) and unit ``directions``
+        (n, 3), NaN for the others, in one parallel pass (the same values: bit for bit with an optical axis
+        along x, y or z).
 
         scaled_directions: None, or a C-contiguous (n, 3) float64 array that receives
         ``directions * sigma_k`` (times 0 for the rays that are not valid): a scan's rays scaled to unit noise.
