@@ -663,6 +663,46 @@ def test_declared_sizes_are_checked_before_allocating(tmp_path: Path, name: str,
     assert _peak_allocation(load) < 4_000_000  # bytes: nothing of the declared size was allocated
 
 
+@pytest.mark.parametrize('chunk', [b'IHDR', b'IDAT'])
+@pytest.mark.parametrize('declared', [10**6, 956301368, 2**32 - 1])
+def test_a_png_chunk_longer_than_the_file_is_refused_before_reading(
+    tmp_path: Path, chunk: bytes, declared: int
+) -> None:
+    """A chunk length beyond the file's end (one flipped byte of a small PNG) is a ScanFileError before Pillow
+    reads the chunk: Python would allocate the declared length (up to 4 GB) for it first."""
+    from PIL import Image
+
+    path = tmp_path / 'depth.png'
+    Image.fromarray(np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000).save(path)
+    content = bytearray(path.read_bytes())
+    at = content.index(chunk) - 4
+    content[at : at + 4] = struct.pack('>I', declared)
+    path.write_bytes(bytes(content))
+    left = len(content) - at - 8
+    message = rf"^{path}: corrupt PNG: chunk '{chunk.decode()}' at byte {at} declares {declared} bytes of data, "
+    message += rf'the file has {left} left$'
+
+    def load() -> None:
+        with pytest.raises(ScanFileError, match=message):
+            load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm')
+
+    assert _peak_allocation(load) < 4_000_000  # bytes
+
+
+def test_a_png_whose_end_marker_declares_data_is_read(tmp_path: Path) -> None:
+    """IEND's length is not checked: Pillow does not read it, and the pixels are all in the file."""
+    from PIL import Image
+
+    path = tmp_path / 'depth.png'
+    Image.fromarray(np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000).save(path)
+    full = load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points
+    content = bytearray(path.read_bytes())
+    at = content.index(b'IEND') - 4
+    content[at : at + 4] = struct.pack('>I', 2**32 - 1)
+    path.write_bytes(bytes(content))
+    np.testing.assert_array_equal(load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points, full)
+
+
 def test_every_truncation_of_a_png_is_a_scan_file_error(tmp_path: Path) -> None:
     from PIL import Image
 

@@ -70,6 +70,37 @@ class DepthCalibration:
     source: str
 
 
+#: Chunks :func:`_check_png_chunks` walks at most (a PNG has a few; more are not checked, and cost no memory).
+PNG_MAX_CHECKED_CHUNKS = 100_000
+
+
+def _check_png_chunks(file_path: Path, file_size: int) -> None:
+    """ScanFileError unless the data of every chunk, as long as its header declares (a chunk: 4-byte length,
+    4-byte type, data, 4-byte CRC), is in the file, up to IEND: Pillow reads a chunk's data with one
+    buffered read of its declared length, and Python allocates that length before it reads (a flipped
+    length byte in a 100-byte file would allocate up to 4 GB). A file that ends in a chunk's CRC or
+    before IEND passes, as Pillow reads its pixels."""
+    with file_path.open('rb') as stream:
+        position = len(_PNG_SIGNATURE)
+        stream.seek(position)
+        for _ in range(PNG_MAX_CHECKED_CHUNKS):
+            header = stream.read(8)
+            if len(header) < 8:
+                return  # truncated: Pillow reports it
+            length, kind = struct.unpack('>I4s', header)
+            if kind == b'IEND':
+                return  # Pillow does not read its data
+            left = file_size - position - 8
+            if length > left:
+                name = kind.decode('latin-1').encode('unicode_escape').decode('ascii')
+                raise ScanFileError(
+                    f'{file_path}: corrupt PNG: chunk {name!r} at byte {position} declares {length} bytes of '
+                    f'data, the file has {left} left'
+                )
+            position += 12 + length
+            stream.seek(position)
+
+
 def read_depth_png(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a single-channel 16-bit PNG as an ``(H, W)`` uint16 array of raw depth counts.
 
@@ -89,6 +120,7 @@ def read_depth_png(path: str | os.PathLike[str]) -> np.ndarray:
     if len(head) == 24 and head[:8] == _PNG_SIGNATURE and head[12:16] == b'IHDR':  # before Pillow's bomb check
         width, height = struct.unpack('>II', head[16:24])
         check_grid_size(file_path, height, width, 'depth image (PNG header)')
+        _check_png_chunks(file_path, file_size)
     try:
         with Image.open(file_path) as image:  # reads the header only
             mode = image.mode
