@@ -35,7 +35,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, W
 from rosbags.typesys import Stores, get_typestore
 
 from ppe_ros.core.synthetic import plane_scan
-from ppe_ros.ros.bag import main, open_input_bag
+from ppe_ros.ros.bag import main, open_input_bag, select_topics
 from ppe_ros.ros.pointcloud2 import xyz_to_pointcloud2
 
 REPO = Path(__file__).resolve().parents[1]
@@ -125,12 +125,13 @@ def output_messages(out: Path) -> dict[str, list[tuple[int, bytes]]]:
 
 
 def input_messages(source: Path) -> dict[int, bytes]:
-    """Bag time -> raw input message, as process_bag's reader reads them, up to any damage."""
+    """Bag time -> raw input message, as process_bag's reader reads them, up to any damage: of every
+    PointCloud2 topic it selects (a flipped byte may change the topic's name in an MCAP summary)."""
     found: dict[int, bytes] = {}
     with contextlib.suppress(Exception):
         bag = open_input_bag(source)
         try:
-            for _, timestamp, raw in bag.messages([TOPIC]):
+            for _, timestamp, raw in bag.messages(select_topics(bag, None)):
                 found[timestamp] = bytes(raw)
         finally:
             bag.close()
