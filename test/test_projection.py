@@ -21,6 +21,7 @@ from ppe_ros.core.projection import (
     _sharpness,
     _sharpness_of_offsets,
     beam_elevations,
+    estimate_azimuth_step,
     extract_planes_unorganized,
     fit_beam_origin_offset,
     matched_label_agreement,
@@ -78,6 +79,31 @@ def test_sharpness_is_the_sum_of_squared_histogram_counts():
     elevation = np.arctan2(z - 0.1, rho - 0.02)
     counts = np.bincount(((elevation + math.pi / 2) / width).astype(np.int64))
     assert _sharpness(rho, z, 0.1, 0.02, width) == float((counts.astype(float) ** 2).sum())
+
+
+def test_sharpness_counts_only_points_beyond_the_offset_from_the_axis():
+    """Points nearer the sensor's axis than the radial offset n have elevations beyond +-pi/2 (atan2 of a
+    negative rho - n): they are not counted (the kernel wrote them outside its histogram before, or
+    wrapped a negative bin to the top of it)."""
+    rng = np.random.default_rng(9)
+    rho, z = rng.uniform(0.0, 0.2, 2000), rng.uniform(-1.0, 1.0, 2000)
+    width = math.radians(0.02)
+    for h, n in ((0.1, 0.05), (-0.3, 0.1), (0.0, 0.0), (0.05, -0.1)):
+        elevation = np.arctan2(z - h, rho - n)
+        inside = np.abs(elevation) <= math.pi / 2
+        assert (not inside.all()) == (n > 0)
+        counts = np.bincount(((elevation[inside] + math.pi / 2) / width).astype(np.int64))
+        assert _sharpness(rho, z, h, n, width) == float((counts.astype(float) ** 2).sum()), (h, n)
+
+
+def test_an_unorganized_cloud_around_the_sensor_axis_is_extracted():
+    """A small unorganized cloud whose points are within centimetres of the z axis (a depth camera's
+    centre, or a lidar cloud scaled to the wrong unit): the beam-origin search meets rho < n."""
+    rng = np.random.default_rng(10)
+    x, y = rng.uniform(-0.08, 0.08, (2, 3000))
+    points = np.stack([x, y, 0.002 * x + 0.001 * rng.normal(size=3000) - 0.05], axis=1)
+    planes = extract_planes(points, sensor='lidar')
+    assert planes.labels.shape == (3000,)
 
 
 def test_ray_geometry_is_numpys_bit_for_bit():
@@ -152,6 +178,27 @@ def test_ring_rows_follow_numpys_bincount_of_the_rings(upwards):
     row_of, n_rows = _ring_rows(rings, elevation, valid)
     np.testing.assert_array_equal(row_of, expected)
     assert n_rows == high - low + 1
+
+
+def test_rings_of_one_elevation_count_downwards_without_a_warning():
+    """Points all at one elevation (their rings' mean elevations do not correlate with the ring numbers: NaN)."""
+    rings = np.array([3, 5, 3, 9])
+    with np.errstate(all='raise'):
+        row_of, n_rows = _ring_rows(rings, np.zeros(4), np.ones(4, bool))
+    np.testing.assert_array_equal(row_of, [0, 2, 0, 6])
+    assert n_rows == 7
+
+
+def test_azimuth_step_of_a_beam_of_three_uneven_returns_is_their_median_step():
+    """No step within 30 % of the median (steps of 0.1 and 2.2 rad): the median itself, not NaN."""
+    azimuth = np.array([0.0, 0.1, 2.3, 1.0])
+    row_of = np.array([0, 0, 0, 1])
+    with np.errstate(all='raise'):
+        step = estimate_azimuth_step(azimuth, row_of)
+    assert step == pytest.approx(1.15)  # 5.46 steps a revolution: not snapped to a whole number
+    cloud = np.array([[10 * math.cos(a), 10 * math.sin(a), 0.5] for a in azimuth])
+    planes = extract_planes(cloud, rings=row_of)  # a cloud this small has no plane, but is processed
+    assert planes.labels.shape == (4,)
 
 
 def test_beam_steps_are_the_diffs_of_the_points_sorted_by_row_and_azimuth():

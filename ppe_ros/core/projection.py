@@ -311,7 +311,8 @@ def _ring_rows(rings: np.ndarray, elevation: np.ndarray, valid: np.ndarray) -> t
         return row_of, 0
     means = (sums / np.maximum(counts, 1))[present]
     low, high = int(present[0]), int(present[-1])
-    upwards = len(present) > 1 and np.corrcoef(present.astype(np.float64), means)[0, 1] > 0
+    with np.errstate(invalid='ignore', divide='ignore'):  # rings of one elevation: no correlation (NaN)
+        upwards = len(present) > 1 and np.corrcoef(present.astype(np.float64), means)[0, 1] > 0
     _rows_of_rings(rings, valid, low, high, upwards, row_of)
     return row_of, high - low + 1
 
@@ -384,11 +385,14 @@ def _sharpness_of_offsets(rho, z, hs, ns, width):
 
 @nb.njit(cache=True, error_model='numpy', nogil=True)
 def _sharpness(rho, z, h, n, width):
-    """Sum of squared counts of the histogram (bins ``width`` rad) of elevations atan2(z - h, rho - n)."""
+    """Sum of squared counts of the histogram (bins ``width`` rad from -pi/2) of elevations atan2(z - h,
+    rho - n); a point at rho < n (within the offset of the sensor's axis: its elevation beyond +-pi/2)
+    is not counted."""
     counts = np.zeros(int(math.pi / width) + 2, np.int64)
     for k in range(rho.shape[0]):
         e = math.atan2(z[k] - h, rho[k] - n)
-        counts[int((e + math.pi / 2) / width)] += 1
+        if -math.pi / 2 <= e <= math.pi / 2:
+            counts[int((e + math.pi / 2) / width)] += 1
     total = 0.0
     for c in counts:
         total += float(c) * float(c)
@@ -552,8 +556,8 @@ def _phased_columns(azimuth, row_of, row_offset, step, bins, column_of):
 def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
     """Azimuth step (rad) between consecutive returns of one beam.
 
-    The mean of the steps within 30 % of their median (no-returns make steps of several bins) in the
-    STEP_ROWS beams with the most returns;
+    The mean of the steps within 30 % of their median (no-returns make steps of several bins; the median
+    itself when none is) in the STEP_ROWS beams with the most returns;
     snapped to 2 pi / round(2 pi / step) when a revolution is within 0.05 steps of a whole number.
 
     Args:
@@ -565,7 +569,8 @@ def estimate_azimuth_step(azimuth: np.ndarray, row_of: np.ndarray) -> float:
     if steps.size == 0:
         return 2 * math.pi
     median = float(np.median(steps))
-    step = float(np.mean(steps[np.abs(steps - median) <= 0.3 * median]))
+    near = steps[np.abs(steps - median) <= 0.3 * median]
+    step = float(np.mean(near)) if near.size else median  # a beam or two of a few points: no typical step
     step = max(step, 2 * math.pi / 1_000_000)
     per_revolution = 2 * math.pi / step
     if abs(per_revolution - round(per_revolution)) <= 0.05:  # a twentieth of a step in a revolution
