@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -701,6 +702,21 @@ def test_a_png_whose_end_marker_declares_data_is_read(tmp_path: Path) -> None:
     content[at : at + 4] = struct.pack('>I', 2**32 - 1)
     path.write_bytes(bytes(content))
     np.testing.assert_array_equal(load_scan(path, intrinsics=(10.0, 10.0, 2.0, 1.5), units='mm').points, full)
+
+
+def test_a_signalling_nan_in_a_pcd_is_a_no_return_without_a_warning(tmp_path: Path) -> None:
+    """A damaged binary PCD can hold float32 signalling NaNs; their conversion to float64 sets numpy's
+    invalid flag, which printed a RuntimeWarning: the point is a no-return, quietly."""
+    points, _ = _grid()
+    path = save_pcd(tmp_path / 'scan.pcd', points)
+    content = bytearray(path.read_bytes())
+    data = content.index(b'DATA binary\n') + len(b'DATA binary\n')
+    content[data : data + 4] = struct.pack('<I', 0x7F800001)  # x of the first point
+    path.write_bytes(bytes(content))
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        scan = load_scan(path)
+    assert np.isnan(scan.points[0, 0]).all() and np.isfinite(scan.points[0, 1]).all()
 
 
 def test_every_truncation_of_a_png_is_a_scan_file_error(tmp_path: Path) -> None:

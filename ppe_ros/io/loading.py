@@ -174,7 +174,8 @@ def _load_pcd(path: Path, scale: float | None, intensity_labels: bool | None, me
     for axis in 'xyz':
         if cloud.data.dtype[axis].shape != ():
             raise ScanFileError(f'{path}: field {axis!r} has COUNT > 1; expected one value per point')
-    points = np.stack([cloud.data[axis].astype(np.float64) for axis in 'xyz'], axis=-1)
+    with np.errstate(invalid='ignore'):  # a signalling NaN in the file (a damaged one) is a NaN: no return
+        points = np.stack([cloud.data[axis].astype(np.float64) for axis in 'xyz'], axis=-1)
     factor = 1.0 if scale is None else scale
     points *= factor
     translation = np.array(header.viewpoint[:3], dtype=np.float64) * factor
