@@ -106,6 +106,16 @@ def test_an_unorganized_cloud_around_the_sensor_axis_is_extracted():
     assert planes.labels.shape == (3000,)
 
 
+@pytest.mark.parametrize('count', [0, 5])
+def test_a_cloud_without_a_valid_point_and_per_point_origins_has_no_plane(count):
+    """An empty cloud, or one of no-returns only, with (N, 3) ray starts: every point labelled 0, no error (the
+    image of the starts had no cell while the image of the points has its one no-return cell)."""
+    points = np.full((count, 3), np.nan)
+    planes = extract_planes(points, origins=np.zeros((count, 3)), sensor='lidar')
+    np.testing.assert_array_equal(planes.labels, np.zeros(count, np.int32))
+    assert planes.num_planes == 0
+
+
 def test_ray_geometry_is_numpys_bit_for_bit():
     """_rays (one parallel kernel) against the numpy it replaced: p - s, the lengths of sqrt(einsum) and hypot."""
     rng = np.random.default_rng(8)

@@ -717,7 +717,8 @@ def extract_planes_unorganized(
             tolerance = DEFAULT_LOST_POINT_TOLERANCE
     image_origins = origins
     if origins is not None and np.shape(origins) == pts.shape:
-        image_origins = projection.image(np.asarray(origins, dtype=np.float64), fill=0.0)
+        empty = projection.rows == 0 or projection.columns == 0  # no valid point: one no-return cell, any start
+        image_origins = None if empty else projection.image(np.asarray(origins, dtype=np.float64), fill=0.0)
     result = extract_planes(image_or_empty(projection, pts), origins=image_origins, **extract_options)
     cuts = result if isinstance(result, list) else [result]
     mapped = [planes_for_points(projection, cut, pts, float(tolerance)) for cut in cuts]
