@@ -574,6 +574,19 @@ def test_a_single_plane_gives_one_plane():
         (None, {'tiles': 'many'}, 'tiles'),
         (None, {'tiles': 2, 'max_planes': 5}, 'tiles > 1 needs'),
         (None, {'threads': 0}, 'threads'),
+        # values of the wrong type: the setting's own message, not int()'s or float()'s
+        (None, {'max_neighbor_distance': 'far'}, "max_neighbor_distance must be > 0 m .*; got 'far'"),
+        (None, {'min_plane_points': 'many'}, "min_plane_points must be a whole number of rays >= 1; got 'many'"),
+        (None, {'min_plane_points': 2.5}, 'min_plane_points must be a whole number of rays >= 1; got 2.5'),
+        (None, {'min_plane_points': True}, 'min_plane_points must be a whole number'),
+        (None, {'threads': 'two'}, "threads must be a count >= 1 or None .*; got 'two'"),
+        (
+            None,
+            {'sensor': 'lidar', 'surface_tolerance': '5 cm'},
+            "surface_tolerance must be a length > 0 m or None; got '5 cm'",
+        ),
+        (None, {'connected_only': 'yes'}, "connected_only must be True or False; got 'yes'"),
+        (None, {'connected_only': None}, 'connected_only must be True or False; got None'),
     ],
     ids=lambda value: repr(value)[:40] if not isinstance(value, np.ndarray) else f'array{value.shape}{value.dtype}',
 )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
@@ -23,7 +24,7 @@ from ppe_ros.core.ppe.options import DEFAULT_OPTIONS, GreedyOptions
 from ppe_ros.core.ppe.seeds import _edge_masks, _seed_stage
 from ppe_ros.core.ppe.tiles import _placed_borders, _tile_bounds, _tiled_greedy, joint_order
 from ppe_ros.core.scan import RayScan, make_ray_scan
-from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, sensor_profile
+from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, is_whole_number, sensor_profile
 from ppe_ros.core.surfaces import whole_surfaces
 
 
@@ -237,12 +238,14 @@ def extract_plane_hierarchy(
     sigmas = None
     if noise is not None:
         scan, sigmas = _noise_scaled(scan, noise)
+    if isinstance(max_neighbor_distance, bool) or not isinstance(max_neighbor_distance, numbers.Real):
+        raise ValueError(f'max_neighbor_distance must be > 0 m (inf = no limit); got {max_neighbor_distance!r}')
     lmax = float(max_neighbor_distance)
     _check_hierarchy_options(scan, lmax, options)
     options = DEFAULT_OPTIONS if options is None else options
     stop_increment, stop_count = _stops(max_error_increment, max_planes)
     tile_columns = _tile_bounds(scan.width, tiles, scan.height)
-    if threads is not None and (isinstance(threads, bool) or int(threads) != threads or int(threads) < 1):
+    if threads is not None and not (is_whole_number(threads) and threads >= 1):
         raise ValueError(f"threads must be a count >= 1 or None (numba's thread count); got {threads!r}")
     if tiles != 1 and max_planes is not None:
         raise ValueError('tiles > 1 needs a max_error_increment stop without max_planes (a plane count is global)')
@@ -430,12 +433,19 @@ def extract_planes(
             'connected_only',
         )
     )
+    if not isinstance(connected_only, bool | np.bool_) and connected_only not in (0, 1):
+        raise ValueError(f'connected_only must be True or False; got {connected_only!r}')
     connected_only = bool(connected_only)
     e_list = _as_threshold_list(max_error_increment, 'max_error_increment', float)
     n_list = _as_threshold_list(max_planes, 'max_planes', int)
-    if int(min_plane_points) < 1:
-        raise ValueError(f'min_plane_points must be >= 1; got {min_plane_points!r}')
-    if surface_tolerance is not None and not (np.isfinite(float(surface_tolerance)) and surface_tolerance > 0):
+    if not (is_whole_number(min_plane_points) and min_plane_points >= 1):
+        raise ValueError(f'min_plane_points must be a whole number of rays >= 1; got {min_plane_points!r}')
+    if surface_tolerance is not None and not (
+        isinstance(surface_tolerance, numbers.Real)
+        and not isinstance(surface_tolerance, bool)
+        and np.isfinite(surface_tolerance)
+        and surface_tolerance > 0
+    ):
         raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
     noise = None if profile is None else profile.noise_for(points, origins)
     if tiles is PROFILE_DEFAULT:
