@@ -355,6 +355,20 @@ def _profile_greedy_options(profile: SensorProfile) -> GreedyOptions:
     )
 
 
+def _checked_settings(connected_only, min_plane_points, surface_tolerance) -> bool:
+    """extract_planes's checks of these settings (a ValueError naming the setting); connected_only as a bool."""
+    if not isinstance(connected_only, bool | np.bool_) and connected_only not in (0, 1):
+        raise ValueError(f'connected_only must be True or False; got {connected_only!r}')
+    if not (is_whole_number(min_plane_points) and min_plane_points >= 1):
+        raise ValueError(f'min_plane_points must be a whole number of rays >= 1; got {min_plane_points!r}')
+    tau = surface_tolerance
+    if tau is not None and not (
+        isinstance(tau, numbers.Real) and not isinstance(tau, bool) and np.isfinite(tau) and tau > 0
+    ):
+        raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
+    return bool(connected_only)
+
+
 def extract_planes(
     points: np.ndarray,
     *,
@@ -433,20 +447,9 @@ def extract_planes(
             'connected_only',
         )
     )
-    if not isinstance(connected_only, bool | np.bool_) and connected_only not in (0, 1):
-        raise ValueError(f'connected_only must be True or False; got {connected_only!r}')
-    connected_only = bool(connected_only)
+    connected_only = _checked_settings(connected_only, min_plane_points, surface_tolerance)
     e_list = _as_threshold_list(max_error_increment, 'max_error_increment', float)
     n_list = _as_threshold_list(max_planes, 'max_planes', int)
-    if not (is_whole_number(min_plane_points) and min_plane_points >= 1):
-        raise ValueError(f'min_plane_points must be a whole number of rays >= 1; got {min_plane_points!r}')
-    if surface_tolerance is not None and not (
-        isinstance(surface_tolerance, numbers.Real)
-        and not isinstance(surface_tolerance, bool)
-        and np.isfinite(surface_tolerance)
-        and surface_tolerance > 0
-    ):
-        raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
     noise = None if profile is None else profile.noise_for(points, origins)
     if tiles is PROFILE_DEFAULT:
         tiles = 'auto' if surface_tolerance is not None and e_list and not n_list else 1
