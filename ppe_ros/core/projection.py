@@ -717,19 +717,19 @@ def extract_planes_unorganized(
             tolerance = DEFAULT_LOST_POINT_TOLERANCE
     image_origins = origins
     if origins is not None and np.shape(origins) == pts.shape:
-        empty = projection.rows == 0 or projection.columns == 0  # no valid point: one no-return cell, any start
-        image_origins = None if empty else projection.image(np.asarray(origins, dtype=np.float64), fill=0.0)
+        image_origins = image_or_empty(projection, np.asarray(origins, dtype=np.float64), fill=0.0)
     result = extract_planes(image_or_empty(projection, pts), origins=image_origins, **extract_options)
     cuts = result if isinstance(result, list) else [result]
     mapped = [planes_for_points(projection, cut, pts, float(tolerance)) for cut in cuts]
     return mapped if isinstance(result, list) else mapped[0]
 
 
-def image_or_empty(projection: RangeImageProjection, points: np.ndarray) -> np.ndarray:
-    """The range image of ``points`` ``(rows, columns, 3)``; one no-return cell if no point is valid."""
+def image_or_empty(projection: RangeImageProjection, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
+    """The range image ``(rows, columns, k)`` of per-point ``values`` ``(N, k)`` (the points, or their ray
+    starts), empty cells ``fill``; one ``fill`` cell if no point is valid (a no-return)."""
     if projection.rows == 0 or projection.columns == 0:
-        return np.full((1, 1, 3), np.nan)
-    return projection.image(points)
+        return np.full((1, 1, np.shape(values)[1]), fill)
+    return projection.image(values, fill=fill)
 
 
 def planes_for_points(projection: RangeImageProjection, planes, points: np.ndarray, tolerance: float):
