@@ -295,7 +295,7 @@ def check_boundary_join_points(min_points: int) -> int:
     return int(value)
 
 
-def _check_optional_length(name: str, value, what: str) -> None:
+def check_optional_length(name: str, value, what: str) -> None:
     """ValueError unless ``value`` is None or a finite real number > 0 (metres; not a bool)."""
     if value is not None and (
         isinstance(value, bool) or not (isinstance(value, numbers.Real) and np.isfinite(value) and value > 0)
@@ -404,9 +404,9 @@ class SensorProfile:
         factor = self.max_plane_curvature_factor
         if isinstance(factor, bool) or not (isinstance(factor, numbers.Real) and factor > 0):  # NaN fails > 0
             raise ValueError(f'max_plane_curvature_factor must be a number > 0 (inf: no test); got {factor!r}')
-        _check_optional_length('flatness_length', self.flatness_length, 'a length')
-        _check_optional_length('min_plane_width', self.min_plane_width, 'a width')
-        _check_optional_length('curvature_max_size', self.curvature_max_size, 'a size')
+        check_optional_length('flatness_length', self.flatness_length, 'a length')
+        check_optional_length('min_plane_width', self.min_plane_width, 'a width')
+        check_optional_length('curvature_max_size', self.curvature_max_size, 'a size')
         share = self.large_surface_share
         if share is not None and (isinstance(share, bool) or not (isinstance(share, numbers.Real) and 0 < share <= 1)):
             raise ValueError(f'large_surface_share must be a share in (0, 1] of the valid rays or None; got {share!r}')

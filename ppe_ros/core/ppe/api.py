@@ -24,7 +24,14 @@ from ppe_ros.core.ppe.options import DEFAULT_OPTIONS, GreedyOptions
 from ppe_ros.core.ppe.seeds import _edge_masks, _seed_stage
 from ppe_ros.core.ppe.tiles import _placed_borders, _tile_bounds, _tiled_greedy, joint_order
 from ppe_ros.core.scan import RayScan, make_ray_scan
-from ppe_ros.core.sensor import PROFILES, NoiseModel, SensorProfile, is_whole_number, sensor_profile
+from ppe_ros.core.sensor import (
+    PROFILES,
+    NoiseModel,
+    SensorProfile,
+    check_optional_length,
+    is_whole_number,
+    sensor_profile,
+)
 from ppe_ros.core.surfaces import whole_surfaces
 
 
@@ -361,11 +368,7 @@ def _checked_settings(connected_only, min_plane_points, surface_tolerance) -> bo
         raise ValueError(f'connected_only must be True or False; got {connected_only!r}')
     if not (is_whole_number(min_plane_points) and min_plane_points >= 1):
         raise ValueError(f'min_plane_points must be a whole number of rays >= 1; got {min_plane_points!r}')
-    tau = surface_tolerance
-    if tau is not None and not (
-        isinstance(tau, numbers.Real) and not isinstance(tau, bool) and np.isfinite(tau) and tau > 0
-    ):
-        raise ValueError(f'surface_tolerance must be a length > 0 m or None; got {surface_tolerance!r}')
+    check_optional_length('surface_tolerance', surface_tolerance, 'a length')
     return bool(connected_only)
 
 
