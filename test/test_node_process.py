@@ -65,6 +65,7 @@ class ExtractorProcess:
             ROS_DOMAIN_ID=str(domain_id),
             ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
             PYTHONUNBUFFERED='1',
+            PYTHONFAULTHANDLER='1',  # the threads' stacks on SIGABRT (a stop that hangs, see stop())
             RCUTILS_LOGGING_BUFFERED_STREAM='0',
             **(env or {}),
         )
@@ -97,11 +98,26 @@ class ExtractorProcess:
         return ''.join(self.lines)
 
     def stop(self, sig: int, timeout: float = EXIT_TIMEOUT_S) -> int:
-        """Send ``sig`` and wait (bounded) for the exit code; kill as a last resort."""
+        """Send ``sig`` and wait (bounded) for the exit code; kill as a last resort.
+
+        A process still running after ``timeout`` gets SIGABRT (PYTHONFAULTHANDLER prints its threads'
+        stacks) and the test fails with its output.
+        """
         if self.process.poll() is None:
             self.process.send_signal(sig)
         try:
             return self.process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.process.send_signal(signal.SIGABRT)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                pass
+            self._reader.join(timeout=10)
+            pytest.fail(
+                f'the extractor did not exit within {timeout:g} s of {signal.Signals(sig).name}; its output '
+                f'(the stacks of its threads at the end):\n{self.output}'
+            )
         finally:
             if self.process.poll() is None:
                 self.process.kill()
@@ -288,7 +304,7 @@ def test_unreadable_params_file_exits_with_code_2_without_a_traceback(tmp_path):
 
 def test_unknown_parameter_names_are_warned_about():
     """The warning comes from ExtractorNode.__init__: the SIGINT lands in the start-up (or in the warm-up,
-    which the stop waits for: a cold numba cache compiles for minutes under load)."""
+    which the stop waits for, at most STOP_TIMEOUT_S)."""
     extractor = ExtractorProcess(unique_domain_id(80), '-p', 'max_error_incremnt:=0.1')
     try:
         deadline = time.monotonic() + READY_TIMEOUT_S
@@ -379,6 +395,73 @@ def test_sigint_during_start_up_exits_0_without_a_traceback(client_factory, dela
     assert appeared, f'the node never appeared in the graph:\n{output}'
     assert exit_code == 0, f'exit code {exit_code}:\n{output}'
     assert 'Traceback' not in output and 'terminate called' not in output, output
+
+
+#: Test-only hooks for the child (sitecustomize, as SLOW_CALL_HOOK): the JIT warm-up never ends (a cold
+#: cache under load, or a kernel that never returns), or rclpy's shutdown never returns.
+STUCK_HOOKS = {
+    'warm-up': """
+import time
+import ppe_ros.ros.warmup
+
+def _stuck(*args, **kwargs):
+    print('TEST HOOK: warm-up stuck', flush=True)
+    time.sleep(3600)
+
+ppe_ros.ros.warmup.warm_up = _stuck
+""",
+    'rclpy shutdown': """
+import time
+import rclpy
+
+def _stuck(*args, **kwargs):
+    time.sleep(3600)
+
+rclpy.try_shutdown = _stuck
+""",
+}
+
+
+@pytest.mark.parametrize('stop_signal', [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_does_not_wait_for_a_worker_that_stays_busy(tmp_path, stop_signal):
+    """A stop during a warm-up that does not end (a cold numba cache compiles for minutes; the node waited
+    for it, so a Ctrl-C did nothing for minutes): after STOP_TIMEOUT_S the node says which worker it leaves
+    and exits with 0, without a traceback."""
+    from ppe_ros.ros.node import STOP_TIMEOUT_S
+
+    (tmp_path / 'sitecustomize.py').write_text(STUCK_HOOKS['warm-up'])
+    extractor = ExtractorProcess(
+        unique_domain_id(60),
+        interrupt_on='TEST HOOK: warm-up stuck',
+        interrupt_signal=stop_signal,
+        env={'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')])},
+    )
+    try:
+        exit_code = extractor.process.wait(timeout=READY_TIMEOUT_S)
+    finally:
+        extractor.stop(signal.SIGKILL)
+    output = extractor.output
+    assert 'TEST HOOK: warm-up stuck' in output, output
+    assert exit_code == 0, f'exit code {exit_code}:\n{output}'
+    busy = f'stopping without waiting for worker 0 (the JIT warm-up): still busy {STOP_TIMEOUT_S:g} s after'
+    assert busy in output, output
+    assert 'Traceback' not in output and 'terminate called' not in output, output
+
+
+def test_a_shutdown_that_hangs_ends_with_the_threads_stacks_and_code_1(tmp_path):
+    """Whatever hangs after the workers stopped (rclpy's or DDS's teardown; here rclpy.try_shutdown never
+    returns): the watchdog prints the threads' stacks and exits with 1 instead of hanging."""
+    (tmp_path / 'sitecustomize.py').write_text(STUCK_HOOKS['rclpy shutdown'])
+    extractor = ExtractorProcess(
+        unique_domain_id(65), env={'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')])}
+    )
+    try:
+        assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
+    finally:
+        exit_code = extractor.stop(signal.SIGINT, timeout=READY_TIMEOUT_S)
+    output = extractor.output
+    assert exit_code == 1, f'exit code {exit_code}:\n{output}'
+    assert 'Timeout (0:00:' in output and 'in _stuck' in output, output
 
 
 # ------------------------------------------------------------------ issue 19: QoS overrides, idling, diagnostics

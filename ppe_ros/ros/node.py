@@ -44,6 +44,8 @@ for failed frames and for a worker thread that is not running.
 
 from __future__ import annotations
 
+import ctypes
+import faulthandler
 import gc
 import math
 import os
@@ -114,6 +116,13 @@ DIAGNOSTICS_TOPIC = '/diagnostics'
 DIAGNOSTICS_PERIOD_S = 1.0
 #: The worker checks for a stop request at least this often (s).
 WORKER_POLL_S = 0.1
+#: How long a stop (SIGINT, SIGTERM) waits for the workers to finish the frame in hand (s). A worker still
+#: busy then (the JIT warm-up compiling on a cold numba cache takes minutes) is not waited for: the
+#: process logs which and exits without it.
+STOP_TIMEOUT_S = 5.0
+#: Longer than STOP_TIMEOUT_S plus this for the whole shutdown, and the process prints its threads'
+#: stacks and exits with code 1 (a hang in rclpy's or DDS's teardown).
+SHUTDOWN_GRACE_S = 10.0
 
 _as_declared_type = as_declared_type  # its former name here
 
@@ -161,6 +170,7 @@ class ExtractorNode(Node):
         self.ready = threading.Event()
         """Set once the JIT warm-up is done and the workers wait for clouds."""
         self._numba_threads_applied: list[int | None] = []  # per worker: numba's count is per thread
+        self._worker_tasks: list[str] = []  # per worker: what it is doing, for a stop that cannot wait for it
         self._workers: list[threading.Thread] = []
         self._workers_lock = threading.Lock()
         self._parallel_workers_safe = True  # False under numba's workqueue layer (see _work)
@@ -272,6 +282,7 @@ class ExtractorNode(Node):
             while len(self._workers) < count and not self._stop_requested.is_set():
                 index = len(self._workers)
                 self._numba_threads_applied.append(None)
+                self._worker_tasks.append('waiting for a cloud')
                 worker = threading.Thread(
                     target=self._work, args=(index,), name=f'{self.get_name()}-worker-{index}', daemon=False
                 )
@@ -323,6 +334,7 @@ class ExtractorNode(Node):
     def _serve(self, index: int) -> None:
         """Warm up (worker 0), then take, extract and publish frames until :meth:`stop`."""
         if index == 0 and not self.ready.is_set():
+            self._worker_tasks[index] = 'the JIT warm-up'
             try:
                 self._apply_numba_threads(index, self._params)
                 self._warm_up()
@@ -331,6 +343,7 @@ class ExtractorNode(Node):
                     self.get_logger().error(WORKQUEUE_LAYER_ERROR)
             except Exception as exc:  # a failed warm-up must not kill the node
                 self._record_failure(f'warm-up failed: {failure_reason(exc)}')
+            self._worker_tasks[index] = 'waiting for a cloud'
             self.ready.set()
             if not self._stop_requested.is_set():
                 self.get_logger().info(
@@ -345,12 +358,14 @@ class ExtractorNode(Node):
             if taken is None:
                 continue
             number, msg = taken
+            self._worker_tasks[index] = f'a frame ({frame_label(msg)})'
             try:
                 self._process(index, msg, number)
             except Exception as exc:  # a defect in the node itself: count it, say why, keep serving
                 self._record_failure(f'frame failed ({frame_label(msg)}): internal error: {failure_reason(exc)}')
             finally:
                 self._turns.release(number)  # published, skipped or failed: the next frame may go
+                self._worker_tasks[index] = 'waiting for a cloud'
 
     def _wanted_outputs(self, params: ExtractorParams) -> OutputSelection:
         """The enabled outputs that somebody subscribes to (nobody listening: not built)."""
@@ -485,6 +500,12 @@ class ExtractorNode(Node):
                 worker.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
         return not any(worker.is_alive() for worker in workers)
 
+    def busy_workers(self) -> list[str]:
+        """'worker N (what it is doing)' for each worker thread still running (after :meth:`stop` timed out)."""
+        with self._workers_lock:
+            workers = list(enumerate(self._workers))
+        return [f'worker {index} ({self._worker_tasks[index]})' for index, worker in workers if worker.is_alive()]
+
     def destroy_node(self) -> None:
         """Join the workers, then destroy the node."""
         self.stop()
@@ -590,14 +611,41 @@ def _run(argv: list[str]) -> int:
         if context.ok():
             raise
     finally:
+        # the rest of the shutdown (rclpy, the DDS participant, the interpreter's exit) must not hang either:
+        # past this the threads' stacks go to stderr and the process exits with code 1
+        faulthandler.dump_traceback_later(STOP_TIMEOUT_S + SHUTDOWN_GRACE_S, exit=True)
         if node is not None:
-            node.stop()
+            _stop_workers(node, exit_code)
             node.destroy_node()
         try:
             rclpy.try_shutdown()
         except RCLError:  # rclpy's signal handler shut the context down between try_shutdown's check and call
             pass
     return exit_code
+
+
+def _stop_workers(node: ExtractorNode, exit_code: int) -> None:
+    """Stop and join the workers; one still busy after STOP_TIMEOUT_S is not waited for: the process says
+    which and exits at once (rclpy must not be shut down under a thread that may still use it)."""
+    if not node.stop(STOP_TIMEOUT_S):
+        # not the node's own logger: its /rosout publisher is gone with the context a signal shut down
+        rclpy.logging.get_logger(f'{node.get_name()}.shutdown').error(
+            f'stopping without waiting for {", ".join(node.busy_workers())}: still busy {STOP_TIMEOUT_S:g} s '
+            'after the stop was asked (a JIT warm-up on a cold cache compiles for minutes; what it compiled so '
+            'far stays cached)'
+        )
+        _exit_now(exit_code)
+
+
+def _exit_now(exit_code: int) -> None:
+    """End the process at once (threads still running are not joined), after flushing Python's and C's streams."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    ctypes.CDLL(None).fflush(None)  # rcutils writes the log lines through C's stdio
+    os._exit(exit_code)
 
 
 if __name__ == '__main__':
