@@ -10,6 +10,8 @@ import itertools
 import math
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -766,6 +768,23 @@ def test_main_still_exits_2_on_an_invalid_parameter(capfd, namespace):
     assert node_module.main(argv) == 2
     err = capfd.readouterr().err
     assert "extractor: error: invalid parameter 'marker_alpha'" in err and 'Traceback' not in err
+
+
+def test_main_returns_without_leaving_the_shutdown_watchdog_armed(tmp_path):
+    """main() arms a watchdog (faulthandler, exit code 1) for its shutdown; a caller that goes on after main()
+    returned (tests do) must not be killed by it later (it killed pytest 15 s after test_main_... above)."""
+    script = (
+        'import time\n'
+        'from ppe_ros.ros import node\n'
+        'node.STOP_TIMEOUT_S, node.SHUTDOWN_GRACE_S = 0.2, 0.3\n'
+        "code = node.main(['extractor', '--ros-args', '-p', 'marker_alpha:=4.0'])\n"
+        'time.sleep(2.0)\n'
+        "print('still running after main returned', code)\n"
+    )
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(1 + os.getpid() % 99), 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert 'still running after main returned 2' in done.stdout, done.stdout + done.stderr
 
 
 # ------------------------------------------------------------------ idling, output rate, QoS overrides (issue 19)

@@ -611,8 +611,8 @@ def _run(argv: list[str]) -> int:
         if context.ok():
             raise
     finally:
-        # the rest of the shutdown (rclpy, the DDS participant, the interpreter's exit) must not hang either:
-        # past this the threads' stacks go to stderr and the process exits with code 1
+        # the rest of the shutdown (rclpy, the DDS participant) must not hang either: past this the
+        # threads' stacks go to stderr and the process exits with code 1
         faulthandler.dump_traceback_later(STOP_TIMEOUT_S + SHUTDOWN_GRACE_S, exit=True)
         if node is not None:
             _stop_workers(node, exit_code)
@@ -621,6 +621,7 @@ def _run(argv: list[str]) -> int:
             rclpy.try_shutdown()
         except RCLError:  # rclpy's signal handler shut the context down between try_shutdown's check and call
             pass
+        faulthandler.cancel_dump_traceback_later()
     return exit_code
 
 
