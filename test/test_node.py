@@ -1085,3 +1085,67 @@ def test_ppe_warmup_prints_its_steps():
     assert result.stdout.startswith('| step | seconds |\n|---|---|\n| sensor none | ')
     assert '| sensor none |' in result.stdout and '| PCD files (LZF) |' in result.stdout
     assert 'ppe warmup: JIT warm-up step 1/1: sensor none ...' in result.stderr
+
+
+# ------------------------------------------------------------------ parameter changes under a stream
+
+
+#: Valid values of the parameters a user may change while clouds arrive (each change is one of these).
+_STREAM_CHANGES = {
+    'workers': (1, 2, 3),
+    'numba_threads': (0, 1, 2),
+    'sensor': ('none', 'lidar', 'depth_camera', 'paper'),
+    'max_error_increment': (0.0, 0.001, 1.0),
+    'max_planes': (0, 1, 50),
+    'max_neighbor_distance': (0.0, 0.05, math.inf),
+    'min_plane_points': (0, 1, 20, 1000),
+    'surface_tolerance': (0.0, 0.001, 1.0),
+    'ray_origin': ([0.0, 0.0, 0.0], [0.1, 0.0, 0.03], [-5.0, 0.0, 0.0]),
+    'publish_labeled_points': (True, False),
+    'publish_markers': (True, False),
+    'publish_plane_table': (True, True, False),
+    'marker_mesh_stride': (1, 2, 64),
+    'marker_max_triangles': (0, 10, 150_000),
+    'layout': ('auto', 'rows_are_beams', 'columns_are_beams'),
+    'unorganized_rows': ('auto', 'elevation', 'angular_grid'),
+    'azimuth_bins': (0, 16, 4096),
+    'input_reliability': ('reliable', 'best_effort'),
+}
+
+
+def test_the_node_keeps_working_while_its_parameters_change_under_a_stream(ros_context, executor, namespace):
+    """Clouds at 20 Hz (organized, transposed, unorganized) while 1-3 random valid parameters change every
+    0.05-0.4 s for 12 s (workers up and down, the profile, outputs on and off, ...): no frame fails, and
+    with the outputs back on the node still answers (a seeded fuzz, 8 x 60 s, found nothing either)."""
+    rng = np.random.default_rng(17)
+    points = plane_scan(3, rows=24, cols=64, radial_sigma=0.005, seed=5).points
+    clouds = [
+        points,
+        np.ascontiguousarray(points.transpose(1, 0, 2)),
+        points.reshape(1, -1, 3)[:, np.isfinite(points.reshape(-1, 3)).all(1)],
+        points[:, :16] * 10.0,
+    ]
+    harness = Harness(ros_context, executor, namespace)
+    node = harness.node
+    names = sorted(_STREAM_CHANGES)
+    deadline, next_change, sec, rejected = time.monotonic() + 12.0, 0.0, 1, []
+    while time.monotonic() < deadline:
+        harness.publisher.publish(make_cloud(clouds[sec % len(clouds)], sec=sec))
+        sec += 1
+        if time.monotonic() >= next_change:
+            chosen = rng.choice(names, size=int(rng.integers(1, 4)), replace=False)
+            changes = [
+                Parameter(str(n), value=_STREAM_CHANGES[n][int(rng.integers(len(_STREAM_CHANGES[n])))]) for n in chosen
+            ]
+            rejected += [r.reason for r in node.set_parameters(changes) if not r.successful]
+            next_change = time.monotonic() + float(rng.uniform(0.05, 0.4))
+        spin_until(executor, lambda: False, 0.05)
+    assert not rejected, rejected
+    node.set_parameters(
+        [Parameter(n, value=True) for n in ('publish_labeled_points', 'publish_markers', 'publish_plane_table')]
+        + [Parameter('input_reliability', value='reliable'), Parameter('layout', value='auto')]
+    )
+    counts = node.frame_counts()
+    assert counts['failed'] == 0, counts
+    assert counts['processed'] > 20, counts
+    harness.send(make_cloud(points, sec=sec), timeout=60.0)
