@@ -29,8 +29,8 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            'extractor = ppe_ros.ros.node:main',
-            'process_bag = ppe_ros.ros.bag:main',
+            'extractor = ppe_ros.entry:extractor',
+            'process_bag = ppe_ros.entry:process_bag',
             'ppe = ppe_ros.cli:main',
         ],
     },

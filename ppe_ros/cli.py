@@ -45,7 +45,11 @@ def error_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``ppe`` console script; returns the process exit code."""
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports the subcommands' modules (numpy, numba, rosbags): about 0.5 s
+    except KeyboardInterrupt:
+        print('ppe: interrupted', file=sys.stderr)
+        return 130
     args = parser.parse_args(argv)
     args.own_command_line = argv is None  # the process's own: a subcommand may keep its signal handlers to exit
     try:

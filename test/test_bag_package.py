@@ -7,7 +7,7 @@ import ast
 import re
 import subprocess
 import sys
-from importlib import import_module, metadata
+from importlib import metadata
 from pathlib import Path
 
 from ppe_ros.ros import bag as bag_package
@@ -54,8 +54,11 @@ def test_the_names_tests_and_entry_points_use_are_public():
     ):
         assert callable(getattr(bag_package, name)), name
     setup = (REPO / 'setup.py').read_text()
-    for module, function in re.findall(r"'process_bag = ([\w.]+):(\w+)'", setup):
-        assert getattr(import_module(module), function) is bag_package.main
+    entry_points = re.findall(r"'process_bag = ([\w.]+):(\w+)'", setup)
+    assert entry_points == [('ppe_ros.entry', 'process_bag')]  # imports the package inside, then calls its main
+    from ppe_ros import entry
+
+    assert entry.load_main('ppe_ros.ros.bag', 'process_bag') is bag_package.main
     result = subprocess.run(
         [sys.executable, '-m', 'ppe_ros.ros.bag', '--help'], capture_output=True, text=True, cwd=REPO, timeout=120
     )

@@ -3,6 +3,12 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -295,3 +301,68 @@ def test_surface_tolerance_needs_a_sensor(small_scan, tmp_path, capsys):
     path, _ = small_scan
     assert main(['extract', str(path), '-o', str(tmp_path / 'x.npz'), '--surface-tolerance', '0.03']) == 2
     assert '--surface-tolerance needs --sensor' in capsys.readouterr().err
+
+
+#: Test-only start-up hook for the child (sitecustomize on its PYTHONPATH): the first import of numpy, which
+#: every command's modules make while they load, prints a marker and takes 2 s, so that a SIGINT sent on the
+#: marker arrives while the command is still being imported.
+SLOW_NUMPY_IMPORT_HOOK = """
+import sys
+import time
+
+
+class _SlowNumpy:
+    def find_spec(self, name, path=None, target=None):
+        if name == 'numpy':
+            sys.meta_path.remove(self)
+            print('TEST HOOK: importing numpy', flush=True)
+            time.sleep(2.0)
+        return None
+
+
+sys.meta_path.insert(0, _SlowNumpy())
+"""
+
+
+@pytest.mark.parametrize(
+    ('script', 'args', 'name'),
+    [('ppe', ['info', 'x.npy'], 'ppe'), ('process_bag', ['in', 'out'], 'process_bag'), ('extractor', [], 'extractor')],
+)
+def test_a_ctrl_c_while_a_command_loads_ends_with_one_line_and_code_130(tmp_path, script, args, name):
+    """The console scripts import numpy, numba, rclpy or rosbags for about half a second before their main
+    runs: a Ctrl-C then printed a traceback through the imports (and ended the process by SIGINT)."""
+    (tmp_path / 'sitecustomize.py').write_text(SLOW_NUMPY_IMPORT_HOOK)
+    env = {
+        **os.environ,
+        'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]),
+        'PYTHONUNBUFFERED': '1',
+        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+    }
+    process = subprocess.Popen(
+        [str(Path(sys.executable).parent / script), *args],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a background job's SIGINT is ignored
+    )
+    lines = []
+
+    def read():
+        for line in process.stdout:
+            lines.append(line)
+            if 'TEST HOOK: importing numpy' in line:
+                process.send_signal(signal.SIGINT)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        code = process.wait(timeout=120)
+    finally:
+        process.kill()
+        reader.join(timeout=10)
+    output = ''.join(lines)
+    assert 'TEST HOOK: importing numpy' in output, output
+    assert code == 130, f'exit code {code}:\n{output}'
+    assert f'{name}: interrupted' in output and 'Traceback' not in output, output
