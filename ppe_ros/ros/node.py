@@ -645,7 +645,10 @@ def _exit_now(exit_code: int) -> None:
             stream.flush()
         except (OSError, ValueError):
             pass
-    ctypes.CDLL(None).fflush(None)  # rcutils writes the log lines through C's stdio
+    try:
+        ctypes.CDLL(None).fflush(None)  # rcutils writes the log lines through C's stdio
+    except (OSError, TypeError, AttributeError):  # no C library to load by None (Windows)
+        pass
     os._exit(exit_code)
 
 
