@@ -395,6 +395,7 @@ def test_sigint_during_start_up_exits_0_without_a_traceback(client_factory, dela
     assert appeared, f'the node never appeared in the graph:\n{output}'
     assert exit_code == 0, f'exit code {exit_code}:\n{output}'
     assert 'Traceback' not in output and 'terminate called' not in output, output
+    assert 'Failed to publish log message to rosout' not in output, output  # start-up lines after the signal
 
 
 #: Test-only hooks for the child (sitecustomize, as SLOW_CALL_HOOK): the JIT warm-up never ends (a cold

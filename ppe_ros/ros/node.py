@@ -305,18 +305,26 @@ class ExtractorNode(Node):
     def _warm_up(self) -> None:
         """Run the whole pipeline once with the node's sensor profile (compiles or loads the numba cache)."""
         start = time.perf_counter()
-        logger = self.get_logger()
-        logger.info(
+        self._start_up_info(
             'JIT warm-up: loading or compiling the kernels (a cold cache compiles for minutes; '
             '`ppe warmup` fills it once after an install)'
         )
-        steps = warm_up(self._types, self._params, log=logger.info)
+        steps = warm_up(self._types, self._params, log=self._start_up_info)
         # numba's compiler leaves some 600 k long-lived objects; a full garbage collection scanned
         # them all (about 50 ms, every few hundred frames). Frozen, the collector skips them.
         gc.freeze()
-        logger.info(
+        self._start_up_info(
             f'JIT warm-up done in {time.perf_counter() - start:.2f} s ({steps[-1].planes} planes in the warm-up cloud)'
         )
+
+    def _start_up_info(self, message: str) -> None:
+        """An info line of the start-up: through the node's logger, or, once a signal has shut the context
+        down (the warm-up goes on), through one without /rosout (rcl printed "Failed to publish log message
+        to rosout: publisher's context is invalid" for each line)."""
+        if self.context.ok():
+            self.get_logger().info(message)
+        else:
+            rclpy.logging.get_logger(f'{self.get_logger().name}.shutdown').info(message)
 
     def _active(self, index: int) -> bool:
         """Whether worker ``index`` takes frames under the current ``workers`` value."""
@@ -345,7 +353,7 @@ class ExtractorNode(Node):
                 self._record_failure(f'warm-up failed: {failure_reason(exc)}')
             self._worker_tasks[index] = 'waiting for a cloud'
             self.ready.set()
-            if not self._stop_requested.is_set():
+            if not self._stop_requested.is_set() and self.context.ok():  # else stopping: not ready for anything
                 self.get_logger().info(
                     f'ready: waiting for PointCloud2 on {self.input_topic} '
                     f'({self._params.input_reliability}, {self._params.workers} worker(s))'
