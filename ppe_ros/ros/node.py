@@ -321,10 +321,12 @@ class ExtractorNode(Node):
         """An info line of the start-up: through the node's logger, or, once a signal has shut the context
         down (the warm-up goes on), through one without /rosout (rcl printed "Failed to publish log message
         to rosout: publisher's context is invalid" for each line)."""
-        if self.context.ok():
-            self.get_logger().info(message)
-        else:
-            rclpy.logging.get_logger(f'{self.get_logger().name}.shutdown').info(message)
+        (self.get_logger() if self.context.ok() else self.console_logger()).info(message)
+
+    def console_logger(self) -> Any:
+        """A child of the node's logger that does not publish to /rosout (console only): for the lines after
+        a signal shut the context down, when the node's /rosout publisher is gone."""
+        return rclpy.logging.get_logger(f'{self.get_logger().name}.shutdown')
 
     def _active(self, index: int) -> bool:
         """Whether worker ``index`` takes frames under the current ``workers`` value."""
@@ -637,8 +639,7 @@ def _stop_workers(node: ExtractorNode, exit_code: int) -> None:
     """Stop and join the workers; one still busy after STOP_TIMEOUT_S is not waited for: the process says
     which and exits at once (rclpy must not be shut down under a thread that may still use it)."""
     if not node.stop(STOP_TIMEOUT_S):
-        # not the node's own logger: its /rosout publisher is gone with the context a signal shut down
-        rclpy.logging.get_logger(f'{node.get_name()}.shutdown').error(
+        node.console_logger().error(
             f'stopping without waiting for {", ".join(node.busy_workers())}: still busy {STOP_TIMEOUT_S:g} s '
             'after the stop was asked (a JIT warm-up on a cold cache compiles for minutes; what it compiled so '
             'far stays cached)'
