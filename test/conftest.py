@@ -20,3 +20,15 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f'needs the shared data sets at {SHARED_DATA} (present in CI, absent in a fresh clone)')
     return SHARED_DATA
+
+
+@pytest.fixture
+def child_hook_env(tmp_path):
+    """A function: write ``source`` as ``sitecustomize.py`` into tmp_path and return ``{'PYTHONPATH': ...}`` that
+    puts it first for a child process, which runs it at start-up (a test-only hook; nothing in ppe_ros)."""
+
+    def make(source: str) -> dict[str, str]:
+        (tmp_path / 'sitecustomize.py').write_text(source)
+        return {'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')])}
+
+    return make

@@ -328,13 +328,12 @@ sys.meta_path.insert(0, _SlowNumpy())
     ('script', 'args', 'name'),
     [('ppe', ['info', 'x.npy'], 'ppe'), ('process_bag', ['in', 'out'], 'process_bag'), ('extractor', [], 'extractor')],
 )
-def test_a_ctrl_c_while_a_command_loads_ends_with_one_line_and_code_130(tmp_path, script, args, name):
+def test_a_ctrl_c_while_a_command_loads_ends_with_one_line_and_code_130(tmp_path, child_hook_env, script, args, name):
     """The console scripts import numpy, numba, rclpy or rosbags for about half a second before their main
     runs: a Ctrl-C then printed a traceback through the imports (and ended the process by SIGINT)."""
-    (tmp_path / 'sitecustomize.py').write_text(SLOW_NUMPY_IMPORT_HOOK)
     env = {
         **os.environ,
-        'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]),
+        **child_hook_env(SLOW_NUMPY_IMPORT_HOOK),
         'PYTHONUNBUFFERED': '1',
         'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
     }

@@ -353,13 +353,12 @@ def _ignore_sigint() -> None:
 
 @pytest.mark.parametrize('call', ['create_publisher:1', 'create_publisher:4', 'create_timer:1'])
 @pytest.mark.parametrize('stop_signal', ['SIGTERM', 'SIGINT', 'SIGINT_inherited_ignored'])
-def test_a_signal_inside_the_node_constructor_exits_0_without_a_traceback(tmp_path, call, stop_signal):
+def test_a_signal_inside_the_node_constructor_exits_0_without_a_traceback(child_hook_env, call, stop_signal):
     """Issue 17 item 10: a signal during ExtractorNode.__init__ made the next rclpy call raise RCLError
     (create_publisher: "rcl node's context is invalid"), and main exited 1 with a traceback. rclpy's handler
     shuts the context down; Python's KeyboardInterrupt follows only for a SIGINT whose inherited disposition
     is not "ignore" (a background job of a shell script, some launchers and supervisors: ignored)."""
-    (tmp_path / 'sitecustomize.py').write_text(SLOW_CALL_HOOK)
-    env = {'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]), 'PPE_TEST_SLOW_CALL': call}
+    env = {**child_hook_env(SLOW_CALL_HOOK), 'PPE_TEST_SLOW_CALL': call}
     sig = signal.SIGTERM if stop_signal == 'SIGTERM' else signal.SIGINT
     extractor = ExtractorProcess(
         unique_domain_id(85),
@@ -424,18 +423,17 @@ rclpy.try_shutdown = _stuck
 
 
 @pytest.mark.parametrize('stop_signal', [signal.SIGINT, signal.SIGTERM])
-def test_a_stop_does_not_wait_for_a_worker_that_stays_busy(tmp_path, stop_signal):
+def test_a_stop_does_not_wait_for_a_worker_that_stays_busy(child_hook_env, stop_signal):
     """A stop during a warm-up that does not end (a cold numba cache compiles for minutes; the node waited
     for it, so a Ctrl-C did nothing for minutes): after STOP_TIMEOUT_S the node says which worker it leaves
     and exits with 0, without a traceback."""
     from ppe_ros.ros.node import STOP_TIMEOUT_S
 
-    (tmp_path / 'sitecustomize.py').write_text(STUCK_HOOKS['warm-up'])
     extractor = ExtractorProcess(
         unique_domain_id(60),
         interrupt_on='TEST HOOK: warm-up stuck',
         interrupt_signal=stop_signal,
-        env={'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')])},
+        env=child_hook_env(STUCK_HOOKS['warm-up']),
     )
     try:
         exit_code = extractor.process.wait(timeout=READY_TIMEOUT_S)
@@ -449,13 +447,10 @@ def test_a_stop_does_not_wait_for_a_worker_that_stays_busy(tmp_path, stop_signal
     assert 'Traceback' not in output and 'terminate called' not in output, output
 
 
-def test_a_shutdown_that_hangs_ends_with_the_threads_stacks_and_code_1(tmp_path):
+def test_a_shutdown_that_hangs_ends_with_the_threads_stacks_and_code_1(child_hook_env):
     """Whatever hangs after the workers stopped (rclpy's or DDS's teardown; here rclpy.try_shutdown never
     returns): the watchdog prints the threads' stacks and exits with 1 instead of hanging."""
-    (tmp_path / 'sitecustomize.py').write_text(STUCK_HOOKS['rclpy shutdown'])
-    extractor = ExtractorProcess(
-        unique_domain_id(65), env={'PYTHONPATH': os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')])}
-    )
+    extractor = ExtractorProcess(unique_domain_id(65), env=child_hook_env(STUCK_HOOKS['rclpy shutdown']))
     try:
         assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
     finally:
