@@ -7,6 +7,8 @@ Arguments (``name:=value``):
 * ``params_file``: a params file of your own instead (its ``extractor:`` section);
 * ``points``: the input cloud topic (default ``/points``), e.g. ``/ouster/points`` or
   ``/camera/depth/points``;
+* ``depth_image``, ``camera_info``: a depth camera's depth image and camera info topics (default
+  ``/camera/depth/image_rect_raw`` and ``/camera/depth/camera_info``, the RealSense driver's);
 * ``metadata``: the Ouster driver's metadata topic (default ``/ouster/metadata``; per-beam ray
   starts while ``ray_origin`` is [0, 0, 0]);
 * ``namespace``: the node's namespace (default none; the packaged params files name the node
@@ -54,6 +56,16 @@ def generate_launch_description() -> LaunchDescription:
         ),
         DeclareLaunchArgument('points', default_value='/points', description='input PointCloud2 topic'),
         DeclareLaunchArgument(
+            'depth_image',
+            default_value='/camera/depth/image_rect_raw',
+            description='input depth image topic (sensor_msgs/Image, 16UC1 mm or 32FC1 m)',
+        ),
+        DeclareLaunchArgument(
+            'camera_info',
+            default_value='/camera/depth/camera_info',
+            description="the depth image's sensor_msgs/CameraInfo topic",
+        ),
+        DeclareLaunchArgument(
             'metadata',
             default_value='/ouster/metadata',
             description="the Ouster driver's metadata topic (std_msgs/String)",
@@ -76,7 +88,12 @@ def generate_launch_description() -> LaunchDescription:
         name='extractor',
         namespace=LaunchConfiguration('namespace'),
         parameters=[LaunchConfiguration('params_file'), {'use_sim_time': LaunchConfiguration('use_sim_time')}],
-        remappings=[('points', LaunchConfiguration('points')), ('metadata', LaunchConfiguration('metadata'))],
+        remappings=[
+            ('points', LaunchConfiguration('points')),
+            ('depth/image', LaunchConfiguration('depth_image')),
+            ('depth/camera_info', LaunchConfiguration('camera_info')),
+            ('metadata', LaunchConfiguration('metadata')),
+        ],
         output='screen',
         emulate_tty=True,
     )

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from depth_frames import STAMP, camera_info, corner_depth, depth_image
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -28,6 +29,8 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from ppe_ros.core.synthetic import plane_scan
+from ppe_ros.ros.depth_image import camera_model
+from ppe_ros.ros.messages import rclpy_message_types
 from ppe_ros.ros.node import ExtractorNode, LatestMailbox, Turnstile
 from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2, xyz_to_pointcloud2
 
@@ -190,6 +193,38 @@ def test_every_output_carries_the_input_header(ros_context, executor, namespace,
     assert values['input_topic'] == f'{namespace}/points'
     for key in ('input_rate_hz', 'processing_time_mean_ms', 'processing_time_max_ms', 'frames_dropped', 'last_error'):
         assert key in values
+
+
+def test_a_depth_image_with_its_camera_info_gives_the_outputs(ros_context, executor, namespace):
+    """A depth camera's image and camera info (as a RealSense driver publishes them): the planes of the
+    back-projected image, with the image's header and size; an image before any camera info is skipped."""
+    from sensor_msgs.msg import CameraInfo, Image
+
+    types = rclpy_message_types()
+    harness = Harness(ros_context, executor, namespace, overrides=[Parameter('sensor', value='depth_camera')])
+    images = harness.probe.create_publisher(Image, 'depth/image', RELIABLE)
+    infos = harness.probe.create_publisher(CameraInfo, 'depth/camera_info', qos_profile_sensor_data)
+    assert harness.node.depth_image_topic == f'{namespace}/depth/image'
+    assert spin_until(executor, lambda: images.get_subscription_count() > 0 and infos.get_subscription_count() > 0)
+
+    image = depth_image(types, corner_depth())
+    harness.publisher = images  # Harness.send publishes on its publisher
+    harness.send(image, wait_for='')
+    counts = harness.node.frame_counts()
+    assert counts['skipped_by_kind'] == {'no_camera_info': 1}, counts
+
+    info = camera_info(types)
+    infos.publish(info)
+    assert spin_until(executor, lambda: harness.node._camera_info is not None)
+    assert harness.node._camera_logged == camera_model(info)  # the model went to the log
+    harness.send(image)
+    labeled = harness.received['labeled_points'][-1]
+    assert header_of(labeled) == (*STAMP, 'camera_depth_optical_frame')
+    assert (labeled.height, labeled.width) == (60, 80)
+    labels = pointcloud2_to_structured(labeled)['label']
+    assert harness.received['planes'][-1].width == 2  # the wall and the floor
+    assert (labels > 0).mean() > 0.9
+    assert harness.node.frame_counts()['processed'] == 1
 
 
 def test_warm_up_freezes_the_compilers_objects_out_of_garbage_collection(ros_context, executor, namespace):

@@ -312,12 +312,22 @@ def launch_nodes(description) -> dict[str, _Recorded]:
 
 def check_launch_file(path: Path, share: Path, monkeypatch) -> None:
     """The launch file starts the extractor with the sensor's params file, remaps its inputs, and RViz on request."""
-    from ppe_ros.ros.node import INPUT_TOPIC, METADATA_TOPIC
+    from ppe_ros.ros.node import CAMERA_INFO_TOPIC, DEPTH_IMAGE_TOPIC, INPUT_TOPIC, METADATA_TOPIC
     from ppe_ros.ros.processing import SENSOR_CHOICES
 
     description = load_launch_description(path, monkeypatch)
     declared = {e.args[0]: e for e in description.entities if type(e).__name__ == 'DeclareLaunchArgument'}
-    assert {'sensor', 'params_file', 'points', 'metadata', 'namespace', 'rviz', 'frame'} <= set(declared)
+    assert {
+        'sensor',
+        'params_file',
+        'points',
+        'depth_image',
+        'camera_info',
+        'metadata',
+        'namespace',
+        'rviz',
+        'frame',
+    } <= set(declared)
     assert set(declared['sensor'].kwargs['choices']) <= set(SENSOR_CHOICES)
     nodes = launch_nodes(description)
     assert set(nodes) == {'extractor', 'rviz2'}
@@ -338,7 +348,20 @@ def check_launch_file(path: Path, share: Path, monkeypatch) -> None:
     context = launch_context(description, share, points='/ouster/points', params_file='/tmp/mine.yaml')
     assert perform(extractor.kwargs['parameters'][0], context) == '/tmp/mine.yaml'
     remappings = {source: perform(target, context) for source, target in extractor.kwargs['remappings']}
-    assert remappings == {INPUT_TOPIC: '/ouster/points', METADATA_TOPIC: '/ouster/metadata'}
+    assert remappings == {
+        INPUT_TOPIC: '/ouster/points',
+        DEPTH_IMAGE_TOPIC: '/camera/depth/image_rect_raw',
+        CAMERA_INFO_TOPIC: '/camera/depth/camera_info',
+        METADATA_TOPIC: '/ouster/metadata',
+    }
+    context = launch_context(
+        description, share, depth_image='/k4a/depth/image_raw', camera_info='/k4a/depth/camera_info'
+    )
+    remappings = {source: perform(target, context) for source, target in extractor.kwargs['remappings']}
+    assert (remappings[DEPTH_IMAGE_TOPIC], remappings[CAMERA_INFO_TOPIC]) == (
+        '/k4a/depth/image_raw',
+        '/k4a/depth/camera_info',
+    )
     rviz = nodes['rviz2']
     assert not rviz.kwargs['condition'].evaluate(launch_context(description, share))
     context = launch_context(description, share, rviz='true', frame='camera_depth_optical_frame')

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from depth_frames import message_header
 from lidar_sweeps import HDL_LIKE_ELEVATIONS, room_sweep, shuffled
 
 from ppe_ros.core.projection import matched_label_agreement
@@ -44,16 +45,7 @@ def types(request):
 
 
 def make_header(types, frame_id='os_lidar', stamp=STAMP):
-    if types.flavour == 'rclpy':
-        from std_msgs.msg import Header
-
-        header = Header(frame_id=frame_id)
-        header.stamp.sec, header.stamp.nanosec = stamp
-        return header
-    store = types.typestore.types
-    return store['std_msgs/msg/Header'](
-        stamp=store['builtin_interfaces/msg/Time'](sec=stamp[0], nanosec=stamp[1]), frame_id=frame_id
-    )
+    return message_header(types, frame_id, stamp)
 
 
 @pytest.fixture(scope='module')

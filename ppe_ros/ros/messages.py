@@ -28,7 +28,7 @@ class MessageTypes:
 
     Attributes:
         flavour: ``'rclpy'`` or ``'rosbags'``.
-        PointCloud2, PointField: ``sensor_msgs/msg`` classes.
+        PointCloud2, PointField, Image, CameraInfo: ``sensor_msgs/msg`` classes.
         MarkerArray: ``visualization_msgs/msg/MarkerArray`` (used to decode markers in tests and tools).
         DiagnosticArray, DiagnosticStatus, KeyValue: ``diagnostic_msgs/msg`` classes.
         typestore: the rosbags typestore (rosbags flavour only), for ``deserialize_cdr``.
@@ -38,6 +38,8 @@ class MessageTypes:
     PointCloud2: type
     PointField: type
     MarkerArray: type
+    Image: type | None = None
+    CameraInfo: type | None = None
     DiagnosticArray: type | None = None
     DiagnosticStatus: type | None = None
     KeyValue: type | None = None
@@ -55,7 +57,7 @@ class MessageTypes:
 def rclpy_message_types() -> MessageTypes:
     """Message classes of the installed ROS 2 Python packages (needs rclpy's message wheels)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from sensor_msgs.msg import PointCloud2, PointField
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
     from visualization_msgs.msg import MarkerArray
 
     return MessageTypes(
@@ -63,6 +65,8 @@ def rclpy_message_types() -> MessageTypes:
         PointCloud2=PointCloud2,
         PointField=PointField,
         MarkerArray=MarkerArray,
+        Image=Image,
+        CameraInfo=CameraInfo,
         DiagnosticArray=DiagnosticArray,
         DiagnosticStatus=DiagnosticStatus,
         KeyValue=KeyValue,
@@ -81,6 +85,8 @@ def rosbags_message_types(typestore: Any = None) -> MessageTypes:
         PointCloud2=types['sensor_msgs/msg/PointCloud2'],
         PointField=types['sensor_msgs/msg/PointField'],
         MarkerArray=types['visualization_msgs/msg/MarkerArray'],
+        Image=types['sensor_msgs/msg/Image'],
+        CameraInfo=types['sensor_msgs/msg/CameraInfo'],
         DiagnosticArray=types['diagnostic_msgs/msg/DiagnosticArray'],
         DiagnosticStatus=types['diagnostic_msgs/msg/DiagnosticStatus'],
         KeyValue=types['diagnostic_msgs/msg/KeyValue'],

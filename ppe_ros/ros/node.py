@@ -16,6 +16,10 @@ Topics (relative names, remappable):
   ``input_reliability`` parameter. No return: a point with a NaN or infinite coordinate, or exactly
   at (0, 0, 0) (what many drivers publish for a pixel without a return; the file loaders read it so
   too); such points get label 0 and NaN coordinates in ``planes/labeled_points``;
+* in ``depth/image`` (``sensor_msgs/Image``, QoS as ``points``) with ``depth/camera_info``
+  (``sensor_msgs/CameraInfo``, best effort; the latest one goes with each image): a depth camera's
+  depth image, back-projected and extracted as an organized cloud in the image's optical frame
+  (:mod:`ppe_ros.ros.depth_image`);
 * in ``metadata`` (``std_msgs/String``, reliable, transient local): the Ouster driver's metadata
   JSON; while ``ray_origin`` is [0, 0, 0], clouds of the size it describes get its per-beam ray
   starts (:mod:`ppe_ros.ros.sensor_metadata`);
@@ -63,6 +67,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from ppe_ros.ros.concurrency import LatestMailbox, Turnstile
+from ppe_ros.ros.depth_image import DepthCamera, DepthFrame, DepthImageError, camera_model
 from ppe_ros.ros.diagnostics import WARNING_THROTTLE_S, FrameStats, NodeState, ThrottledLog, diagnostics_status
 from ppe_ros.ros.messages import rclpy_message_types
 from ppe_ros.ros.parameters import (
@@ -87,6 +92,7 @@ from ppe_ros.ros.processing import (
     failure_reason,
     frame_label,
     process_cloud,
+    process_depth_image,
 )
 from ppe_ros.ros.sensor_metadata import RayStarts
 from ppe_ros.ros.warmup import WORKQUEUE_LAYER_ERROR, parallel_workers_safe, warm_up, warm_up_cloud
@@ -108,6 +114,8 @@ __all__ = [  # the names tests and tools import from here (their homes are the m
 
 NODE_NAME = 'extractor'
 INPUT_TOPIC = 'points'
+DEPTH_IMAGE_TOPIC = 'depth/image'
+CAMERA_INFO_TOPIC = 'depth/camera_info'
 METADATA_TOPIC = 'metadata'
 LABELED_POINTS_TOPIC = 'planes/labeled_points'
 MARKERS_TOPIC = 'planes/markers'
@@ -179,6 +187,12 @@ class ExtractorNode(Node):
 
         self._subscription_lock = threading.Lock()
         self._subscription = self._subscribe(self._params.input_reliability)
+        self._camera_info: Any = None  # the latest sensor_msgs/CameraInfo, for the depth images
+        self._camera_logged: DepthCamera | None = None  # the camera model the log last named
+        self._depth_subscription = self._subscribe(self._params.input_reliability, topic=DEPTH_IMAGE_TOPIC)
+        self._camera_info_subscription = self.create_subscription(
+            self._types.CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, input_qos('best_effort')
+        )
         from std_msgs.msg import String
 
         self._metadata_subscription = self.create_subscription(
@@ -215,39 +229,45 @@ class ExtractorNode(Node):
 
     # ---------------------------------------------------------------- input
 
-    def _subscribe(self, reliability: str, qos: QoSProfile | None = None):
-        """The ``points`` subscription; the first one declares the QoS override parameters."""
+    def _subscribe(self, reliability: str, qos: QoSProfile | None = None, topic: str = INPUT_TOPIC):
+        """The ``points`` (or ``depth/image``) subscription; the first one declares the QoS override parameters."""
         options = QoSOverridingOptions.with_default_policies() if qos is None else None
+        depth = topic == DEPTH_IMAGE_TOPIC
         return self.create_subscription(
-            self._types.PointCloud2,
-            INPUT_TOPIC,
-            self._on_cloud,
+            self._types.Image if depth else self._types.PointCloud2,
+            topic,
+            self._on_depth_image if depth else self._on_cloud,
             input_qos(reliability) if qos is None else qos,
             qos_overriding_options=options,
         )
 
-    def _input_override(self, policy: str) -> tuple[str, Any]:
-        """(name, value given at start-up or None) of the input's QoS override parameter for ``policy``."""
-        name = f'{QOS_OVERRIDES_PREFIX}{self._subscription.topic_name}.subscription.{policy}'
+    def _input_override(self, policy: str, subscription: Any = None) -> tuple[str, Any]:
+        """(name, value given at start-up or None) of an input's QoS override parameter for ``policy``
+        (default: the ``points`` input's)."""
+        topic = (self._subscription if subscription is None else subscription).topic_name
+        name = f'{QOS_OVERRIDES_PREFIX}{topic}.subscription.{policy}'
         given = getattr(self, '_parameter_overrides', {}).get(name)
         return name, None if given is None else given.value
 
     def _resubscribe(self, reliability: str) -> None:
-        """A new ``points`` subscription for a changed ``input_reliability`` (a reliability override wins)."""
-        name, forced = self._input_override('reliability')
-        if forced is not None:
-            self.get_logger().warning(f'input_reliability {reliability} has no effect: {name} is {forced}')
-            return
-        qos = input_qos(reliability)
-        for policy in ('history', 'depth'):  # keep the depth and history overrides of the first subscription
-            policy_name = f'{QOS_OVERRIDES_PREFIX}{self._subscription.topic_name}.subscription.{policy}'
-            if self.has_parameter(policy_name):
-                value = self.get_parameter(policy_name).value
-                setattr(qos, policy, HistoryPolicy[str(value).upper()] if policy == 'history' else int(value))
-        with self._subscription_lock:
-            self.destroy_subscription(self._subscription)
-            self._subscription = self._subscribe(reliability, qos)
-        self.get_logger().info(f'input {self._subscription.topic_name} now subscribed with {reliability} QoS')
+        """New ``points`` and ``depth/image`` subscriptions for a changed ``input_reliability`` (a reliability
+        override of a topic wins for that topic)."""
+        for attribute, topic in (('_subscription', INPUT_TOPIC), ('_depth_subscription', DEPTH_IMAGE_TOPIC)):
+            subscription = getattr(self, attribute)
+            name, forced = self._input_override('reliability', subscription)
+            if forced is not None:
+                self.get_logger().warning(f'input_reliability {reliability} has no effect: {name} is {forced}')
+                continue
+            qos = input_qos(reliability)
+            for policy in ('history', 'depth'):  # keep the depth and history overrides of the first subscription
+                policy_name = f'{QOS_OVERRIDES_PREFIX}{subscription.topic_name}.subscription.{policy}'
+                if self.has_parameter(policy_name):
+                    value = self.get_parameter(policy_name).value
+                    setattr(qos, policy, HistoryPolicy[str(value).upper()] if policy == 'history' else int(value))
+            with self._subscription_lock:
+                self.destroy_subscription(subscription)
+                setattr(self, attribute, self._subscribe(reliability, qos, topic))
+            self.get_logger().info(f'input {getattr(self, attribute).topic_name} now subscribed with {reliability} QoS')
 
     def _warn_unused_qos_overrides(self) -> None:
         """A QoS override naming a topic (or policy) the node does not have would be ignored silently."""
@@ -268,8 +288,27 @@ class ExtractorNode(Node):
         """Resolved name of the input topic."""
         return self._subscription.topic_name
 
+    @property
+    def depth_image_topic(self) -> str:
+        """Resolved name of the depth image input."""
+        return self._depth_subscription.topic_name
+
     def _on_cloud(self, msg: Any) -> None:
         self._stats.record_received(dropped=self._mailbox.put(msg))
+
+    def _on_depth_image(self, msg: Any) -> None:
+        frame = DepthFrame(msg, self._camera_info, self._camera_info_subscription.topic_name)
+        self._stats.record_received(dropped=self._mailbox.put(frame))
+
+    def _on_camera_info(self, msg: Any) -> None:
+        self._camera_info = msg  # one reference assignment: the depth image callback reads it as a whole
+        try:
+            camera = camera_model(msg)
+        except DepthImageError:
+            return  # the images it goes with are skipped with the reason
+        if camera != self._camera_logged:
+            self._camera_logged = camera
+            self.get_logger().info(f'camera info on {self._camera_info_subscription.topic_name}: {camera.describe()}')
 
     def _on_metadata(self, msg: Any) -> None:
         self._ray_starts.update(msg.data, self._metadata_subscription.topic_name)
@@ -357,7 +396,7 @@ class ExtractorNode(Node):
             self.ready.set()
             if not self._stop_requested.is_set() and self.context.ok():  # else stopping: not ready for anything
                 self.get_logger().info(
-                    f'ready: waiting for PointCloud2 on {self.input_topic} '
+                    f'ready: waiting for PointCloud2 on {self.input_topic} or depth images on {self.depth_image_topic} '
                     f'({self._params.input_reliability}, {self._params.workers} worker(s))'
                 )
         while not self._stop_requested.is_set():
@@ -405,13 +444,16 @@ class ExtractorNode(Node):
             stats.busy_peak = max(stats.busy_peak, stats.busy)
         try:
             self._apply_numba_threads(index, params)
-            frame = process_cloud(
-                msg,
-                params,
-                self._types,
-                outputs=outputs,
-                ray_origins=self._ray_starts.for_cloud(msg, params.ray_origin),
-            )
+            if isinstance(msg, DepthFrame):
+                frame = process_depth_image(msg, params, self._types, outputs=outputs)
+            else:
+                frame = process_cloud(
+                    msg,
+                    params,
+                    self._types,
+                    outputs=outputs,
+                    ray_origins=self._ray_starts.for_cloud(msg, params.ray_origin),
+                )
         except FrameSkipped as exc:
             self._record_skip(exc)
             return
@@ -528,10 +570,13 @@ def usage() -> str:
         'usage: ros2 run ppe_ros extractor [--ros-args [--params-file FILE.yaml] [-p NAME:=VALUE ...] '
         '[-r points:=TOPIC ...]]',
         '',
-        'Plane extraction (PPE) on sensor_msgs/PointCloud2 clouds (organized, transposed or unorganized).',
+        'Plane extraction (PPE) on sensor_msgs/PointCloud2 clouds (organized, transposed or unorganized) and on',
+        'depth images with their camera info.',
         '',
         f'  in   {INPUT_TOPIC} (sensor_msgs/PointCloud2, any layout; QoS depth 1, input_reliability;',
         '       NaN, infinite or exactly (0, 0, 0) points are no return)',
+        f'       {DEPTH_IMAGE_TOPIC} (sensor_msgs/Image, 16UC1 mm or 32FC1 m, rectified; QoS as points) with',
+        f'       {CAMERA_INFO_TOPIC} (sensor_msgs/CameraInfo: P, or K when P is zero; binning and ROI)',
         f"       {METADATA_TOPIC} (std_msgs/String, transient local: the Ouster driver's metadata JSON; per-beam",
         '       ray starts while ray_origin is [0, 0, 0])',
         f'  out  {LABELED_POINTS_TOPIC} (sensor_msgs/PointCloud2: x y z label rgb)',

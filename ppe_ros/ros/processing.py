@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ppe_ros.core.planes import PlaneSet
+from ppe_ros.ros.depth_image import DepthFrame, DepthImageError, depth_image_points
 from ppe_ros.ros.markers import budgeted_plane_geometry, marker_array_cdr
 from ppe_ros.ros.messages import MessageTypes, StampedFrame
 from ppe_ros.ros.pointcloud2 import (
@@ -434,8 +435,9 @@ class FrameSkipped(ValueError):
         kind: short machine-readable cause: ``'empty'``, ``'unorganized'`` (a cloud of height 1 that
             cannot be put on a range image: bad ring values, no ring field for
             ``unorganized_rows: rings``), ``'too_large'``,
-            ``'invalid_cloud'`` (missing x/y/z, unsupported datatype, inconsistent sizes) or
-            ``'no_valid_points'``.
+            ``'invalid_cloud'`` (missing x/y/z, unsupported datatype, inconsistent sizes),
+            ``'no_valid_points'``, and for depth images ``'no_camera_info'``, ``'invalid_image'``,
+            ``'invalid_camera_info'``, ``'camera_info_mismatch'`` (:mod:`ppe_ros.ros.depth_image`).
         reason: the full message.
     """
 
@@ -637,6 +639,19 @@ class ProcessedFrame:
         return sum(t for name, t in self.timings.items() if name != 'extract')
 
 
+def _check_frame_size(msg: Any, params: ExtractorParams, what: str, unit: str) -> tuple[int, int]:
+    """``(height, width)`` of a cloud or image; FrameSkipped when it is empty or over ``params.max_points``."""
+    height, width = int(msg.height), int(msg.width)
+    if height == 0 or width == 0:
+        raise FrameSkipped('empty', f'empty {what} (height {height}, width {width}): nothing to extract')
+    if height * width > params.max_points:
+        raise FrameSkipped(
+            'too_large',
+            f'{what} of {height} x {width} = {height * width} {unit} exceeds max_points = {params.max_points}',
+        )
+    return height, width
+
+
 def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
     """Validate an input cloud and return its ``(H, W, 3)`` float64 points (NaN = no return); an
     unorganized cloud gives ``(1, N, 3)``.
@@ -647,14 +662,7 @@ def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
     Raises:
         FrameSkipped: empty, larger than ``params.max_points``, malformed, or no finite point.
     """
-    height, width = int(msg.height), int(msg.width)
-    if height == 0 or width == 0:
-        raise FrameSkipped('empty', f'empty cloud (height {height}, width {width}): nothing to extract')
-    if height * width > params.max_points:
-        raise FrameSkipped(
-            'too_large',
-            f'cloud of {height} x {width} = {height * width} points exceeds max_points = {params.max_points}',
-        )
+    height, width = _check_frame_size(msg, params, 'cloud', 'points')
     try:
         points = pointcloud2_to_xyz(msg, zero_is_no_return=True)
     except PointCloudError as exc:
@@ -834,6 +842,53 @@ def process_cloud(
     """
     start = time.perf_counter()
     cloud = decode_cloud(msg, params)
+    return _process_decoded(msg.header, cloud, params, types, outputs, ray_origins, start)
+
+
+def process_depth_image(
+    frame: DepthFrame, params: ExtractorParams, types: MessageTypes, *, outputs: OutputSelection | None = None
+) -> ProcessedFrame:
+    """:func:`process_cloud` for a depth image and its camera info (:mod:`ppe_ros.ros.depth_image`).
+
+    The image is back-projected into its optical frame (rays from ``params.ray_origin``, default the
+    camera centre) and extracted as an organized cloud of the image's ``height x width``; the outputs
+    carry the image's header.
+
+    Raises:
+        FrameSkipped: no camera info yet (``no_camera_info``), an empty or too large image, an image or
+            camera info that cannot be used (``invalid_image``, ``invalid_camera_info``,
+            ``camera_info_mismatch``), no valid depth.
+    """
+    start = time.perf_counter()
+    image = frame.image
+    height, width = _check_frame_size(image, params, 'depth image', 'pixels')
+    if frame.camera_info is None:
+        raise FrameSkipped(
+            'no_camera_info', f'depth image without camera info: none received on {frame.camera_info_topic} yet'
+        )
+    try:
+        points = depth_image_points(image, frame.camera_info)
+    except DepthImageError as exc:
+        raise FrameSkipped(exc.kind, f'depth image: {exc.reason}') from None
+    if np.isnan(points[..., 2]).all():
+        raise FrameSkipped(
+            'no_valid_points',
+            f'depth image of {height} x {width} pixels has no valid depth (every pixel 0, NaN or infinite)',
+        )
+    cloud = DecodedCloud(points, 'rows_are_beams')
+    return _process_decoded(image.header, cloud, params, types, outputs, None, start)
+
+
+def _process_decoded(
+    header: Any,
+    cloud: DecodedCloud,
+    params: ExtractorParams,
+    types: MessageTypes,
+    outputs: OutputSelection | None,
+    ray_origins: np.ndarray | None,
+    start: float,
+) -> ProcessedFrame:
+    """Extract ``cloud`` (converted since ``start``, perf_counter s) and build the selected outputs."""
     timings = {'convert': (mark := time.perf_counter()) - start}
     settings = _extraction_settings(params)
     grid_points = grid_planes = None
@@ -853,8 +908,8 @@ def process_cloud(
             planes = _extract_grid(cloud.points, settings)
         timings['extract'] = time.perf_counter() - mark
     frame = ProcessedFrame(
-        header=msg.header,
-        stamped=StampedFrame.of(msg.header),
+        header=header,
+        stamped=StampedFrame.of(header),
         points=cloud.points,
         planes=planes,
         timings=timings,

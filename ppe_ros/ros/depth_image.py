@@ -1,0 +1,204 @@
+"""Depth images (``sensor_msgs/Image`` with its ``sensor_msgs/CameraInfo``) as organized clouds.
+
+A depth camera's driver publishes the depth image and its camera info (RealSense
+``/camera/depth/image_rect_raw`` and ``/camera/depth/camera_info``; Kinect and Azure Kinect drivers,
+depth_image_proc's inputs). The node takes them on ``depth/image`` and ``depth/camera_info`` and
+back-projects every pixel as depth_image_proc's ``point_cloud_xyz`` does:
+
+* encodings of REP 118: ``16UC1`` (and ``mono16``) in millimetres, ``32FC1`` in metres; 0, NaN and
+  infinite depths are no returns;
+* the image is taken as rectified: pixel (u, v) with depth z becomes
+  ``(z (u - cx) / fx, z (v - cy) / fy, z)`` in the image's optical frame (x right, y down, z forward),
+  with fx, fy, cx, cy from the projection matrix P (the camera matrix K when P is all zero),
+  adjusted for the camera info's binning and region of interest. The distortion coefficients D are
+  not applied (rectify a raw, distorted depth image with image_proc first);
+* the image's size must be the one the camera info describes (its ROI's, or its own, over the binning).
+
+Nothing here imports rclpy: messages of either flavour (rclpy or rosbags) work.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ppe_ros.io.depth import PinholeIntrinsics, backproject_depth
+
+#: Image encodings read as depth (REP 118), with their numpy type and metres per count.
+DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
+    '16UC1': ('u2', 1.0e-3),
+    'mono16': ('u2', 1.0e-3),
+    '32FC1': ('f4', 1.0),
+}
+
+
+class DepthImageError(ValueError):
+    """A depth image or camera info that cannot be used; ``kind`` says which part (a FrameSkipped kind).
+
+    Attributes:
+        kind: ``'invalid_image'``, ``'invalid_camera_info'`` or ``'camera_info_mismatch'``.
+    """
+
+    def __init__(self, kind: str, reason: str) -> None:
+        super().__init__(reason)
+        self.kind = kind
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """A depth image and the camera info it goes with (None: none received yet), as the node's mailbox
+    holds them. ``header`` is the image's, so that log lines name the frame as they name a cloud's."""
+
+    image: Any
+    camera_info: Any
+    camera_info_topic: str = 'depth/camera_info'
+
+    @property
+    def header(self) -> Any:
+        return self.image.header
+
+
+@dataclass(frozen=True)
+class DepthCamera:
+    """The pinhole model of one depth image: intrinsics in the image's own pixels and its size.
+
+    Attributes:
+        intrinsics: fx, fy (pixels, > 0), cx, cy (pixels, from the image's first column and row).
+        height, width: the image size the camera info describes (after ROI and binning).
+        distorted: the camera info has non-zero distortion coefficients (not applied: see the module).
+        source: ``'P'`` or ``'K'``, the matrix the intrinsics come from.
+    """
+
+    intrinsics: PinholeIntrinsics
+    height: int
+    width: int
+    distorted: bool
+    source: str = 'P'
+
+    def describe(self) -> str:
+        """One line for the log: size, intrinsics and where they came from, whether D is ignored."""
+        fx, fy, cx, cy = self.intrinsics.as_tuple()
+        text = (
+            f'{self.width} x {self.height} images, fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f} (from {self.source})'
+        )
+        if self.distorted:
+            text += '; distortion coefficients not applied (the image is taken as rectified)'
+        return text
+
+
+def _numbers(values: Any, count: int, name: str) -> np.ndarray:
+    try:
+        array = np.asarray(values, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise DepthImageError('invalid_camera_info', f'camera info {name} is not a list of numbers') from None
+    if array.size != count:
+        raise DepthImageError('invalid_camera_info', f'camera info {name} has {array.size} numbers, not {count}')
+    return array
+
+
+def camera_model(info: Any) -> DepthCamera:
+    """The pinhole model a ``sensor_msgs/CameraInfo`` gives the images it describes.
+
+    Binning 0 counts as 1; a ROI of zero size is the whole image. With binning (bx, by) and a ROI at
+    (x0, y0): fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by.
+
+    Raises:
+        DepthImageError: ``invalid_camera_info`` (no calibration: P and K zero or not finite, a
+            non-positive focal length, a size of zero, a ROI outside the image).
+    """
+    try:
+        height, width = int(info.height), int(info.width)
+        binning_x, binning_y = max(int(info.binning_x), 1), max(int(info.binning_y), 1)
+        roi = info.roi
+        roi_x, roi_y, roi_height, roi_width = (int(roi.x_offset), int(roi.y_offset), int(roi.height), int(roi.width))
+        distortion = info.d
+    except (AttributeError, TypeError, ValueError):
+        raise DepthImageError('invalid_camera_info', 'not a sensor_msgs/CameraInfo message') from None
+    projection = _numbers(info.p, 12, 'P').reshape(3, 4)
+    camera = _numbers(info.k, 9, 'K').reshape(3, 3)
+    if projection[0, 0] != 0.0 or projection[1, 1] != 0.0:
+        fx, fy, cx, cy, source = projection[0, 0], projection[1, 1], projection[0, 2], projection[1, 2], 'P'
+    else:
+        fx, fy, cx, cy, source = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2], 'K'
+    if not (fx > 0 and fy > 0 and np.isfinite([fx, fy, cx, cy]).all()):
+        raise DepthImageError(
+            'invalid_camera_info',
+            f'camera info has no usable calibration: fx {fx:g}, fy {fy:g}, cx {cx:g}, cy {cy:g} (from {source}; '
+            'an uncalibrated camera publishes zeros)',
+        )
+    if height <= 0 or width <= 0:
+        raise DepthImageError('invalid_camera_info', f'camera info size is {height} x {width}')
+    if roi_width > 0 and roi_height > 0:
+        if roi_x < 0 or roi_y < 0 or roi_x + roi_width > width or roi_y + roi_height > height:
+            raise DepthImageError(
+                'invalid_camera_info',
+                f'camera info ROI {roi_width} x {roi_height} at ({roi_x}, {roi_y}) is outside its '
+                f'{width} x {height} image',
+            )
+        height, width = roi_height, roi_width
+    else:
+        roi_x = roi_y = 0
+    try:
+        distorted = bool(np.any(np.asarray(distortion, dtype=np.float64) != 0.0))
+    except (TypeError, ValueError):
+        raise DepthImageError('invalid_camera_info', 'camera info D is not a list of numbers') from None
+    intrinsics = PinholeIntrinsics(fx / binning_x, fy / binning_y, (cx - roi_x) / binning_x, (cy - roi_y) / binning_y)
+    return DepthCamera(intrinsics, height // binning_y, width // binning_x, distorted, source)
+
+
+def depth_values(image: Any) -> tuple[np.ndarray, float]:
+    """The ``(H, W)`` depth counts of a ``sensor_msgs/Image`` and the metres per count of its encoding.
+
+    Raises:
+        DepthImageError: ``invalid_image`` (not a depth encoding, a size of zero, a row step shorter than
+            a row, a data size other than step x height).
+    """
+    try:
+        height, width, step = int(image.height), int(image.width), int(image.step)
+        encoding, big_endian, data = str(image.encoding), bool(image.is_bigendian), image.data
+    except (AttributeError, TypeError, ValueError):
+        raise DepthImageError('invalid_image', 'not a sensor_msgs/Image message') from None
+    if encoding not in DEPTH_ENCODINGS:
+        raise DepthImageError(
+            'invalid_image',
+            f'image encoding {encoding!r} is not a depth encoding: 16UC1 (or mono16) in millimetres or 32FC1 in '
+            'metres (REP 118)',
+        )
+    kind, scale = DEPTH_ENCODINGS[encoding]
+    dtype = np.dtype(('>' if big_endian else '<') + kind)
+    if height <= 0 or width <= 0:
+        raise DepthImageError('invalid_image', f'empty depth image (height {height}, width {width})')
+    if step < width * dtype.itemsize:
+        raise DepthImageError(
+            'invalid_image', f'row step {step} bytes is shorter than a row of {width} x {dtype.itemsize} bytes'
+        )
+    buffer = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8)
+    if buffer.size != step * height:
+        raise DepthImageError(
+            'invalid_image', f'{buffer.size} data bytes, not step x height = {step} x {height} = {step * height}'
+        )
+    rows = buffer.reshape(height, step)[:, : width * dtype.itemsize]
+    return np.ascontiguousarray(rows).view(dtype).reshape(height, width), scale
+
+
+def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
+    """The ``(H, W, 3)`` float64 points (m, the image's optical frame; NaN = no return) of a depth image.
+
+    Raises:
+        DepthImageError: see :func:`depth_values` and :func:`camera_model`; ``camera_info_mismatch``
+            when the image's size is not the one the camera info describes.
+    """
+    counts, scale = depth_values(image)
+    camera = camera_model(camera_info)
+    if counts.shape != (camera.height, camera.width):
+        raise DepthImageError(
+            'camera_info_mismatch',
+            f'depth image is {counts.shape[1]} x {counts.shape[0]} but its camera info describes '
+            f'{camera.width} x {camera.height} images',
+        )
+    depth = counts.astype(np.float64)
+    depth[~np.isfinite(depth)] = 0.0  # NaN and +-inf: no return (backproject_depth: depth <= 0 is none)
+    return backproject_depth(depth, camera.intrinsics, scale)
