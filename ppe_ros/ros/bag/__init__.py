@@ -1,8 +1,11 @@
-"""``ros2 run ppe_ros process_bag IN OUT``: a bag of organized clouds in, a bag of planes out.
+"""``ros2 run ppe_ros process_bag IN OUT``: a bag of point clouds or depth images in, a bag of planes out.
 
 Offline twin of the live node (:mod:`ppe_ros.ros.node`): every frame goes through the same
-:func:`ppe_ros.ros.processing.process_cloud` with the same parameters (the node's params file,
-``--params``), using rosbags message classes instead of rclpy (no ROS installation needed).
+:func:`ppe_ros.ros.processing.process_cloud` (or :func:`~ppe_ros.ros.processing.process_depth_image`)
+with the same parameters (the node's params file, ``--params``), using rosbags message classes
+instead of rclpy (no ROS installation needed). Inputs are the PointCloud2 topics and the depth image
+topics (an Image topic with ``camera_info`` beside it and ``depth`` in its name; ``--topic`` names any
+Image topic with its camera info); each depth image goes with the camera info read last before it.
 
 Input (read with rosbags): a rosbag2 directory (sqlite3 or mcap, compressed or not), a bare
 ``.mcap`` / ``.db3`` file, or a ROS 1 ``.bag``. Damaged inputs are read as far as they go: a
@@ -67,7 +70,7 @@ from ppe_ros.ros.bag.cli import (
 from ppe_ros.ros.bag.discovery import expand_inputs, output_paths
 from ppe_ros.ros.bag.errors import EXIT_DAMAGED, EXIT_OK, EXIT_USAGE, BagError, describe_read_error
 from ppe_ros.ros.bag.executors import FrameExecutor, InlineExecutor, PoolExecutor, TaskFailed, default_numba_threads
-from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult, ros1_cloud_as_ros2
+from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult, ros1_as_ros2, ros1_cloud_as_ros2
 from ppe_ros.ros.bag.inputs import InputBag, InputTopic, open_input_bag, select_topics
 from ppe_ros.ros.bag.output import DEFAULT_STORAGE, STORAGES, OutputBag, check_paths
 from ppe_ros.ros.bag.ray_executor import RayExecutor
@@ -133,6 +136,7 @@ __all__ = [
     'process_bags',
     'read_params_file',
     'report_problems',
+    'ros1_as_ros2',
     'ros1_cloud_as_ros2',
     'run',
     'runs_from_args',

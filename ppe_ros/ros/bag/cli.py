@@ -85,7 +85,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs='+',
         metavar='T',
         default=[],
-        help='PointCloud2 topic(s) to process (default: every PointCloud2 topic)',
+        help='PointCloud2 or depth image topic(s) to process (default: every PointCloud2 topic, and every '
+        'sensor_msgs/Image topic with a camera_info topic beside it and "depth" in its name)',
     )
     parser.add_argument(
         '--params',
@@ -152,7 +153,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def build_parser(prog: str = 'process_bag') -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=prog,
-        description='Extract planes from every organized PointCloud2 of a bag, as the extractor node would, '
+        description='Extract planes from every PointCloud2 and depth image of a bag, as the extractor node would, '
         'and write its outputs (labelled cloud, markers, plane table) to a new rosbag2; several bags (or a '
         'directory of bags) go to one output bag each, processed here (--jobs) or on a Ray cluster.',
         epilog=f'Outputs of /ns/points: /ns/{OUTPUT_SUFFIXES["labeled_points"]}, /ns/{OUTPUT_SUFFIXES["markers"]}, '

@@ -14,7 +14,7 @@ import signal
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Protocol
 
-from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult
+from ppe_ros.ros.bag.frames import FrameInput, FrameProcessor, FrameResult
 from ppe_ros.ros.bag.signals import StopRequests
 from ppe_ros.ros.processing import ExtractorParams
 
@@ -34,7 +34,7 @@ class FrameExecutor(Protocol):
 
     capacity: int
 
-    def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future: ...
+    def submit(self, raw: FrameInput, encoding: str, convert_copy: bool) -> Future: ...
 
     def flush(self) -> None: ...
 
@@ -59,7 +59,7 @@ def _init_worker(params: ExtractorParams, numba_threads: int) -> None:
     _WORKER_PROCESSOR = FrameProcessor(params)
 
 
-def _process_in_worker(raw: bytes, encoding: str, convert_copy: bool) -> FrameResult:
+def _process_in_worker(raw: FrameInput, encoding: str, convert_copy: bool) -> FrameResult:
     assert _WORKER_PROCESSOR is not None, 'worker not initialized'
     return _WORKER_PROCESSOR.process(raw, encoding, convert_copy)
 
@@ -72,7 +72,7 @@ class InlineExecutor:
         self._stops = stops
         self.capacity = IN_FLIGHT_PER_JOB
 
-    def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future:
+    def submit(self, raw: FrameInput, encoding: str, convert_copy: bool) -> Future:
         future: Future = Future()
         self._stops.abortable = True  # a second Ctrl-C may abandon this frame
         try:
@@ -116,7 +116,7 @@ class PoolExecutor:
             max_workers=self._jobs, mp_context=context, initializer=_init_worker, initargs=self._initargs
         )
 
-    def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future:
+    def submit(self, raw: FrameInput, encoding: str, convert_copy: bool) -> Future:
         if self._pool is None:  # abandoned by the previous input
             self._start()
         assert self._pool is not None

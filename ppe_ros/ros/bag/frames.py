@@ -2,18 +2,35 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from ppe_ros.ros.bag.topics import POINTCLOUD2
+from ppe_ros.ros.bag.topics import CAMERA_INFO, IMAGE, POINTCLOUD2
+from ppe_ros.ros.depth_image import DepthFrame
 from ppe_ros.ros.messages import MessageTypes, rosbags_message_types
 from ppe_ros.ros.processing import (
     ExtractorParams,
     FrameSkipped,
     OutputSelection,
     process_cloud,
+    process_depth_image,
 )
+
+
+@dataclass(frozen=True)
+class DepthMessages:
+    """A depth image frame as read from a bag: the raw image and the raw camera info read last before it
+    on ``camera_info_topic`` (None: none yet). What an executor takes instead of a cloud's raw bytes."""
+
+    image: bytes
+    camera_info: bytes | None
+    camera_info_topic: str
+
+
+#: One input frame: a cloud's raw message, or a depth image with its camera info.
+FrameInput = bytes | DepthMessages
 
 
 @dataclass
@@ -38,24 +55,27 @@ class FrameResult:
     seconds: float = 0.0
 
 
+def ros1_as_ros2(msg: Any, typestore: Any) -> Any:
+    """A ROS 1 message (rosbags) as the ROS 2 message of the same type in ``typestore``: field by field of the
+    ROS 2 type, nested messages likewise; a ROS 2 field missing in ROS 1 is read from its upper-case name
+    (CameraInfo's ``D K R P``), and ROS 1 fields without a ROS 2 twin are dropped (the header's ``seq``)."""
+    cls = typestore.types[msg.__msgtype__]
+    values = {}
+    for item in dataclasses.fields(cls):
+        if item.name == '__msgtype__':
+            continue
+        value = getattr(msg, item.name) if hasattr(msg, item.name) else getattr(msg, item.name.upper())
+        if hasattr(value, '__msgtype__'):
+            value = ros1_as_ros2(value, typestore)
+        elif isinstance(value, list):
+            value = [ros1_as_ros2(v, typestore) if hasattr(v, '__msgtype__') else v for v in value]
+        values[item.name] = value
+    return cls(**values)
+
+
 def ros1_cloud_as_ros2(msg: Any, typestore: Any) -> Any:
     """A ROS 1 ``sensor_msgs/PointCloud2`` (rosbags) as a ROS 2 message of ``typestore`` (no ``seq``)."""
-    types = typestore.types
-    stamp = types['builtin_interfaces/msg/Time'](sec=int(msg.header.stamp.sec), nanosec=int(msg.header.stamp.nanosec))
-    header = types['std_msgs/msg/Header'](stamp=stamp, frame_id=str(msg.header.frame_id))
-    field_class = types['sensor_msgs/msg/PointField']
-    fields = [field_class(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in msg.fields]
-    return types[POINTCLOUD2](
-        header=header,
-        height=msg.height,
-        width=msg.width,
-        fields=fields,
-        is_bigendian=msg.is_bigendian,
-        point_step=msg.point_step,
-        row_step=msg.row_step,
-        data=msg.data,
-        is_dense=msg.is_dense,
-    )
+    return ros1_as_ros2(msg, typestore)
 
 
 class FrameProcessor:
@@ -69,34 +89,48 @@ class FrameProcessor:
         self.types: MessageTypes = rosbags_message_types(get_typestore(Stores.ROS2_JAZZY))
         self._ros1_typestore: Any = None
 
-    def decode(self, raw: bytes, encoding: str) -> Any:
-        """A ``sensor_msgs/msg/PointCloud2`` of the Jazzy typestore from raw CDR or ROS 1 bytes."""
+    def decode(self, raw: bytes, encoding: str, msgtype: str = POINTCLOUD2) -> Any:
+        """A ``msgtype`` message of the Jazzy typestore from raw CDR or ROS 1 bytes."""
         typestore = self.types.typestore
         if encoding == 'cdr':
-            return typestore.deserialize_cdr(raw, POINTCLOUD2)
+            return typestore.deserialize_cdr(raw, msgtype)
         if self._ros1_typestore is None:
             from rosbags.typesys import Stores, get_typestore
 
             self._ros1_typestore = get_typestore(Stores.ROS1_NOETIC)
-        return ros1_cloud_as_ros2(self._ros1_typestore.deserialize_ros1(raw, POINTCLOUD2), typestore)
+        return ros1_as_ros2(self._ros1_typestore.deserialize_ros1(raw, msgtype), typestore)
 
-    def process(self, raw: bytes, encoding: str, convert_copy: bool = False) -> FrameResult:
-        """Decode, process and serialize one message; failures become a skipped :class:`FrameResult`."""
+    def _decode_frame(self, raw: FrameInput, encoding: str) -> Any:
+        """The PointCloud2, or the :class:`DepthFrame` of a depth image and its camera info."""
+        if not isinstance(raw, DepthMessages):
+            return self.decode(raw, encoding)
+        image = self.decode(raw.image, encoding, IMAGE)
+        info = None if raw.camera_info is None else self.decode(raw.camera_info, encoding, CAMERA_INFO)
+        return DepthFrame(image, info, raw.camera_info_topic)
+
+    def process(self, raw: FrameInput, encoding: str, convert_copy: bool = False) -> FrameResult:
+        """Decode, process and serialize one frame; failures become a skipped :class:`FrameResult`."""
         start = time.perf_counter()
         typestore = self.types.typestore
+        depth = isinstance(raw, DepthMessages)
         try:
-            msg = self.decode(raw, encoding)
+            msg = self._decode_frame(raw, encoding)
         except Exception as exc:
+            what = f'{IMAGE} with its {CAMERA_INFO}' if depth else POINTCLOUD2
             return FrameResult(
                 'undecodable',
-                f'the message does not decode as {POINTCLOUD2}: {type(exc).__name__}: {exc}',
+                f'the message does not decode as {what}: {type(exc).__name__}: {exc}',
                 seconds=time.perf_counter() - start,
             )
         result = FrameResult()
         try:
             if convert_copy:
-                result.copy = bytes(typestore.serialize_cdr(msg, POINTCLOUD2))
-            frame = process_cloud(msg, self.params, self.types, outputs=self.selection)
+                copied = msg.image if depth else msg
+                result.copy = bytes(typestore.serialize_cdr(copied, IMAGE if depth else POINTCLOUD2))
+            if depth:
+                frame = process_depth_image(msg, self.params, self.types, outputs=self.selection)
+            else:
+                frame = process_cloud(msg, self.params, self.types, outputs=self.selection)
             if frame.labeled_points is not None:
                 result.outputs['labeled_points'] = bytes(typestore.serialize_cdr(frame.labeled_points, POINTCLOUD2))
             if frame.markers is not None:

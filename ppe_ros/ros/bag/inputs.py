@@ -24,7 +24,7 @@ from ppe_ros.ros.bag.salvage import (
     salvage_scan_error,
     salvaged_mcap_reader,
 )
-from ppe_ros.ros.bag.topics import POINTCLOUD2
+from ppe_ros.ros.bag.topics import CAMERA_INFO, IMAGE, POINTCLOUD2, camera_info_topic
 
 
 @dataclass(frozen=True)
@@ -286,30 +286,51 @@ def _open_ros1(path: Path, stack: contextlib.ExitStack) -> InputBag:
 
 
 def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
-    """The PointCloud2 topics to process: ``requested`` (checked) or every PointCloud2 topic.
+    """The topics to process: ``requested`` (checked), or every PointCloud2 topic and every depth image topic.
+
+    A depth image topic is a ``sensor_msgs/msg/Image`` topic with a ``sensor_msgs/msg/CameraInfo``
+    topic beside it (:func:`~ppe_ros.ros.bag.topics.camera_info_topic`); by default only those with
+    ``depth`` in their name (a camera's colour images have a camera info too); requested, any.
 
     Raises:
-        BagError: a requested topic is not in the bag or is not a PointCloud2; no PointCloud2 topic.
+        BagError: a requested topic is not in the bag, is neither a PointCloud2 nor an Image, or is an
+            Image without its camera info; nothing to process.
     """
     clouds = [name for name, topic in bag.topics.items() if topic.msgtype == POINTCLOUD2]
+    depth = [name for name, topic in bag.topics.items() if _has_camera_info(bag, name) and 'depth' in name.lower()]
     listing = ', '.join(f'{name} ({topic.msgtype})' for name, topic in bag.topics.items()) or 'none'
     if not requested:
-        if not clouds and bag.damage:
+        if not (clouds or depth) and bag.damage:
             raise BagError(
                 f'{bag.path} is damaged before its first complete {POINTCLOUD2} message '
                 f'({bag.damage}); nothing to process'
             )
-        if not clouds:
-            raise BagError(f'{bag.path} has no {POINTCLOUD2} topic; its topics: {listing}')
-        return clouds
+        if not (clouds or depth):
+            raise BagError(
+                f'{bag.path} has no {POINTCLOUD2} topic and no depth image topic ({IMAGE} with a {CAMERA_INFO} '
+                f'beside it and "depth" in its name); its topics: {listing}'
+            )
+        return [name for name in bag.topics if name in clouds or name in depth]
     selected: list[str] = []
     for name in requested:
         topic = name if name.startswith('/') else f'/{name}'
         if topic not in bag.topics:
-            available = ', '.join(clouds) or f'none (its topics: {listing})'
-            raise BagError(f'topic {name!r} is not in {bag.path}; its {POINTCLOUD2} topics: {available}')
-        if bag.topics[topic].msgtype != POINTCLOUD2:
-            raise BagError(f'topic {topic} has type {bag.topics[topic].msgtype}, not {POINTCLOUD2}')
+            available = ', '.join(clouds + depth) or f'none (its topics: {listing})'
+            raise BagError(f'topic {name!r} is not in {bag.path}; its point cloud and depth image topics: {available}')
+        msgtype = bag.topics[topic].msgtype
+        if msgtype == IMAGE and not _has_camera_info(bag, topic):
+            raise BagError(
+                f'topic {topic} is an image without its camera info: {bag.path} has no {camera_info_topic(topic)} '
+                f'({CAMERA_INFO}) beside it'
+            )
+        if msgtype not in (POINTCLOUD2, IMAGE):
+            raise BagError(f'topic {topic} has type {msgtype}, not {POINTCLOUD2} or {IMAGE}')
         if topic not in selected:
             selected.append(topic)
     return selected
+
+
+def _has_camera_info(bag: InputBag, topic: str) -> bool:
+    """Whether ``topic`` is an Image with a CameraInfo topic beside it."""
+    info = bag.topics.get(camera_info_topic(topic))
+    return bag.topics[topic].msgtype == IMAGE and info is not None and info.msgtype == CAMERA_INFO

@@ -20,7 +20,7 @@ from typing import Any
 
 from ppe_ros.ros.bag.errors import BagError
 from ppe_ros.ros.bag.executors import IN_FLIGHT_PER_JOB, TaskFailed, set_numba_threads
-from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult
+from ppe_ros.ros.bag.frames import FrameInput, FrameProcessor, FrameResult
 from ppe_ros.ros.processing import ExtractorParams
 
 #: Frames of one task by default: a few seconds of work at 0.2-0.6 s a frame, against Ray's
@@ -32,8 +32,9 @@ DEFAULT_TASK_RETRIES = 3
 #: The processor of this Ray worker process, kept across tasks of the same parameters.
 _WORKER_PROCESSOR: FrameProcessor | None = None
 
-#: One frame of a task: raw message, encoding ('cdr' or 'ros1'), whether to convert a copy to ROS 2.
-Frame = tuple[bytes, str, bool]
+#: One frame of a task: raw message (or depth image with camera info), encoding ('cdr' or 'ros1'), whether to
+#: convert a copy to ROS 2.
+Frame = tuple[FrameInput, str, bool]
 
 
 def process_frames(params: ExtractorParams, numba_threads: int, frames: Sequence[Frame]) -> Any:
@@ -164,7 +165,7 @@ class RayExecutor:
         self._in_flight: list[tuple[Any, Future]] = []  # (Ray object, the frame's future)
         self._tasks = 0
 
-    def submit(self, raw: bytes, encoding: str, convert_copy: bool) -> Future:
+    def submit(self, raw: FrameInput, encoding: str, convert_copy: bool) -> Future:
         future: Future = Future()
         self._batch.append(((raw, encoding, convert_copy), future))
         if len(self._batch) >= self._task_frames:

@@ -21,7 +21,7 @@ class BagOptions:
 
     Attributes:
         input, output: IN and OUT.
-        topics: input topics to process; empty = every PointCloud2 topic.
+        topics: input topics to process; empty = every PointCloud2 topic and depth image topic.
         params: extractor parameters (the node's; see ``ExtractorParams.from_yaml``).
         params_source: where they came from, for the report and the output's metadata.
         copy_input: also copy the input topics.
@@ -61,6 +61,7 @@ class TopicReport:
     input_topic: str
     outputs: dict[str, str]
     expected: int | None
+    msgtype: str = 'sensor_msgs/msg/PointCloud2'  # or sensor_msgs/msg/Image (a depth image with its camera info)
     read: int = 0
     processed: int = 0
     copied: int = 0

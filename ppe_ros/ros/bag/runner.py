@@ -26,13 +26,20 @@ from ppe_ros.ros.bag.executors import (
     default_numba_threads,
     set_numba_threads,
 )
-from ppe_ros.ros.bag.frames import FrameProcessor, FrameResult
+from ppe_ros.ros.bag.frames import DepthMessages, FrameInput, FrameProcessor, FrameResult
 from ppe_ros.ros.bag.inputs import InputBag, open_input_bag, select_topics
 from ppe_ros.ros.bag.output import STORAGES, OutputBag, check_paths
 from ppe_ros.ros.bag.ray_executor import RayExecutor
 from ppe_ros.ros.bag.report import BagOptions, BagReport, BagsReport, TopicReport, format_report
 from ppe_ros.ros.bag.signals import StopRequests
-from ppe_ros.ros.bag.topics import OUTPUT_MSGTYPES, OUTPUT_SUFFIXES, POINTCLOUD2, output_topics
+from ppe_ros.ros.bag.topics import (
+    IMAGE,
+    OUTPUT_MSGTYPES,
+    OUTPUT_SUFFIXES,
+    POINTCLOUD2,
+    camera_info_topic,
+    output_topics,
+)
 from ppe_ros.ros.processing import OutputSelection
 
 #: Skip reasons logged per input topic and kind before the rest are only counted.
@@ -58,7 +65,7 @@ def process_bag(
     warn: Callable[[str], None] | None = None,
     executor: FrameExecutor | None = None,
 ) -> BagReport:
-    """Turn the PointCloud2 topics of a bag into the extractor's outputs in a new rosbag2.
+    """Turn the PointCloud2 and depth image topics of a bag into the extractor's outputs in a new rosbag2.
 
     Args:
         options: see :class:`BagOptions`.
@@ -310,7 +317,7 @@ def _plan(report: BagReport, bag: InputBag, log: Callable[[str], None], warn: Ca
     kinds = [kind for kind in OUTPUT_SUFFIXES if getattr(selection, kind)]
     names = output_topics(selected, kinds=kinds, reserved=selected if options.copy_input else ())
     for topic in selected:
-        report.topics[topic] = TopicReport(topic, names[topic], bag.topics[topic].count)
+        report.topics[topic] = TopicReport(topic, names[topic], bag.topics[topic].count, bag.topics[topic].msgtype)
     if bag.damage and all(entry.expected == 0 for entry in report.topics.values()):
         raise BagError(f'{options.input} is damaged before its first complete frame ({bag.damage}); nothing to process')
     _log_plan(report, bag, log, warn, requested=bool(options.topics))
@@ -325,12 +332,13 @@ def _log_plan(
     known = all(t.count is not None for t in bag.topics.values())
     count = f'{total} messages' if known else 'message count unknown'
     log(f'reading {bag.path}: {bag.description}, {len(bag.topics)} topics, {count}')
-    which = 'the requested topics' if requested else f'every {POINTCLOUD2} topic'
+    which = 'the requested topics' if requested else f'every {POINTCLOUD2} topic and depth image topic'
     log(f'processing {which}:')
     for topic in report.topics.values():
         expected = '?' if topic.expected is None else topic.expected
         outputs = ', '.join(topic.outputs.values()) or '(no output enabled)'
-        log(f'  {topic.input_topic} ({expected} messages) -> {outputs}')
+        info = f' with {camera_info_topic(topic.input_topic)}' if topic.msgtype == IMAGE else ''
+        log(f'  {topic.input_topic} ({expected} messages{info}) -> {outputs}')
 
 
 def _set_up_output(output: OutputBag, report: BagReport, options: BagOptions) -> tuple[dict, dict]:
@@ -340,8 +348,8 @@ def _set_up_output(output: OutputBag, report: BagReport, options: BagOptions) ->
     typestore = get_typestore(Stores.ROS2_JAZZY)
     copy_connections = {}
     if options.copy_input:
-        for topic in report.topics:
-            copy_connections[topic] = output.add_connection(topic, POINTCLOUD2, typestore)
+        for topic, entry in report.topics.items():
+            copy_connections[topic] = output.add_connection(topic, entry.msgtype, typestore)
     connections = {
         topic: {
             kind: output.add_connection(name, OUTPUT_MSGTYPES[kind], typestore) for kind, name in entry.outputs.items()
@@ -378,7 +386,13 @@ def _run(
     convert_copy = options.copy_input and bag.encoding == 'ros1'
     logged: Counter[tuple[str, str]] = Counter()
     pending: deque[tuple[str, int, bytes | None, Future]] = deque()
-    stream = bag.messages(list(report.topics))
+    # depth images: camera info topic -> its image topics, and the last camera info read on it
+    info_topics: dict[str, list[str]] = {}
+    for topic, entry in report.topics.items():
+        if entry.msgtype == IMAGE:
+            info_topics.setdefault(camera_info_topic(topic), []).append(topic)
+    latest_info: dict[str, bytes] = {}
+    stream = bag.messages([*report.topics, *info_topics])
     abandon = False
     try:
         reading = True
@@ -397,9 +411,16 @@ def _run(
                     )
                     reading = False
                     break
-                report.topics[topic].read += 1
                 raw = bytes(raw)
-                future = executor.submit(raw, bag.encoding, convert_copy)
+                if topic in info_topics and topic not in report.topics:  # goes with the images after it
+                    latest_info[topic] = raw
+                    continue
+                report.topics[topic].read += 1
+                frame: FrameInput = raw
+                if report.topics[topic].msgtype == IMAGE:
+                    info = camera_info_topic(topic)
+                    frame = DepthMessages(raw, latest_info.get(info), info)
+                future = executor.submit(frame, bag.encoding, convert_copy)
                 pending.append((topic, timestamp, raw if options.copy_input and not convert_copy else None, future))
             executor.flush()
             if stops.stop and not announced:

@@ -8,6 +8,8 @@ from collections.abc import Sequence
 from ppe_ros.ros.bag.errors import BagError
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+IMAGE = 'sensor_msgs/msg/Image'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 
 #: Output kinds in writing order: topic suffix (relative to the namespace) and message type.
@@ -21,6 +23,12 @@ OUTPUT_MSGTYPES: dict[str, str] = {
     'markers': MARKER_ARRAY,
     'plane_table': POINTCLOUD2,
 }
+
+
+def camera_info_topic(image_topic: str) -> str:
+    """The camera info topic beside an image topic (image_transport's convention):
+    ``/camera/depth/image_rect_raw`` -> ``/camera/depth/camera_info``."""
+    return f'{image_topic.rsplit("/", 1)[0]}/camera_info'
 
 
 def output_topics(
