@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -438,3 +439,101 @@ def test_the_node_survives_malformed_clouds_interleaved_with_good_ones():
         node.destroy_node()
         executor.shutdown(timeout_sec=1.0)
         context.try_shutdown()
+
+
+# ------------------------------------------------------------------ depth images
+
+
+DEPTH_SKIP_KINDS = {
+    'empty',
+    'too_large',
+    'no_valid_points',
+    'invalid_image',
+    'invalid_camera_info',
+    'camera_info_mismatch',
+}
+#: Depth and calibration values a driver or a corrupt message may hold.
+ODD_VALUES = [np.nan, np.inf, -np.inf, 0.0, -1.0, 1e300, 1e-300, 5e9, -5e9, 1.0]
+
+
+def mutated_depth_frame(rng: np.random.Generator):
+    """A small depth image (32FC1 or 16UC1, odd values, padded rows, either byte order) and its camera info,
+    with up to three random mutations of the image (encoding, step, data length, size, byte order) or of
+    the camera info (K, P, D, binning, ROI, size)."""
+    from depth_frames import camera_info, corner_depth, depth_image
+
+    from ppe_ros.ros.depth_image import DepthFrame
+
+    height, width = int(rng.integers(1, 40)), int(rng.integers(1, 40))
+    fx, fy = float(rng.uniform(10, 200)), float(rng.uniform(10, 200))
+    z = corner_depth(height, width, fx=fx, fy=fy, cx=width / 2, cy=height / 2)
+    encoding = str(rng.choice(['32FC1', '16UC1', 'mono16']))
+    odd = rng.random(z.shape) < rng.uniform(0, 0.3)
+    if encoding == '32FC1':
+        values = z.copy()
+        values[odd] = rng.choice(ODD_VALUES, odd.sum())
+        with np.errstate(over='ignore', invalid='ignore'):
+            values = values.astype(np.float32)
+    else:
+        values = np.clip(np.round(z * 1000), 0, 65535).astype(np.uint16)
+        values[odd] = rng.choice([0, 1, 65535, 30000], odd.sum())
+    image = depth_image(
+        TYPES, values, encoding, big_endian=bool(rng.random() < 0.2), padding=int(rng.choice([0, 2, 3, 8]))
+    )
+    info = dict(
+        width=width,
+        height=height,
+        k=[fx, 0, width / 2, 0, fy, height / 2, 0, 0, 1],
+        p=[fx, 0, width / 2, 0, 0, fy, height / 2, 0, 0, 0, 1, 0],
+    )
+    for _ in range(int(rng.integers(0, 4))):
+        what = int(rng.integers(0, 11))
+        if what == 0:
+            image.encoding = str(rng.choice(['rgb8', '8UC1', '16SC1', '', '32FC2', '64FC1', 'TYPE_16UC1']))
+        elif what == 1:
+            image.step = int(rng.integers(-5, 200))
+        elif what == 2:
+            image.data = np.resize(image.data, int(rng.integers(0, len(image.data) + 20)))
+        elif what == 3:
+            image.height = int(rng.integers(0, 60))
+        elif what == 4:
+            image.width = int(rng.integers(0, 60))
+        elif what == 5:
+            info['k'] = [float(v) for v in rng.choice(ODD_VALUES, 9)]
+            info['p'] = [float(v) for v in rng.choice(ODD_VALUES, 12)] if rng.random() < 0.5 else [0.0] * 12
+        elif what == 6:
+            info['binning'] = (int(rng.choice([0, 1, 2, 1000, 2**31 - 1])), int(rng.choice([0, 1, 2, 7])))
+        elif what == 7:
+            info['roi'] = tuple(int(v) for v in rng.integers(0, 60, 4))
+        elif what == 8:
+            info['width'] = int(rng.choice([0, 1, width, 2 * width, 2**31 - 1]))
+            info['height'] = int(rng.choice([0, height, 2 * height, 2**31 - 1]))
+        elif what == 9:
+            info['d'] = tuple(float(v) for v in rng.choice(ODD_VALUES, int(rng.integers(0, 9))))
+        else:
+            image.is_bigendian = int(rng.integers(0, 3))
+    return DepthFrame(image, camera_info(TYPES, **info))
+
+
+def test_malformed_depth_images_are_processed_or_skipped_with_a_reason():
+    """300 seeded depth frames: each is extracted (labels of the image's size) or skipped with a known kind;
+    nothing else is raised, and the fuzz reaches every kind of outcome."""
+    from ppe_ros.ros.processing import process_depth_image
+
+    rng = np.random.default_rng(SEED)
+    outcomes: dict[str, int] = {}
+    for _ in range(300):
+        frame = mutated_depth_frame(rng)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter('error')  # a RuntimeWarning would reach the node's log
+                result = process_depth_image(frame, PARAMS, TYPES)
+        except FrameSkipped as exc:
+            assert exc.kind in DEPTH_SKIP_KINDS and exc.reason, exc
+            kind = exc.kind
+        else:
+            assert result.planes.labels.shape == (frame.image.height, frame.image.width)
+            assert result.labeled_points is not None and result.plane_table is not None
+            kind = 'processed'
+        outcomes[kind] = outcomes.get(kind, 0) + 1
+    assert {'processed', 'invalid_image', 'invalid_camera_info', 'camera_info_mismatch'} <= set(outcomes), outcomes

@@ -187,6 +187,8 @@ def depth_values(image: Any) -> tuple[np.ndarray, float]:
 def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
     """The ``(H, W, 3)`` float64 points (m, the image's optical frame; NaN = no return) of a depth image.
 
+    A pixel whose depth is 0, NaN or infinite, or whose point has a coordinate that is not finite, is no return.
+
     Raises:
         DepthImageError: see :func:`depth_values` and :func:`camera_model`; ``camera_info_mismatch``
             when the image's size is not the one the camera info describes.
@@ -201,4 +203,7 @@ def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
         )
     depth = counts.astype(np.float64)
     depth[~np.isfinite(depth)] = 0.0  # NaN and +-inf: no return (backproject_depth: depth <= 0 is none)
-    return backproject_depth(depth, camera.intrinsics, scale)
+    with np.errstate(over='ignore', invalid='ignore'):  # absurd intrinsics (fx 1e-300): no finite point
+        points = backproject_depth(depth, camera.intrinsics, scale)
+        points[~np.isfinite(points).all(axis=2)] = np.nan  # as the cloud path: a non-finite coordinate is no return
+    return points
