@@ -11,9 +11,10 @@ the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` (
 ``$PPE_SHARED_DATA/ouster``) with the planes the node finds (with a params file of ``sensor: none``
 about a thousand small ones, the worst case for the number of markers); or ``depth``: a generated
 640 x 480 Kinect-like depth frame of a furnished room (optical frame, NaN invalid), with the planes
-the node finds.
+the node finds; or ``depth_image``: the same frame as the depth camera publishes it (a 16UC1
+``sensor_msgs/Image`` in millimetres with its ``CameraInfo``), converted by the node's depth image path.
 
-    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster|depth]
+    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster|depth|depth_image]
         [--params FILE.yaml]
 
 ``--params`` takes the node's params file (default: the node defaults, as in config/extractor.yaml);
@@ -50,6 +51,7 @@ from ppe_ros.ros.processing import (
     ProcessedFrame,
     build_outputs,
     cloud_points,
+    depth_frame_points,
     process_cloud,
 )
 
@@ -98,6 +100,26 @@ def driver_message(points: np.ndarray, types):
     )
 
 
+def depth_camera_message(scan, types):
+    """A generated depth frame as a depth camera publishes it: a :class:`DepthFrame` of a 16UC1 image
+    (millimetres, 0 = no return) and its CameraInfo (the generator's intrinsics)."""
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from ppe_ros.ros.depth_image import DepthFrame
+
+    depth = np.nan_to_num(scan.points[..., 2], nan=0.0)
+    millimetres = np.clip(np.round(depth * 1000.0), 0, 65535).astype('<u2')
+    height, width = millimetres.shape
+    header = driver_message(scan.points[:2, :2], types).header
+    image = Image(header=header, height=height, width=width, encoding='16UC1', step=2 * width)
+    image.data = millimetres.tobytes()
+    fx, fy, cx, cy = scan.intrinsics
+    info = CameraInfo(header=header, height=height, width=width, distortion_model='plumb_bob')
+    info.k = [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
+    info.p = [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return DepthFrame(image, info)
+
+
 def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: bool) -> dict:
     """CPU cores an in-process node uses while ``msg`` arrives at ``rate`` Hz and nobody subscribes."""
     import rclpy
@@ -141,7 +163,7 @@ def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: boo
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
-    parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth'), default='synthetic')
+    parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth', 'depth_image'), default='synthetic')
     parser.add_argument(
         '--params', default=None, metavar='FILE.yaml', help="the node's params file (default: the node defaults)"
     )
@@ -166,19 +188,26 @@ def main(argv: list[str] | None = None) -> int:
         # the planes the node finds with these params (its e / lmax / min_plane_points of 0 are the profile's)
         planes = process_cloud(msg, params, types, outputs=OutputSelection(False, False, False)).planes
         description = f'Ouster {OUSTER_FILE}, planes from the node (sensor {params.sensor})'
-    elif args.cloud == 'depth':  # what the node finds with these params
+    elif args.cloud in ('depth', 'depth_image'):  # what the node finds with these params
         from ppe_ros.core.synthetic_real import generate_depth_scan
 
-        points = generate_depth_scan(seed=0).points
-        msg = driver_message(points, types)
-        planes = process_cloud(msg, params, types, outputs=OutputSelection(False, False, False)).planes
-        description = f'generated 640 x 480 depth frame (indoor scene, seed 0), planes from the node ({params.sensor})'
+        scan = generate_depth_scan(seed=0)
+        points = scan.points
+        msg = driver_message(points, types) if args.cloud == 'depth' else depth_camera_message(scan, types)
+        planes = process_cloud(
+            driver_message(points, types), params, types, outputs=OutputSelection(False, False, False)
+        ).planes
+        what = 'depth frame' if args.cloud == 'depth' else 'depth image (16UC1 + CameraInfo)'
+        description = f'generated 640 x 480 {what} (indoor scene, seed 0), planes from the node ({params.sensor})'
     else:  # the true faces, fitted: the overhead does not depend on how the planes were found
         points, labels = synthetic_room()
         msg = driver_message(points, types)
         planes = fit_labeled_planes(cloud_points(msg, params), labels).planes
         description = 'synthetic 28-gon room + floor + ceiling, planes fitted to the true faces'
     planes_s = time.perf_counter() - start
+    if args.idle and args.cloud == 'depth_image':
+        print('--idle feeds clouds; use --cloud depth for the depth frame', file=sys.stderr)
+        return 2
     if args.idle:
         height, width, _ = points.shape
         print(
@@ -202,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     marker_bytes = marker_stride = 0
     for repeat in range(args.repeats + 1):  # the first run compiles / loads the numba cache
         start, cpu_start = time.perf_counter(), time.thread_time()
-        points_in = cloud_points(msg, params)
+        points_in = depth_frame_points(msg, params) if args.cloud == 'depth_image' else cloud_points(msg, params)
         convert = time.perf_counter() - start
         frame = ProcessedFrame(
             header=msg.header,
@@ -234,7 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     print('| step | median ms | max ms |')
     print('|---|---|---|')
     labels = {
-        'convert': 'conversion in (PointCloud2 -> validated points)',
+        'convert': 'conversion in (depth image + camera info -> validated points)'
+        if args.cloud == 'depth_image'
+        else 'conversion in (PointCloud2 -> validated points)',
         'labeled_points': 'labelled cloud',
         'markers': 'markers (mesh + outline + arrows, CDR)',
         'plane_table': 'plane table',

@@ -79,6 +79,11 @@ def test_p_is_used_and_k_when_p_is_zero(types):
         (dict(k=[np.nan] * 9, p=[0.0] * 12), 'no usable calibration'),
         (dict(p=[-5.0, 0, 1, 0, 0, 5.0, 1, 0, 0, 0, 1, 0]), 'no usable calibration'),
         (dict(width=0), 'camera info size is 60 x 0'),
+        (
+            dict(p=[1e-300, 0, 1, 0, 0, 5.0, 1, 0, 0, 0, 1, 0]),
+            'camera info gives rays up to 7.8e+301 times their depth sideways (fx 1e-300',
+        ),
+        (dict(p=[1e-5, 0, 1, 0, 0, 5.0, 1, 0, 0, 0, 1, 0]), 'not a pinhole calibration'),
         (dict(roi=(70, 0, 10, 20)), 'ROI 20 x 10 at (70, 0) is outside its 80 x 60 image'),
     ],
 )

@@ -34,6 +34,11 @@ DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
 }
 
 
+#: Largest sideways extent of an image's rays per unit of depth (tan of half the field of view); a calibration
+#: beyond it (a field of view of more than 179.9999 degrees) is not a pinhole camera's.
+MAX_RAY_SLOPE = 1.0e6
+
+
 class DepthImageError(ValueError):
     """A depth image or camera info that cannot be used; ``kind`` says which part (a FrameSkipped kind).
 
@@ -107,7 +112,8 @@ def camera_model(info: Any) -> DepthCamera:
 
     Raises:
         DepthImageError: ``invalid_camera_info`` (no calibration: P and K zero or not finite, a
-            non-positive focal length, a size of zero, a ROI outside the image).
+            non-positive focal length, rays more than :data:`MAX_RAY_SLOPE` times their depth sideways,
+            a size of zero, a ROI outside the image).
     """
     try:
         height, width = int(info.height), int(info.width)
@@ -146,7 +152,16 @@ def camera_model(info: Any) -> DepthCamera:
     except (TypeError, ValueError):
         raise DepthImageError('invalid_camera_info', 'camera info D is not a list of numbers') from None
     intrinsics = PinholeIntrinsics(fx / binning_x, fy / binning_y, (cx - roi_x) / binning_x, (cy - roi_y) / binning_y)
-    return DepthCamera(intrinsics, height // binning_y, width // binning_x, distorted, source)
+    height, width = height // binning_y, width // binning_x
+    fx, fy, cx, cy = intrinsics.as_tuple()
+    sideways = max(abs(cx), abs(width - 1 - cx)) / fx, max(abs(cy), abs(height - 1 - cy)) / fy
+    if not max(sideways) <= MAX_RAY_SLOPE:  # also NaN (fx 1e-300 overflows)
+        raise DepthImageError(
+            'invalid_camera_info',
+            f'camera info gives rays up to {max(sideways):g} times their depth sideways (fx {fx:g}, fy {fy:g}, '
+            f'cx {cx:g}, cy {cy:g} for {width} x {height} images): not a pinhole calibration',
+        )
+    return DepthCamera(intrinsics, height, width, distorted, source)
 
 
 def depth_values(image: Any) -> tuple[np.ndarray, float]:
@@ -187,7 +202,7 @@ def depth_values(image: Any) -> tuple[np.ndarray, float]:
 def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
     """The ``(H, W, 3)`` float64 points (m, the image's optical frame; NaN = no return) of a depth image.
 
-    A pixel whose depth is 0, NaN or infinite, or whose point has a coordinate that is not finite, is no return.
+    A pixel whose depth is 0, NaN or infinite is no return.
 
     Raises:
         DepthImageError: see :func:`depth_values` and :func:`camera_model`; ``camera_info_mismatch``
@@ -201,9 +216,6 @@ def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
             f'depth image is {counts.shape[1]} x {counts.shape[0]} but its camera info describes '
             f'{camera.width} x {camera.height} images',
         )
-    depth = counts.astype(np.float64)
-    depth[~np.isfinite(depth)] = 0.0  # NaN and +-inf: no return (backproject_depth: depth <= 0 is none)
-    with np.errstate(over='ignore', invalid='ignore'):  # absurd intrinsics (fx 1e-300): no finite point
-        points = backproject_depth(depth, camera.intrinsics, scale)
-        points[~np.isfinite(points).all(axis=2)] = np.nan  # as the cloud path: a non-finite coordinate is no return
-    return points
+    if counts.dtype.kind == 'f':  # NaN and +-inf: no return (backproject_depth: a depth <= 0 is none)
+        counts = np.where(np.isfinite(counts), counts, 0.0)
+    return backproject_depth(counts, camera.intrinsics, scale)

@@ -845,6 +845,32 @@ def process_cloud(
     return _process_decoded(msg.header, cloud, params, types, outputs, ray_origins, start)
 
 
+def depth_frame_points(frame: DepthFrame, params: ExtractorParams) -> np.ndarray:
+    """Validate a depth image and its camera info and return the ``(H, W, 3)`` float64 points (m, the
+    image's optical frame, NaN = no return); :func:`cloud_points` for a depth image.
+
+    Raises:
+        FrameSkipped: no camera info yet (``no_camera_info``), an empty or too large image, an image or
+            camera info that cannot be used (``invalid_image``, ``invalid_camera_info``,
+            ``camera_info_mismatch``), no valid depth.
+    """
+    height, width = _check_frame_size(frame.image, params, 'depth image', 'pixels')
+    if frame.camera_info is None:
+        raise FrameSkipped(
+            'no_camera_info', f'depth image without camera info: none received on {frame.camera_info_topic} yet'
+        )
+    try:
+        points = depth_image_points(frame.image, frame.camera_info)
+    except DepthImageError as exc:
+        raise FrameSkipped(exc.kind, f'depth image: {exc.reason}') from None
+    if np.isnan(points[..., 2]).all():
+        raise FrameSkipped(
+            'no_valid_points',
+            f'depth image of {height} x {width} pixels has no valid depth (every pixel 0, NaN or infinite)',
+        )
+    return points
+
+
 def process_depth_image(
     frame: DepthFrame, params: ExtractorParams, types: MessageTypes, *, outputs: OutputSelection | None = None
 ) -> ProcessedFrame:
@@ -855,28 +881,11 @@ def process_depth_image(
     carry the image's header.
 
     Raises:
-        FrameSkipped: no camera info yet (``no_camera_info``), an empty or too large image, an image or
-            camera info that cannot be used (``invalid_image``, ``invalid_camera_info``,
-            ``camera_info_mismatch``), no valid depth.
+        FrameSkipped: see :func:`depth_frame_points`.
     """
     start = time.perf_counter()
-    image = frame.image
-    height, width = _check_frame_size(image, params, 'depth image', 'pixels')
-    if frame.camera_info is None:
-        raise FrameSkipped(
-            'no_camera_info', f'depth image without camera info: none received on {frame.camera_info_topic} yet'
-        )
-    try:
-        points = depth_image_points(image, frame.camera_info)
-    except DepthImageError as exc:
-        raise FrameSkipped(exc.kind, f'depth image: {exc.reason}') from None
-    if np.isnan(points[..., 2]).all():
-        raise FrameSkipped(
-            'no_valid_points',
-            f'depth image of {height} x {width} pixels has no valid depth (every pixel 0, NaN or infinite)',
-        )
-    cloud = DecodedCloud(points, 'rows_are_beams')
-    return _process_decoded(image.header, cloud, params, types, outputs, None, start)
+    cloud = DecodedCloud(depth_frame_points(frame, params), 'rows_are_beams')
+    return _process_decoded(frame.image.header, cloud, params, types, outputs, None, start)
 
 
 def _process_decoded(
