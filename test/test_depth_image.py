@@ -176,7 +176,7 @@ def test_unusable_depth_frames_are_skipped_with_the_reason(types, kind, build):
     assert caught.value.kind == kind
     expected = {
         'no_camera_info': 'depth image without camera info: none received on depth/camera_info yet',
-        'camera_info_mismatch': 'depth image is 40 x 30 but its camera info describes 80 x 60 images',
+        'camera_info_mismatch': 'depth image: its size 40 x 30 is not the 80 x 60 that its camera info describes',
         'no_valid_points': 'has no valid depth',
         'too_large': 'depth image of 60 x 80 = 4800 pixels exceeds max_points = 4000',
         'invalid_camera_info': 'no usable calibration',

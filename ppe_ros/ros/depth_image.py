@@ -213,8 +213,8 @@ def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
     if counts.shape != (camera.height, camera.width):
         raise DepthImageError(
             'camera_info_mismatch',
-            f'depth image is {counts.shape[1]} x {counts.shape[0]} but its camera info describes '
-            f'{camera.width} x {camera.height} images',
+            f'its size {counts.shape[1]} x {counts.shape[0]} is not the {camera.width} x {camera.height} that its '
+            'camera info describes',
         )
     if counts.dtype.kind == 'f':  # NaN and +-inf: no return (backproject_depth: a depth <= 0 is none)
         counts = np.where(np.isfinite(counts), counts, 0.0)
