@@ -973,16 +973,29 @@ def test_input_reliability_change_keeps_the_depth_override(ros_context, executor
     node = ExtractorNode(
         context=ros_context,
         namespace=namespace,
-        parameter_overrides=[Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=2)],
+        parameter_overrides=[
+            Parameter(f'qos_overrides.{namespace}/points.subscription.depth', value=2),
+            Parameter(f'qos_overrides.{namespace}/depth/image.subscription.depth', value=4),
+        ],
     )
     executor.add_node(node)
     assert node._subscription.qos_profile.reliability == Reliability.BEST_EFFORT
+    assert (node._depth_subscription.qos_profile.reliability, node._depth_subscription.qos_profile.depth) == (
+        Reliability.BEST_EFFORT,
+        4,
+    )
     [result] = node.set_parameters([Parameter('input_reliability', value='reliable')])
     assert result.successful
     assert (node._subscription.qos_profile.reliability, node._subscription.qos_profile.depth) == (
         Reliability.RELIABLE,
         2,
     )
+    # the depth image input follows input_reliability too, keeping its own override
+    assert (node._depth_subscription.qos_profile.reliability, node._depth_subscription.qos_profile.depth) == (
+        Reliability.RELIABLE,
+        4,
+    )
+    assert node.depth_image_topic == f'{namespace}/depth/image'
 
 
 # ------------------------------------------------------------------ ray origins from the Ouster metadata

@@ -386,13 +386,10 @@ def _run(
     convert_copy = options.copy_input and bag.encoding == 'ros1'
     logged: Counter[tuple[str, str]] = Counter()
     pending: deque[tuple[str, int, bytes | None, Future]] = deque()
-    # depth images: camera info topic -> its image topics, and the last camera info read on it
-    info_topics: dict[str, list[str]] = {}
-    for topic, entry in report.topics.items():
-        if entry.msgtype == IMAGE:
-            info_topics.setdefault(camera_info_topic(topic), []).append(topic)
+    # depth images: the camera info topics read along, and the last camera info read on each
+    info_topics = {camera_info_topic(topic) for topic, entry in report.topics.items() if entry.msgtype == IMAGE}
     latest_info: dict[str, bytes] = {}
-    stream = bag.messages([*report.topics, *info_topics])
+    stream = bag.messages([*report.topics, *sorted(info_topics)])
     abandon = False
     try:
         reading = True
