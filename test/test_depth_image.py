@@ -12,6 +12,7 @@ from ppe_ros.ros.depth_image import (
     camera_model,
     depth_image_points,
     depth_values,
+    pixel_rays,
 )
 from ppe_ros.ros.messages import rclpy_message_types, rosbags_message_types
 from ppe_ros.ros.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2
@@ -202,3 +203,105 @@ def test_the_kinect_frame_as_a_depth_image_gives_the_points_of_the_png_loader(sh
     )
     points = depth_image_points(depth_image(types, counts, '16UC1'), info)
     np.testing.assert_array_equal(points, load_scan(path).points)
+
+
+# ------------------------------------------------------------------ raw (distorted) depth images
+
+#: (model, D, width, height, fx, fy, cx, cy): a webcam-like plumb_bob lens and an Azure Kinect-like
+#: rational_polynomial depth camera (large coefficients that nearly cancel).
+LENSES = [
+    ('plumb_bob', (-0.28, 0.09, 0.001, -0.0015, -0.012), 160, 120, 150.0, 152.0, 81.3, 58.9),
+    ('rational_polynomial', (5.0, 3.3, -6e-5, 1e-5, 0.17, 5.3, 5.1, 0.86), 160, 144, 126.0, 126.2, 80.4, 82.6),
+]
+
+
+def reference_ray(u, v, model, d, fx, fy, cx, cy):
+    """(x, y) with distort(x, y) = pixel (u, v): Newton's method on the forward model with a numerical
+    Jacobian, pixel by pixel (slow, obviously correct)."""
+    k = list(d) + [0.0] * (8 - len(d))
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
+
+    def forward(x, y):
+        r2 = x * x + y * y
+        radial = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+        return (
+            fx * (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)) + cx,
+            fy * (y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y) + cy,
+        )
+
+    x, y = (u - cx) / fx, (v - cy) / fy
+    for _ in range(100):
+        fu, fv = forward(x, y)
+        h = 1e-7
+        jac = np.array(
+            [
+                [(forward(x + h, y)[0] - fu) / h, (forward(x, y + h)[0] - fu) / h],
+                [(forward(x + h, y)[1] - fv) / h, (forward(x, y + h)[1] - fv) / h],
+            ]
+        )
+        step = np.linalg.solve(jac, [u - fu, v - fv])
+        x, y = x + step[0], y + step[1]
+        if abs(step).max() < 1e-15:
+            break
+    return x, y
+
+
+def raw_info(types, model, d, width, height, fx, fy, cx, cy):
+    info = camera_info(types, width=width, height=height, k=[fx, 0, cx, 0, fy, cy, 0, 0, 1], d=d)
+    info.distortion_model = model
+    info.p = np.asarray([fx * 0.9, 0, cx, 0, 0, fy * 0.9, cy, 0, 0, 0, 1, 0], dtype=np.float64)  # rectified's
+    return info
+
+
+@pytest.mark.parametrize('lens', LENSES, ids=[lens[0] for lens in LENSES])
+def test_raw_depth_pixels_get_the_undistorted_rays_of_a_slow_reference(types, lens):
+    model, d, width, height, fx, fy, cx, cy = lens
+    camera = camera_model(raw_info(types, *lens), rectified=False)
+    assert camera.source == 'K' and camera.distortion_model == model
+    assert camera.describe().endswith(f'(from K); {model} distortion undone (the image is taken as raw)')
+    rays = pixel_rays(camera)
+    assert not np.isnan(rays).any()
+    for v, u in [(0, 0), (0, width - 1), (height - 1, 0), (height - 1, width - 1), (height // 2, width // 3), (7, 101)]:
+        np.testing.assert_allclose(rays[v, u], reference_ray(u, v, model, d, fx, fy, cx, cy), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize('lens', LENSES, ids=[lens[0] for lens in LENSES])
+def test_a_raw_depth_image_of_a_tilted_wall_lies_on_the_wall_only_when_undistorted(types, lens):
+    """z-depths of the plane 0.3 x - 0.2 y + z = 2.5 seen through the lens: with depth_image_rectified
+    false every point is on the plane; taken as rectified, the distortion bends it by centimetres."""
+    info = raw_info(types, *lens)
+    rays = pixel_rays(camera_model(info, rectified=False))
+    normal = np.array([0.3, -0.2, 1.0])
+    z = 2.5 / (normal[0] * rays[..., 0] + normal[1] * rays[..., 1] + 1.0)
+    image = depth_image(types, z)  # 32FC1
+    raw = depth_image_points(image, info, rectified=False)
+    assert not np.isnan(raw).any()
+    np.testing.assert_allclose(raw @ normal, 2.5, rtol=0, atol=2e-6)  # float32 depths
+    bent = depth_image_points(image, info)  # taken as rectified (P, no D)
+    assert np.abs(bent @ normal - 2.5).max() > 0.01
+
+
+def test_a_raw_depth_image_of_another_distortion_model_is_refused_and_a_rectified_one_ignores_it(types):
+    info = raw_info(types, 'equidistant', (0.1, 0.01, 0.0, 0.0), 80, 60, FX, FY, CX, CY)
+    with pytest.raises(DepthImageError) as caught:
+        camera_model(info, rectified=False)
+    assert caught.value.kind == 'invalid_camera_info'
+    assert "distortion 'equidistant' with D = [0.1, 0.01, 0.0, 0.0] cannot be undone" in caught.value.reason
+    assert 'plumb_bob, rational_polynomial' in caught.value.reason
+    assert camera_model(info).distortion == ()  # rectified: D is not applied
+    zero = raw_info(types, 'equidistant', (0.0,) * 4, 80, 60, FX, FY, CX, CY)
+    assert camera_model(zero, rectified=False).intrinsics.as_tuple() == (FX, FY, CX, CY)  # K, nothing to undo
+    extra = raw_info(types, 'plumb_bob', (0.1, 0.0, 0.0, 0.0, 0.0, 0.3), 80, 60, FX, FY, CX, CY)
+    with pytest.raises(DepthImageError, match='cannot be undone'):  # a 6th plumb_bob coefficient
+        camera_model(extra, rectified=False)
+
+
+def test_the_node_parameter_takes_raw_depth_images(types):
+    width, height = LENSES[0][2:4]
+    info = raw_info(types, *LENSES[0])
+    z = np.full((height, width), 2.0)
+    frame = DepthFrame(depth_image(types, z), info)
+    raw = process_depth_image(frame, ExtractorParams(depth_image_rectified=False, min_plane_points=20), types)
+    np.testing.assert_allclose(raw.points, depth_image_points(frame.image, info, rectified=False))
+    rectified = process_depth_image(frame, ExtractorParams(min_plane_points=20), types)
+    assert not np.allclose(rectified.points, raw.points)

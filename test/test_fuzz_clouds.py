@@ -512,22 +512,30 @@ def mutated_depth_frame(rng: np.random.Generator):
             info['d'] = tuple(float(v) for v in rng.choice(ODD_VALUES, int(rng.integers(0, 9))))
         else:
             image.is_bigendian = int(rng.integers(0, 3))
-    return DepthFrame(image, camera_info(TYPES, **info))
+    if 'd' not in info and rng.random() < 0.8:  # a lens: weak, strong, folding over
+        info['d'] = tuple(
+            float(v) for v in rng.normal(0.0, float(rng.choice([0.01, 0.3, 3.0])), int(rng.integers(4, 9)))
+        )
+    info_msg = camera_info(TYPES, **info)
+    info_msg.distortion_model = str(rng.choice(['plumb_bob', 'rational_polynomial', 'equidistant', '']))
+    return DepthFrame(image, info_msg)
 
 
 def test_malformed_depth_images_are_processed_or_skipped_with_a_reason():
-    """300 seeded depth frames: each is extracted (labels of the image's size) or skipped with a known kind;
+    """300 seeded depth frames, taken as rectified or (every second) as raw with their distortion undone: each
+    is extracted (labels of the image's size) or skipped with a known kind;
     nothing else is raised, and the fuzz reaches every kind of outcome."""
     from ppe_ros.ros.processing import process_depth_image
 
     rng = np.random.default_rng(SEED)
     outcomes: dict[str, int] = {}
-    for _ in range(300):
+    raw = PARAMS.replace(depth_image_rectified=False)
+    for case in range(300):
         frame = mutated_depth_frame(rng)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter('error')  # a RuntimeWarning would reach the node's log
-                result = process_depth_image(frame, PARAMS, TYPES)
+                result = process_depth_image(frame, raw if case % 2 else PARAMS, TYPES)
         except FrameSkipped as exc:
             assert exc.kind in DEPTH_SKIP_KINDS and exc.reason, exc
             kind = exc.kind

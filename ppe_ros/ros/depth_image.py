@@ -11,7 +11,9 @@ back-projects every pixel as depth_image_proc's ``point_cloud_xyz`` does:
   ``(z (u - cx) / fx, z (v - cy) / fy, z)`` in the image's optical frame (x right, y down, z forward),
   with fx, fy, cx, cy from the projection matrix P (the camera matrix K when P is all zero),
   adjusted for the camera info's binning and region of interest. The distortion coefficients D are
-  not applied (rectify a raw, distorted depth image with image_proc first);
+  not applied; with ``rectified=False`` (the node's ``depth_image_rectified: false``) the image is
+  raw instead: the camera matrix K and the coefficients D (``plumb_bob`` or
+  ``rational_polynomial``) give each pixel its undistorted ray, and the point is z times it;
 * the image's size must be the one the camera info describes (its ROI's, or its own, over the binning).
 
 Nothing here imports rclpy: messages of either flavour (rclpy or rosbags) work.
@@ -19,6 +21,7 @@ Nothing here imports rclpy: messages of either flavour (rclpy or rosbags) work.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -75,6 +78,8 @@ class DepthCamera:
         height, width: the image size the camera info describes (after ROI and binning).
         distorted: the camera info has non-zero distortion coefficients (not applied: see the module).
         source: ``'P'`` or ``'K'``, the matrix the intrinsics come from.
+        distortion: (k1, k2, p1, p2, k3, k4, k5, k6) to undo (a raw image's), or () for a rectified one.
+        distortion_model: the camera info's model name when ``distortion`` is set.
     """
 
     intrinsics: PinholeIntrinsics
@@ -82,14 +87,18 @@ class DepthCamera:
     width: int
     distorted: bool
     source: str = 'P'
+    distortion: tuple[float, ...] = ()
+    distortion_model: str = ''
 
     def describe(self) -> str:
-        """One line for the log: size, intrinsics and where they came from, whether D is ignored."""
+        """One line for the log: size, intrinsics and where they came from, what becomes of D."""
         fx, fy, cx, cy = self.intrinsics.as_tuple()
         text = (
             f'{self.width} x {self.height} images, fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f} (from {self.source})'
         )
-        if self.distorted:
+        if self.distortion:
+            text += f'; {self.distortion_model} distortion undone (the image is taken as raw)'
+        elif self.distorted:
             text += '; distortion coefficients not applied (the image is taken as rectified)'
         return text
 
@@ -104,28 +113,31 @@ def _numbers(values: Any, count: int, name: str) -> np.ndarray:
     return array
 
 
-def camera_model(info: Any) -> DepthCamera:
+def camera_model(info: Any, *, rectified: bool = True) -> DepthCamera:
     """The pinhole model a ``sensor_msgs/CameraInfo`` gives the images it describes.
 
     Binning 0 counts as 1; a ROI of zero size is the whole image. With binning (bx, by) and a ROI at
-    (x0, y0): fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by.
+    (x0, y0): fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by. Rectified images: from P (K when P is
+    zero), D not applied; raw images (``rectified=False``): from K, with D to undo
+    (:data:`DISTORTION_MODELS`).
 
     Raises:
         DepthImageError: ``invalid_camera_info`` (no calibration: P and K zero or not finite, a
             non-positive focal length, rays more than :data:`MAX_RAY_SLOPE` times their depth sideways,
-            a size of zero, a ROI outside the image).
+            a size of zero, a ROI outside the image; for a raw image a distortion model other than
+            :data:`DISTORTION_MODELS` with non-zero coefficients).
     """
     try:
         height, width = int(info.height), int(info.width)
         binning_x, binning_y = max(int(info.binning_x), 1), max(int(info.binning_y), 1)
         roi = info.roi
         roi_x, roi_y, roi_height, roi_width = (int(roi.x_offset), int(roi.y_offset), int(roi.height), int(roi.width))
-        distortion = info.d
+        distortion, distortion_model = info.d, str(info.distortion_model)
     except (AttributeError, TypeError, ValueError):
         raise DepthImageError('invalid_camera_info', 'not a sensor_msgs/CameraInfo message') from None
     projection = _numbers(info.p, 12, 'P').reshape(3, 4)
     camera = _numbers(info.k, 9, 'K').reshape(3, 3)
-    if projection[0, 0] != 0.0 or projection[1, 1] != 0.0:
+    if rectified and (projection[0, 0] != 0.0 or projection[1, 1] != 0.0):
         fx, fy, cx, cy, source = projection[0, 0], projection[1, 1], projection[0, 2], projection[1, 2], 'P'
     else:
         fx, fy, cx, cy, source = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2], 'K'
@@ -148,9 +160,11 @@ def camera_model(info: Any) -> DepthCamera:
     else:
         roi_x = roi_y = 0
     try:
-        distorted = bool(np.any(np.asarray(distortion, dtype=np.float64) != 0.0))
+        coefficients = np.asarray(distortion, dtype=np.float64).ravel()
     except (TypeError, ValueError):
         raise DepthImageError('invalid_camera_info', 'camera info D is not a list of numbers') from None
+    distorted = bool(np.any(coefficients != 0.0))
+    undo = () if rectified or not distorted else _distortion_to_undo(distortion_model, coefficients)
     intrinsics = PinholeIntrinsics(fx / binning_x, fy / binning_y, (cx - roi_x) / binning_x, (cy - roi_y) / binning_y)
     height, width = height // binning_y, width // binning_x
     fx, fy, cx, cy = intrinsics.as_tuple()
@@ -161,7 +175,75 @@ def camera_model(info: Any) -> DepthCamera:
             f'camera info gives rays up to {max(sideways):g} times their depth sideways (fx {fx:g}, fy {fy:g}, '
             f'cx {cx:g}, cy {cy:g} for {width} x {height} images): not a pinhole calibration',
         )
-    return DepthCamera(intrinsics, height, width, distorted, source)
+    return DepthCamera(intrinsics, height, width, distorted, source, undo, distortion_model if undo else '')
+
+
+#: Distortion models of raw depth images that are undone (ROS camera_calibration_parsers' names), with the
+#: number of coefficients each uses: k1 k2 p1 p2 k3, and k4 k5 k6 of the rational model's denominator.
+DISTORTION_MODELS = {'plumb_bob': 5, 'rational_polynomial': 8}
+
+
+def _distortion_to_undo(model: str, coefficients: np.ndarray) -> tuple[float, ...]:
+    """(k1, k2, p1, p2, k3, k4, k5, k6) of a raw image's distortion (missing trailing ones 0)."""
+    used = DISTORTION_MODELS.get(model)
+    if used is None or not np.isfinite(coefficients).all() or np.any(coefficients[used:] != 0.0):
+        known = ', '.join(DISTORTION_MODELS)
+        raise DepthImageError(
+            'invalid_camera_info',
+            f'camera info distortion {model!r} with D = {coefficients.tolist()} cannot be undone: raw depth images '
+            f'take {known} (finite coefficients); rectify the image and set depth_image_rectified to true',
+        )
+    padded = np.zeros(8)
+    padded[: min(used, coefficients.size)] = coefficients[:used]
+    return tuple(float(c) for c in padded)
+
+
+#: Fixed-point iterations of the undistortion at most (it stops at a fixed point); a pixel whose ray then reprojects more than
+#: UNDISTORTION_TOLERANCE_PX away from it (a distortion that folds over, far outside the calibrated field
+#: of view) gets no ray and is no return.
+UNDISTORTION_ITERATIONS = 50
+UNDISTORTION_TOLERANCE_PX = 1e-3
+#: The iteration stops when no pixel's normalized coordinates moved more than this in the last step.
+UNDISTORTION_STEP = 1e-12
+
+
+def _distort(x: np.ndarray, y: np.ndarray, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Normalized image coordinates of the undistorted ones (x, y) under distortion k (OpenCV's model)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
+    r2 = x * x + y * y
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    return (
+        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def pixel_rays(camera: DepthCamera) -> np.ndarray:
+    """``(H, W, 2)`` undistorted normalized coordinates (x / z, y / z) of every pixel's ray (read-only; NaN
+    where the undistortion does not converge), by OpenCV's fixed-point iteration."""
+    fx, fy, cx, cy = camera.intrinsics.as_tuple()
+    xd = np.broadcast_to((np.arange(camera.width) - cx) / fx, (camera.height, camera.width))
+    yd = np.broadcast_to(((np.arange(camera.height) - cy) / fy)[:, None], (camera.height, camera.width))
+    k1, k2, p1, p2, k3, k4, k5, k6 = camera.distortion
+    x, y = xd.copy(), yd.copy()
+    with np.errstate(all='ignore'):  # a diverging pixel is caught below
+        for _ in range(UNDISTORTION_ITERATIONS):
+            r2 = x * x + y * y
+            inverse = (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))) / (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+            previous_x, previous_y = x, y
+            x, y = (
+                (xd - 2.0 * p1 * x * y - p2 * (r2 + 2.0 * x * x)) * inverse,
+                (yd - p1 * (r2 + 2.0 * y * y) - 2.0 * p2 * x * y) * inverse,
+            )
+            if max(np.abs(x - previous_x).max(), np.abs(y - previous_y).max()) <= UNDISTORTION_STEP:
+                break  # every pixel settled (NaN, a diverged pixel, compares False: it iterates on)
+        again_x, again_y = _distort(x, y, camera.distortion)
+        error = np.hypot((again_x - xd) * fx, (again_y - yd) * fy)
+    rays = np.stack([x, y], axis=-1)
+    rays[~(error <= UNDISTORTION_TOLERANCE_PX)] = np.nan
+    rays.setflags(write=False)
+    return rays
 
 
 def depth_values(image: Any) -> tuple[np.ndarray, float]:
@@ -199,8 +281,9 @@ def depth_values(image: Any) -> tuple[np.ndarray, float]:
     return np.ascontiguousarray(rows).view(dtype).reshape(height, width), scale
 
 
-def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
-    """The ``(H, W, 3)`` float64 points (m, the image's optical frame; NaN = no return) of a depth image.
+def depth_image_points(image: Any, camera_info: Any, *, rectified: bool = True) -> np.ndarray:
+    """The ``(H, W, 3)`` float64 points (m, the image's optical frame; NaN = no return) of a depth image,
+    rectified (P) or raw (``rectified=False``: K and D, see :func:`camera_model`).
 
     A pixel whose depth is 0, NaN or infinite is no return.
 
@@ -209,7 +292,7 @@ def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
             when the image's size is not the one the camera info describes.
     """
     counts, scale = depth_values(image)
-    camera = camera_model(camera_info)
+    camera = camera_model(camera_info, rectified=rectified)
     if counts.shape != (camera.height, camera.width):
         raise DepthImageError(
             'camera_info_mismatch',
@@ -218,4 +301,14 @@ def depth_image_points(image: Any, camera_info: Any) -> np.ndarray:
         )
     if counts.dtype.kind == 'f':  # NaN and +-inf: no return (backproject_depth: a depth <= 0 is none)
         counts = np.where(np.isfinite(counts), counts, 0.0)
-    return backproject_depth(counts, camera.intrinsics, scale)
+    if not camera.distortion:
+        return backproject_depth(counts, camera.intrinsics, scale)
+    z = counts.astype(np.float64) * scale
+    z[~(z > 0)] = np.nan
+    rays = pixel_rays(camera)
+    points = np.empty((*z.shape, 3))
+    points[..., 0] = z * rays[..., 0]
+    points[..., 1] = z * rays[..., 1]
+    points[..., 2] = z
+    points[np.isnan(rays[..., 0])] = np.nan
+    return points

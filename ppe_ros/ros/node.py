@@ -303,7 +303,7 @@ class ExtractorNode(Node):
     def _on_camera_info(self, msg: Any) -> None:
         self._camera_info = msg  # one reference assignment: the depth image callback reads it as a whole
         try:
-            camera = camera_model(msg)
+            camera = camera_model(msg, rectified=self._params.depth_image_rectified)
         except DepthImageError:
             return  # the images it goes with are skipped with the reason
         if camera != self._camera_logged:

@@ -305,6 +305,13 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
         high=10.0,
     ),
     ParamSpec(
+        'depth_image_rectified',
+        'bool',
+        True,
+        'depth images: true = rectified (pixels back-projected with the camera info P, its D ignored, as '
+        'depth_image_proc does); false = raw, distorted (K and D: plumb_bob or rational_polynomial)',
+    ),
+    ParamSpec(
         'lost_point_tolerance',
         'double',
         0.0,
@@ -349,6 +356,7 @@ class ExtractorParams:
     azimuth_bins: int = 0
     azimuth_start: float = 180.0
     angular_resolution: float = 0.8
+    depth_image_rectified: bool = True
     lost_point_tolerance: float = 0.0
 
     def __post_init__(self) -> None:
@@ -860,7 +868,7 @@ def depth_frame_points(frame: DepthFrame, params: ExtractorParams) -> np.ndarray
             'no_camera_info', f'depth image without camera info: none received on {frame.camera_info_topic} yet'
         )
     try:
-        points = depth_image_points(frame.image, frame.camera_info)
+        points = depth_image_points(frame.image, frame.camera_info, rectified=params.depth_image_rectified)
     except DepthImageError as exc:
         raise FrameSkipped(exc.kind, f'depth image: {exc.reason}') from None
     if np.isnan(points[..., 2]).all():
