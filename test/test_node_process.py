@@ -567,3 +567,52 @@ def test_idle_without_subscribers_then_outputs_rate_diagnostics_and_an_rviz_draw
         exit_code = extractor.stop(signal.SIGINT)
     assert exit_code == 0, extractor.output
     assert 'Traceback' not in extractor.output
+
+
+def test_a_depth_camera_with_its_params_file_and_remapped_topics(client_factory):
+    """As a RealSense user starts it: config/depth_camera.yaml, the depth image and camera info remapped to
+    the driver's topics; the plane table of the image comes back with its header, the camera model is logged."""
+    from depth_frames import camera_info, corner_depth, depth_image
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from ppe_ros.ros.messages import rclpy_message_types
+
+    domain_id = unique_domain_id(80)
+    extractor = ExtractorProcess(
+        domain_id,
+        '--params-file',
+        str(REPO / 'config' / 'depth_camera.yaml'),
+        '-r',
+        'depth/image:=/camera/depth/image_rect_raw',
+        '-r',
+        'depth/camera_info:=/camera/depth/camera_info',
+    )
+    try:
+        assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
+        assert 'depth images on /camera/depth/image_rect_raw' in extractor.output
+        executor, probe = client_factory(domain_id)
+        tables = []
+        probe.create_subscription(
+            PointCloud2, '/planes', tables.append, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        )
+        reliable = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        images = probe.create_publisher(Image, '/camera/depth/image_rect_raw', reliable)
+        infos = probe.create_publisher(CameraInfo, '/camera/depth/camera_info', reliable)
+        ready = lambda: images.get_subscription_count() > 0 and infos.get_subscription_count() > 0  # noqa: E731
+        assert spin_until(executor, ready, 30.0), extractor.output
+        types = rclpy_message_types()
+        millimetres = np.round(corner_depth() * 1000.0).astype(np.uint16)
+        deadline = time.monotonic() + 60.0
+        while not tables and time.monotonic() < deadline:  # until the node builds /planes for us
+            infos.publish(camera_info(types))
+            images.publish(depth_image(types, millimetres, '16UC1'))
+            spin_until(executor, lambda: bool(tables), 1.0)
+        assert tables, f'no plane table from the extractor process:\n{extractor.output}'
+        table = tables[-1]
+        assert table.header.frame_id == 'camera_depth_optical_frame' and table.width == 2  # the wall and the floor
+        assert 'camera info on /camera/depth/camera_info: 80 x 60 images, fx 120.0' in extractor.output
+    finally:
+        exit_code = extractor.stop(signal.SIGINT)
+    output = extractor.output
+    assert exit_code == 0, f'exit code {exit_code}:\n{output}'
+    assert 'terminate called' not in output and 'Traceback' not in output, output
