@@ -191,6 +191,7 @@ def test_every_output_carries_the_input_header(ros_context, executor, namespace,
     assert status.level == DiagnosticStatus.OK and status.hardware_id == 'os_lidar'
     assert values['frames_processed'] == '1' and values['frames_skipped'] == '0'
     assert values['input_topic'] == f'{namespace}/points'
+    assert values['depth_image_topic'] == f'{namespace}/depth/image'
     for key in ('input_rate_hz', 'processing_time_mean_ms', 'processing_time_max_ms', 'frames_dropped', 'last_error'):
         assert key in values
 

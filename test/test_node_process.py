@@ -156,6 +156,16 @@ def spin_until(executor, predicate, timeout: float) -> bool:
     return True
 
 
+def publish_until_a_table(executor, tables: list, publish, extractor: ExtractorProcess, timeout: float = 60.0) -> None:
+    """Call ``publish`` about once a second until a plane table arrives in ``tables`` (the node builds /planes
+    only once it sees the subscription); fail with the extractor's output after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not tables and time.monotonic() < deadline:
+        publish()
+        spin_until(executor, lambda: bool(tables), 1.0)
+    assert tables, f'no plane table from the extractor process:\n{extractor.output}'
+
+
 def make_cloud(sec: int) -> PointCloud2:
     points = plane_scan(3, rows=24, cols=32, radial_sigma=0.005, seed=3).points
     header = Header(frame_id='proc_lidar')
@@ -177,11 +187,7 @@ def test_console_script_answers_over_dds_and_exits_cleanly(client_factory, stop_
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
         # the node builds /planes only once it sees our subscription; resend until a table arrives
-        deadline = time.monotonic() + 60.0
-        while not tables and time.monotonic() < deadline:
-            publisher.publish(make_cloud(sec=123))
-            spin_until(executor, lambda: bool(tables), 1.0)
-        assert tables, f'no plane table from the extractor process:\n{extractor.output}'
+        publish_until_a_table(executor, tables, lambda: publisher.publish(make_cloud(sec=123)), extractor)
         table = tables[-1]
         assert (table.header.frame_id, table.header.stamp.sec) == ('proc_lidar', 123)
         assert pointcloud2_to_structured(table)['point_count'].sum() > 500
@@ -209,11 +215,7 @@ def test_two_workers_publish_in_order_and_stop_cleanly_while_busy(client_factory
         reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         publisher = probe.create_publisher(PointCloud2, '/points', reliable)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
-        deadline = time.monotonic() + 60.0
-        while not tables and time.monotonic() < deadline:  # until the node builds /planes for us
-            publisher.publish(make_cloud(sec=1))
-            spin_until(executor, lambda: bool(tables), 1.0)
-        assert tables, extractor.output
+        publish_until_a_table(executor, tables, lambda: publisher.publish(make_cloud(sec=1)), extractor)
         big = plane_scan(3, rows=200, cols=600, radial_sigma=0.005, seed=4).points
 
         def publish_big(sec: int) -> None:
@@ -602,12 +604,12 @@ def test_a_depth_camera_with_its_params_file_and_remapped_topics(client_factory)
         assert spin_until(executor, ready, 30.0), extractor.output
         types = rclpy_message_types()
         millimetres = np.round(corner_depth() * 1000.0).astype(np.uint16)
-        deadline = time.monotonic() + 60.0
-        while not tables and time.monotonic() < deadline:  # until the node builds /planes for us
+
+        def publish() -> None:
             infos.publish(camera_info(types))
             images.publish(depth_image(types, millimetres, '16UC1'))
-            spin_until(executor, lambda: bool(tables), 1.0)
-        assert tables, f'no plane table from the extractor process:\n{extractor.output}'
+
+        publish_until_a_table(executor, tables, publish, extractor)
         table = tables[-1]
         assert table.header.frame_id == 'camera_depth_optical_frame' and table.width == 2  # the wall and the floor
         assert 'camera info on /camera/depth/camera_info: 80 x 60 images, fx 120.0' in extractor.output

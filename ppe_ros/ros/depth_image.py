@@ -198,9 +198,9 @@ def _distortion_to_undo(model: str, coefficients: np.ndarray) -> tuple[float, ..
     return tuple(float(c) for c in padded)
 
 
-#: Fixed-point iterations of the undistortion at most (it stops at a fixed point); a pixel whose ray then reprojects more than
-#: UNDISTORTION_TOLERANCE_PX away from it (a distortion that folds over, far outside the calibrated field
-#: of view) gets no ray and is no return.
+#: Fixed-point iterations of the undistortion at most (it stops when settled); a pixel whose ray then
+#: reprojects more than UNDISTORTION_TOLERANCE_PX away from it (a distortion that folds over, far outside
+#: the calibrated field of view) gets no ray and is no return.
 UNDISTORTION_ITERATIONS = 50
 UNDISTORTION_TOLERANCE_PX = 1e-3
 #: The iteration stops when no pixel's normalized coordinates moved more than this in the last step.

@@ -211,6 +211,7 @@ class NodeState:
     idle: bool  # no output has a subscriber and process_without_subscribers is false
     min_output_rate_fraction: float
     marker_mesh_stride: int  # the stride of the last marker mesh (0: none built yet)
+    depth_image_topic: str = ''  # the depth image input ('': none)
 
 
 def _level_and_message(window: ReportWindow, state: NodeState, status_type: type) -> tuple[int, str]:
@@ -241,7 +242,8 @@ def _level_and_message(window: ReportWindow, state: NodeState, status_type: type
             'idle: no subscriber on any output, frames are not extracted (process_without_subscribers: false)'
         )
     if window.totals['received'] == 0:
-        return status_type.OK, f'waiting for input on {state.input_topic}'
+        topics = f'{state.input_topic} or {state.depth_image_topic}' if state.depth_image_topic else state.input_topic
+        return status_type.OK, f'waiting for input on {topics}'
     return status_type.OK, 'extracting planes'
 
 
@@ -252,6 +254,7 @@ def diagnostics_status(window: ReportWindow, state: NodeState, types: Any) -> An
     times, totals = window.times_ms, window.totals
     values = {
         'input_topic': state.input_topic,
+        'depth_image_topic': state.depth_image_topic,
         'input_rate_hz': f'{window.input_rate_hz:.2f}',
         'output_rate_hz': f'{window.output_rate_hz:.2f}',
         'time_since_last_output_s': f'{window.since_last_output_s:.1f}',

@@ -528,6 +528,7 @@ class ExtractorNode(Node):
             idle=self._idle(params),
             min_output_rate_fraction=params.min_output_rate_fraction,
             marker_mesh_stride=self._marker_stride,
+            depth_image_topic=self.depth_image_topic,
         )
         return diagnostics_status(window, state, self._types)
 
