@@ -12,9 +12,12 @@ the mesh size); or a real Ouster OS-1-128 sweep from ``../shared/data/ouster`` (
 about a thousand small ones, the worst case for the number of markers); or ``depth``: a generated
 640 x 480 Kinect-like depth frame of a furnished room (optical frame, NaN invalid), with the planes
 the node finds; or ``depth_image``: the same frame as the depth camera publishes it (a 16UC1
-``sensor_msgs/Image`` in millimetres with its ``CameraInfo``), converted by the node's depth image path.
+``sensor_msgs/Image`` in millimetres with its ``CameraInfo``), converted by the node's depth image path;
+``depth_rvl`` / ``depth_png``: the same image as image_transport's compressedDepth transport sends it (RVL, or
+PNG at OpenCV's default level 3 here: Pillow's ``compress_level=3``), decoded and converted by the node.
 
-    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30] [--cloud synthetic|ouster|depth|depth_image]
+    .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30]
+        [--cloud synthetic|ouster|depth|depth_image|depth_rvl|depth_png]
         [--params FILE.yaml]
 
 ``--params`` takes the node's params file (default: the node defaults, as in config/extractor.yaml);
@@ -100,10 +103,11 @@ def driver_message(points: np.ndarray, types):
     )
 
 
-def depth_camera_message(scan, types):
+def depth_camera_message(scan, types, kind: str = 'depth_image'):
     """A generated depth frame as a depth camera publishes it: a :class:`DepthFrame` of a 16UC1 image
-    (millimetres, 0 = no return) and its CameraInfo (the generator's intrinsics)."""
-    from sensor_msgs.msg import CameraInfo, Image
+    (millimetres, 0 = no return), or of its compressedDepth message (``kind`` depth_rvl, depth_png), and its
+    CameraInfo (the generator's intrinsics)."""
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
     from ppe_ros.ros.depth_image import DepthFrame
 
@@ -113,11 +117,34 @@ def depth_camera_message(scan, types):
     header = driver_message(scan.points[:2, :2], types).header
     image = Image(header=header, height=height, width=width, encoding='16UC1', step=2 * width)
     image.data = millimetres.tobytes()
+    if kind != 'depth_image':
+        image = CompressedImage(header=header, format=f'16UC1; compressedDepth {kind[6:]}')
+        image.data = compressed_depth_payload(millimetres, kind[6:])
     fx, fy, cx, cy = scan.intrinsics
     info = CameraInfo(header=header, height=height, width=width, distortion_model='plumb_bob')
     info.k = [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
     info.p = [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]
     return DepthFrame(image, info)
+
+
+def compressed_depth_payload(millimetres: np.ndarray, codec: str) -> bytes:
+    """compressed_depth_image_transport's data for 16UC1 millimetres: its 12-byte header, then RVL (the code
+    of the test suite's reference encoder) or a 16-bit PNG."""
+    import io
+    import struct
+
+    header = struct.pack('<iff', 0, 0.0, 0.0)
+    if codec == 'rvl':
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'test'))
+        from depth_frames import rvl_encode
+
+        height, width = millimetres.shape
+        return header + struct.pack('<II', width, height) + rvl_encode(millimetres)
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(millimetres).save(buffer, format='PNG', compress_level=3)
+    return header + buffer.getvalue()
 
 
 def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: bool) -> dict:
@@ -163,7 +190,11 @@ def idle_cost(msg, seconds: float, rate: float, process_without_subscribers: boo
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--repeats', type=int, default=30)
-    parser.add_argument('--cloud', choices=('synthetic', 'ouster', 'depth', 'depth_image'), default='synthetic')
+    parser.add_argument(
+        '--cloud',
+        choices=('synthetic', 'ouster', 'depth', 'depth_image', 'depth_rvl', 'depth_png'),
+        default='synthetic',
+    )
     parser.add_argument(
         '--params', default=None, metavar='FILE.yaml', help="the node's params file (default: the node defaults)"
     )
@@ -188,16 +219,23 @@ def main(argv: list[str] | None = None) -> int:
         # the planes the node finds with these params (its e / lmax / min_plane_points of 0 are the profile's)
         planes = process_cloud(msg, params, types, outputs=OutputSelection(False, False, False)).planes
         description = f'Ouster {OUSTER_FILE}, planes from the node (sensor {params.sensor})'
-    elif args.cloud in ('depth', 'depth_image'):  # what the node finds with these params
+    elif args.cloud.startswith('depth'):  # what the node finds with these params
         from ppe_ros.core.synthetic_real import generate_depth_scan
 
         scan = generate_depth_scan(seed=0)
         points = scan.points
-        msg = driver_message(points, types) if args.cloud == 'depth' else depth_camera_message(scan, types)
+        msg = driver_message(points, types) if args.cloud == 'depth' else depth_camera_message(scan, types, args.cloud)
         planes = process_cloud(
             driver_message(points, types), params, types, outputs=OutputSelection(False, False, False)
         ).planes
-        what = 'depth frame' if args.cloud == 'depth' else 'depth image (16UC1 + CameraInfo)'
+        what = {
+            'depth': 'depth frame',
+            'depth_image': 'depth image (16UC1 + CameraInfo)',
+            'depth_rvl': 'compressedDepth RVL image + CameraInfo',
+            'depth_png': 'compressedDepth PNG image + CameraInfo',
+        }[args.cloud]
+        if args.cloud != 'depth':
+            what += f', {len(msg.image.data) / 1e3:.0f} kB'
         description = f'generated 640 x 480 {what} (indoor scene, seed 0), planes from the node ({params.sensor})'
     else:  # the true faces, fitted: the overhead does not depend on how the planes were found
         points, labels = synthetic_room()
@@ -205,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         planes = fit_labeled_planes(cloud_points(msg, params), labels).planes
         description = 'synthetic 28-gon room + floor + ceiling, planes fitted to the true faces'
     planes_s = time.perf_counter() - start
-    if args.idle and args.cloud == 'depth_image':
+    if args.idle and args.cloud.startswith('depth_'):
         print('--idle feeds clouds; use --cloud depth for the depth frame', file=sys.stderr)
         return 2
     if args.idle:
@@ -231,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     marker_bytes = marker_stride = 0
     for repeat in range(args.repeats + 1):  # the first run compiles / loads the numba cache
         start, cpu_start = time.perf_counter(), time.thread_time()
-        points_in = depth_frame_points(msg, params) if args.cloud == 'depth_image' else cloud_points(msg, params)
+        depth = args.cloud not in ('synthetic', 'ouster', 'depth')
+        points_in = depth_frame_points(msg, params) if depth else cloud_points(msg, params)
         convert = time.perf_counter() - start
         frame = ProcessedFrame(
             header=msg.header,
@@ -264,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     print('|---|---|---|')
     labels = {
         'convert': 'conversion in (depth image + camera info -> validated points)'
-        if args.cloud == 'depth_image'
+        if args.cloud.startswith('depth_')
         else 'conversion in (PointCloud2 -> validated points)',
         'labeled_points': 'labelled cloud',
         'markers': 'markers (mesh + outline + arrows, CDR)',

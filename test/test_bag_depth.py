@@ -158,3 +158,39 @@ def test_a_requested_image_needs_its_camera_info_and_copy_input_copies_it(tmp_pa
     assert f'topic {DEPTH} is an image without its camera info' in err and DEPTH_INFO in err
     assert main([str(tmp_path / 'lonely'), str(tmp_path / 'out3'), '--no-progress']) == 2
     assert 'no depth image topic' in capsys.readouterr().err
+
+
+def test_compressed_depth_topics_go_beside_their_image_and_the_raw_image_is_preferred(tmp_path, capsys, expected):
+    """A bag of image_transport's compressedDepth (RVL) images: the same outputs as the raw images, beside the
+    image topic; a bag with both the raw image and its compressedDepth topic processes the raw one."""
+    from depth_frames import compressed_depth_image
+
+    compressed_topic = f'{DEPTH}/compressedDepth'
+    compressed_type = 'sensor_msgs/msg/CompressedImage'
+    for both in (False, True):
+        path = tmp_path / f'in_{both}'
+        writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        types = {DEPTH_INFO: CAMERA_INFO, compressed_topic: compressed_type, **({DEPTH: IMAGE} if both else {})}
+        connections = {topic: writer.add_connection(topic, t, typestore=JAZZY) for topic, t in types.items()}
+        for t, topic, msg in messages(TYPES):
+            if topic == DEPTH_INFO:
+                writer.write(connections[topic], t, JAZZY.serialize_cdr(msg, CAMERA_INFO))
+            elif topic == DEPTH:
+                counts = np.frombuffer(bytes(msg.data), '<u2').reshape(msg.height, msg.width)
+                packed = compressed_depth_image(TYPES, counts, msg.header)
+                writer.write(connections[compressed_topic], t + 1, JAZZY.serialize_cdr(packed, compressed_type))
+                if both:
+                    writer.write(connections[DEPTH], t, JAZZY.serialize_cdr(msg, IMAGE))
+        writer.close()
+        out = tmp_path / f'out_{both}'
+        argv = [path, out, '--params', write_params(tmp_path / 'p.yaml'), '--no-progress']
+        assert main([str(a) for a in argv]) == 0
+        stdout = capsys.readouterr().out
+        taken = DEPTH if both else compressed_topic
+        assert f'{taken} (4 messages with {DEPTH_INFO}) -> {", ".join(OUTPUTS)}' in stdout
+        assert both == (compressed_topic not in stdout)
+        labeled = read_bag(out)[OUTPUTS[0]]
+        assert len(labeled) == 3  # the first image had no camera info yet
+        for (_, msg), (_, frame) in zip(labeled, expected[1:], strict=True):
+            np.testing.assert_array_equal(np.array(pointcloud2_to_structured(msg)['label']), frame.planes.labels)

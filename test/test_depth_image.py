@@ -305,3 +305,27 @@ def test_the_node_parameter_takes_raw_depth_images(types):
     np.testing.assert_allclose(raw.points, depth_image_points(frame.image, info, rectified=False))
     rectified = process_depth_image(frame, ExtractorParams(min_plane_points=20), types)
     assert not np.allclose(rectified.points, raw.points)
+
+
+def test_a_compressed_depth_frame_gives_the_planes_of_the_raw_image(types):
+    """image_transport's compressedDepth (RVL) of the same millimetres: the same points and labels."""
+    from depth_frames import compressed_depth_image
+
+    millimetres = np.round(corner_depth() * 1000.0).astype(np.uint16)
+    params = ExtractorParams(sensor='depth_camera', min_plane_points=20)
+    raw = process_depth_image(DepthFrame(depth_image(types, millimetres, '16UC1'), camera_info(types)), params, types)
+    compressed = compressed_depth_image(types, millimetres)
+    frame = process_depth_image(DepthFrame(compressed, camera_info(types)), params, types)
+    np.testing.assert_array_equal(frame.points, raw.points)
+    np.testing.assert_array_equal(frame.planes.labels, raw.planes.labels)
+    assert frame.labeled_points.header.frame_id == 'camera_depth_optical_frame'
+    # its size comes from the header: checked before anything is decoded
+    with pytest.raises(FrameSkipped, match='depth image of 60 x 80 = 4800 pixels exceeds max_points = 100'):
+        process_depth_image(DepthFrame(compressed, camera_info(types)), params.replace(max_points=100), types)
+    compressed.data = compressed.data[:30]
+    with pytest.raises(FrameSkipped) as caught:
+        process_depth_image(DepthFrame(compressed, camera_info(types)), params, types)
+    assert (
+        caught.value.kind == 'invalid_image'
+        and 'depth image: compressedDepth: RVL code ends after' in caught.value.reason
+    )

@@ -228,6 +228,29 @@ def test_a_depth_image_with_its_camera_info_gives_the_outputs(ros_context, execu
     assert harness.node.frame_counts()['processed'] == 1
 
 
+def test_compressed_depth_images_on_the_transport_topic(ros_context, executor, namespace):
+    """depth_image_transport compressedDepth (set at runtime): the node subscribes to depth/image/compressedDepth,
+    as image_transport names it, and extracts the RVL-compressed images."""
+    from depth_frames import compressed_depth_image
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    types = rclpy_message_types()
+    harness = Harness(ros_context, executor, namespace, overrides=[Parameter('sensor', value='depth_camera')])
+    [result] = harness.node.set_parameters([Parameter('depth_image_transport', value='compressedDepth')])
+    assert result.successful
+    assert harness.node.depth_image_topic == f'{namespace}/depth/image/compressedDepth'
+    images = harness.probe.create_publisher(CompressedImage, 'depth/image/compressedDepth', RELIABLE)
+    infos = harness.probe.create_publisher(CameraInfo, 'depth/camera_info', RELIABLE)
+    assert spin_until(executor, lambda: images.get_subscription_count() > 0 and infos.get_subscription_count() > 0)
+    infos.publish(camera_info(types))
+    assert spin_until(executor, lambda: harness.node._camera_info is not None)
+    harness.publisher = images
+    harness.send(compressed_depth_image(types, np.round(corner_depth() * 1000.0).astype(np.uint16)))
+    labeled = harness.received['labeled_points'][-1]
+    assert (labeled.height, labeled.width) == (60, 80) and harness.received['planes'][-1].width == 2
+    assert harness.node.frame_counts()['processed'] == 1
+
+
 def test_warm_up_freezes_the_compilers_objects_out_of_garbage_collection(ros_context, executor, namespace):
     """After the warm-up the long-lived objects (numba's compiler) are frozen, so that full garbage
     collections do not pause the node for tens of milliseconds every few hundred frames."""
@@ -1133,6 +1156,7 @@ def test_ppe_warmup_prints_its_steps():
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith('| step | seconds |\n|---|---|\n| sensor none | ')
     assert '| sensor none |' in result.stdout and '| PCD files (LZF) |' in result.stdout
+    assert '| compressedDepth images (RVL) |' in result.stdout
     assert 'ppe warmup: JIT warm-up step 1/1: sensor none ...' in result.stderr
 
 

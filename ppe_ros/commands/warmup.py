@@ -65,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
         for step in warm_up(types, sensors=args.sensor or WARM_UP_SENSORS, log=log)
     ]
     steps.append(('PCD files (LZF)', _warm_up_lzf(log)))
+    from ppe_ros.ros.compressed_depth import warm_up_rvl
+
+    if log:
+        log('JIT warm-up: the RVL kernel of compressedDepth images ...')
+    steps.append(('compressedDepth images (RVL)', warm_up_rvl()))
     total = time.perf_counter() - start
     print('| step | seconds |')
     print('|---|---|')

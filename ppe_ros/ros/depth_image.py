@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from ppe_ros.io.depth import PinholeIntrinsics, backproject_depth
+from ppe_ros.ros.compressed_depth import CompressedDepthError, compressed_depth_size, decode_compressed_depth
 
 #: Image encodings read as depth (REP 118), with their numpy type and metres per count.
 DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
@@ -246,13 +247,38 @@ def pixel_rays(camera: DepthCamera) -> np.ndarray:
     return rays
 
 
+def is_compressed(image: Any) -> bool:
+    """Whether ``image`` is a ``sensor_msgs/CompressedImage`` (compressedDepth) rather than an Image."""
+    return hasattr(image, 'format') and not hasattr(image, 'encoding')
+
+
+def depth_image_size(image: Any) -> tuple[int, int]:
+    """``(height, width)`` of a depth image, of a compressed one from its header (nothing decoded).
+
+    Raises:
+        DepthImageError: ``invalid_image`` (a compressed image whose header cannot be read).
+    """
+    if not is_compressed(image):
+        return int(image.height), int(image.width)
+    try:
+        return compressed_depth_size(image)
+    except CompressedDepthError as exc:
+        raise DepthImageError('invalid_image', f'compressedDepth: {exc}') from None
+
+
 def depth_values(image: Any) -> tuple[np.ndarray, float]:
-    """The ``(H, W)`` depth counts of a ``sensor_msgs/Image`` and the metres per count of its encoding.
+    """The ``(H, W)`` depth counts of a ``sensor_msgs/Image`` (or of a compressedDepth ``sensor_msgs/CompressedImage``,
+    :mod:`ppe_ros.ros.compressed_depth`) and the metres per count of its encoding.
 
     Raises:
         DepthImageError: ``invalid_image`` (not a depth encoding, a size of zero, a row step shorter than
-            a row, a data size other than step x height).
+            a row, a data size other than step x height; compressed data that do not decode).
     """
+    if is_compressed(image):
+        try:
+            return decode_compressed_depth(image)
+        except CompressedDepthError as exc:
+            raise DepthImageError('invalid_image', f'compressedDepth: {exc}') from None
     try:
         height, width, step = int(image.height), int(image.width), int(image.step)
         encoding, big_endian, data = str(image.encoding), bool(image.is_bigendian), image.data

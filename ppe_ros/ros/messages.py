@@ -28,7 +28,7 @@ class MessageTypes:
 
     Attributes:
         flavour: ``'rclpy'`` or ``'rosbags'``.
-        PointCloud2, PointField, Image, CameraInfo: ``sensor_msgs/msg`` classes.
+        PointCloud2, PointField, Image, CameraInfo, CompressedImage: ``sensor_msgs/msg`` classes.
         MarkerArray: ``visualization_msgs/msg/MarkerArray`` (used to decode markers in tests and tools).
         DiagnosticArray, DiagnosticStatus, KeyValue: ``diagnostic_msgs/msg`` classes.
         typestore: the rosbags typestore (rosbags flavour only), for ``deserialize_cdr``.
@@ -40,6 +40,7 @@ class MessageTypes:
     MarkerArray: type
     Image: type | None = None
     CameraInfo: type | None = None
+    CompressedImage: type | None = None
     DiagnosticArray: type | None = None
     DiagnosticStatus: type | None = None
     KeyValue: type | None = None
@@ -57,7 +58,7 @@ class MessageTypes:
 def rclpy_message_types() -> MessageTypes:
     """Message classes of the installed ROS 2 Python packages (needs rclpy's message wheels)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
     from visualization_msgs.msg import MarkerArray
 
     return MessageTypes(
@@ -67,6 +68,7 @@ def rclpy_message_types() -> MessageTypes:
         MarkerArray=MarkerArray,
         Image=Image,
         CameraInfo=CameraInfo,
+        CompressedImage=CompressedImage,
         DiagnosticArray=DiagnosticArray,
         DiagnosticStatus=DiagnosticStatus,
         KeyValue=KeyValue,
@@ -87,6 +89,7 @@ def rosbags_message_types(typestore: Any = None) -> MessageTypes:
         MarkerArray=types['visualization_msgs/msg/MarkerArray'],
         Image=types['sensor_msgs/msg/Image'],
         CameraInfo=types['sensor_msgs/msg/CameraInfo'],
+        CompressedImage=types['sensor_msgs/msg/CompressedImage'],
         DiagnosticArray=types['diagnostic_msgs/msg/DiagnosticArray'],
         DiagnosticStatus=types['diagnostic_msgs/msg/DiagnosticStatus'],
         KeyValue=types['diagnostic_msgs/msg/KeyValue'],

@@ -63,9 +63,10 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
+from ppe_ros.ros.compressed_depth import warm_up_rvl
 from ppe_ros.ros.concurrency import LatestMailbox, Turnstile
 from ppe_ros.ros.depth_image import DepthCamera, DepthFrame, DepthImageError, camera_model
 from ppe_ros.ros.diagnostics import WARNING_THROTTLE_S, FrameStats, NodeState, ThrottledLog, diagnostics_status
@@ -224,17 +225,26 @@ class ExtractorNode(Node):
         self.get_logger().info('parameters changed: ' + ', '.join(f'{k}={v!r}' for k, v in changes.items()))
         if self._params.input_reliability != previous.input_reliability:
             self._resubscribe(self._params.input_reliability)
+        elif self._params.depth_image_transport != previous.depth_image_transport:
+            self._resubscribe(self._params.input_reliability, (DEPTH_IMAGE_TOPIC,))
         if self._params.workers > previous.workers:
             self._start_workers(self._params.workers)
 
     # ---------------------------------------------------------------- input
 
     def _subscribe(self, reliability: str, qos: QoSProfile | None = None, topic: str = INPUT_TOPIC):
-        """The ``points`` (or ``depth/image``) subscription; the first one declares the QoS override parameters."""
+        """The ``points`` (or ``depth/image``) subscription; the first one declares the QoS override parameters.
+
+        The depth images of ``depth_image_transport: compressedDepth`` come on ``<depth/image, resolved and
+        remapped>/compressedDepth``, as image_transport names its transports' topics.
+        """
         options = QoSOverridingOptions.with_default_policies() if qos is None else None
         depth = topic == DEPTH_IMAGE_TOPIC
+        message_type = self._types.Image if depth else self._types.PointCloud2
+        if depth and self._params.depth_image_transport == 'compressedDepth':
+            message_type, topic = self._types.CompressedImage, self.resolve_topic_name(topic) + '/compressedDepth'
         return self.create_subscription(
-            self._types.Image if depth else self._types.PointCloud2,
+            message_type,
             topic,
             self._on_depth_image if depth else self._on_cloud,
             input_qos(reliability) if qos is None else qos,
@@ -249,16 +259,19 @@ class ExtractorNode(Node):
         given = getattr(self, '_parameter_overrides', {}).get(name)
         return name, None if given is None else given.value
 
-    def _resubscribe(self, reliability: str) -> None:
-        """New ``points`` and ``depth/image`` subscriptions for a changed ``input_reliability`` (a reliability
-        override of a topic wins for that topic)."""
-        for attribute, topic in (('_subscription', INPUT_TOPIC), ('_depth_subscription', DEPTH_IMAGE_TOPIC)):
+    def _resubscribe(self, reliability: str, topics: tuple[str, ...] = (INPUT_TOPIC, DEPTH_IMAGE_TOPIC)) -> None:
+        """New ``points`` and ``depth/image`` subscriptions (of ``topics``) for a changed ``input_reliability`` or
+        ``depth_image_transport`` (a reliability override of a topic wins for that topic)."""
+        attributes = {INPUT_TOPIC: '_subscription', DEPTH_IMAGE_TOPIC: '_depth_subscription'}
+        for topic in topics:
+            attribute = attributes[topic]
             subscription = getattr(self, attribute)
             name, forced = self._input_override('reliability', subscription)
-            if forced is not None:
-                self.get_logger().warning(f'input_reliability {reliability} has no effect: {name} is {forced}')
-                continue
             qos = input_qos(reliability)
+            if forced is not None:  # the override keeps its reliability (the transport may still change)
+                if qos.reliability != ReliabilityPolicy[str(forced).upper()]:
+                    self.get_logger().warning(f'input_reliability {reliability} has no effect: {name} is {forced}')
+                qos.reliability = ReliabilityPolicy[str(forced).upper()]
             for policy in ('history', 'depth'):  # keep the depth and history overrides of the first subscription
                 policy_name = f'{QOS_OVERRIDES_PREFIX}{subscription.topic_name}.subscription.{policy}'
                 if self.has_parameter(policy_name):
@@ -267,7 +280,10 @@ class ExtractorNode(Node):
             with self._subscription_lock:
                 self.destroy_subscription(subscription)
                 setattr(self, attribute, self._subscribe(reliability, qos, topic))
-            self.get_logger().info(f'input {getattr(self, attribute).topic_name} now subscribed with {reliability} QoS')
+            now = getattr(self, attribute)
+            self.get_logger().info(
+                f'input {now.topic_name} now subscribed with {now.qos_profile.reliability.name.lower()} QoS'
+            )
 
     def _warn_unused_qos_overrides(self) -> None:
         """A QoS override naming a topic (or policy) the node does not have would be ignored silently."""
@@ -349,6 +365,8 @@ class ExtractorNode(Node):
             '`ppe warmup` fills it once after an install)'
         )
         steps = warm_up(self._types, self._params, log=self._start_up_info)
+        if self._params.depth_image_transport == 'compressedDepth':
+            warm_up_rvl()  # its decoder's kernel
         # numba's compiler leaves some 600 k long-lived objects; a full garbage collection scanned
         # them all (about 50 ms, every few hundred frames). Frozen, the collector skips them.
         gc.freeze()

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ppe_ros.core.planes import PlaneSet
-from ppe_ros.ros.depth_image import DepthFrame, DepthImageError, depth_image_points
+from ppe_ros.ros.depth_image import DepthFrame, DepthImageError, depth_image_points, depth_image_size
 from ppe_ros.ros.markers import budgeted_plane_geometry, marker_array_cdr
 from ppe_ros.ros.messages import MessageTypes, StampedFrame
 from ppe_ros.ros.pointcloud2 import (
@@ -305,6 +305,14 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
         high=10.0,
     ),
     ParamSpec(
+        'depth_image_transport',
+        'string',
+        'raw',
+        "depth images: raw (sensor_msgs/Image on depth/image) or compressedDepth (image_transport's "
+        'sensor_msgs/CompressedImage on depth/image/compressedDepth, png or rvl)',
+        choices=('raw', 'compressedDepth'),
+    ),
+    ParamSpec(
         'depth_image_rectified',
         'bool',
         True,
@@ -356,6 +364,7 @@ class ExtractorParams:
     azimuth_bins: int = 0
     azimuth_start: float = 180.0
     angular_resolution: float = 0.8
+    depth_image_transport: str = 'raw'
     depth_image_rectified: bool = True
     lost_point_tolerance: float = 0.0
 
@@ -647,9 +656,8 @@ class ProcessedFrame:
         return sum(t for name, t in self.timings.items() if name != 'extract')
 
 
-def _check_frame_size(msg: Any, params: ExtractorParams, what: str, unit: str) -> tuple[int, int]:
+def _check_frame_size(height: int, width: int, params: ExtractorParams, what: str, unit: str) -> tuple[int, int]:
     """``(height, width)`` of a cloud or image; FrameSkipped when it is empty or over ``params.max_points``."""
-    height, width = int(msg.height), int(msg.width)
     if height == 0 or width == 0:
         raise FrameSkipped('empty', f'empty {what} (height {height}, width {width}): nothing to extract')
     if height * width > params.max_points:
@@ -670,7 +678,7 @@ def cloud_points(msg: Any, params: ExtractorParams) -> np.ndarray:
     Raises:
         FrameSkipped: empty, larger than ``params.max_points``, malformed, or no finite point.
     """
-    height, width = _check_frame_size(msg, params, 'cloud', 'points')
+    height, width = _check_frame_size(int(msg.height), int(msg.width), params, 'cloud', 'points')
     try:
         points = pointcloud2_to_xyz(msg, zero_is_no_return=True)
     except PointCloudError as exc:
@@ -862,7 +870,11 @@ def depth_frame_points(frame: DepthFrame, params: ExtractorParams) -> np.ndarray
             camera info that cannot be used (``invalid_image``, ``invalid_camera_info``,
             ``camera_info_mismatch``), no valid depth.
     """
-    height, width = _check_frame_size(frame.image, params, 'depth image', 'pixels')
+    try:
+        size = depth_image_size(frame.image)  # a compressed image's from its header, before it is decoded
+    except DepthImageError as exc:
+        raise FrameSkipped(exc.kind, f'depth image: {exc.reason}') from None
+    height, width = _check_frame_size(*size, params, 'depth image', 'pixels')
     if frame.camera_info is None:
         raise FrameSkipped(
             'no_camera_info', f'depth image without camera info: none received on {frame.camera_info_topic} yet'

@@ -27,6 +27,7 @@ class DepthMessages:
     image: bytes
     camera_info: bytes | None
     camera_info_topic: str
+    msgtype: str = IMAGE  # or sensor_msgs/msg/CompressedImage (compressedDepth)
 
 
 #: One input frame: a cloud's raw message, or a depth image with its camera info.
@@ -104,7 +105,7 @@ class FrameProcessor:
         """The PointCloud2, or the :class:`DepthFrame` of a depth image and its camera info."""
         if not isinstance(raw, DepthMessages):
             return self.decode(raw, encoding)
-        image = self.decode(raw.image, encoding, IMAGE)
+        image = self.decode(raw.image, encoding, raw.msgtype)
         info = None if raw.camera_info is None else self.decode(raw.camera_info, encoding, CAMERA_INFO)
         return DepthFrame(image, info, raw.camera_info_topic)
 
@@ -116,7 +117,7 @@ class FrameProcessor:
         try:
             msg = self._decode_frame(raw, encoding)
         except Exception as exc:
-            what = f'{IMAGE} with its {CAMERA_INFO}' if depth else POINTCLOUD2
+            what = f'{raw.msgtype} with its {CAMERA_INFO}' if depth else POINTCLOUD2
             return FrameResult(
                 'undecodable',
                 f'the message does not decode as {what}: {type(exc).__name__}: {exc}',
@@ -126,7 +127,7 @@ class FrameProcessor:
         try:
             if convert_copy:
                 copied = msg.image if depth else msg
-                result.copy = bytes(typestore.serialize_cdr(copied, IMAGE if depth else POINTCLOUD2))
+                result.copy = bytes(typestore.serialize_cdr(copied, raw.msgtype if depth else POINTCLOUD2))
             if depth:
                 frame = process_depth_image(msg, self.params, self.types, outputs=self.selection)
             else:

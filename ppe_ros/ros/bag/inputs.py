@@ -24,7 +24,15 @@ from ppe_ros.ros.bag.salvage import (
     salvage_scan_error,
     salvaged_mcap_reader,
 )
-from ppe_ros.ros.bag.topics import CAMERA_INFO, IMAGE, POINTCLOUD2, camera_info_topic
+from ppe_ros.ros.bag.topics import (
+    CAMERA_INFO,
+    COMPRESSED_DEPTH,
+    COMPRESSED_IMAGE,
+    IMAGE,
+    POINTCLOUD2,
+    base_image_topic,
+    camera_info_topic,
+)
 
 
 @dataclass(frozen=True)
@@ -288,9 +296,11 @@ def _open_ros1(path: Path, stack: contextlib.ExitStack) -> InputBag:
 def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
     """The topics to process: ``requested`` (checked), or every PointCloud2 topic and every depth image topic.
 
-    A depth image topic is a ``sensor_msgs/msg/Image`` topic with a ``sensor_msgs/msg/CameraInfo``
-    topic beside it (:func:`~ppe_ros.ros.bag.topics.camera_info_topic`); by default only those with
-    ``depth`` in their name (a camera's colour images have a camera info too); requested, any.
+    A depth image topic is a ``sensor_msgs/msg/Image`` topic, or an image's ``compressedDepth`` topic
+    (``sensor_msgs/msg/CompressedImage``), with a ``sensor_msgs/msg/CameraInfo`` topic beside the image
+    (:func:`~ppe_ros.ros.bag.topics.camera_info_topic`); by default only those with ``depth`` in their name (a
+    camera's colour images have a camera info too), and an image's compressedDepth topic only when the image
+    itself is not in the bag; requested, any.
 
     Raises:
         BagError: a requested topic is not in the bag, is neither a PointCloud2 nor an Image, or is an
@@ -298,6 +308,7 @@ def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
     """
     clouds = [name for name, topic in bag.topics.items() if topic.msgtype == POINTCLOUD2]
     depth = [name for name, topic in bag.topics.items() if _has_camera_info(bag, name) and 'depth' in name.lower()]
+    depth = [name for name in depth if base_image_topic(name) == name or base_image_topic(name) not in depth]
     listing = ', '.join(f'{name} ({topic.msgtype})' for name, topic in bag.topics.items()) or 'none'
     if not requested:
         if not (clouds or depth) and bag.damage:
@@ -318,12 +329,14 @@ def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
             available = ', '.join(clouds + depth) or f'none (its topics: {listing})'
             raise BagError(f'topic {name!r} is not in {bag.path}; its point cloud and depth image topics: {available}')
         msgtype = bag.topics[topic].msgtype
-        if msgtype == IMAGE and not _has_camera_info(bag, topic):
+        if msgtype == COMPRESSED_IMAGE and base_image_topic(topic) == topic:
+            raise BagError(f'topic {topic} is a {COMPRESSED_IMAGE} but not a .../{COMPRESSED_DEPTH} depth image topic')
+        if msgtype in (IMAGE, COMPRESSED_IMAGE) and not _has_camera_info(bag, topic):
             raise BagError(
                 f'topic {topic} is an image without its camera info: {bag.path} has no {camera_info_topic(topic)} '
                 f'({CAMERA_INFO}) beside it'
             )
-        if msgtype not in (POINTCLOUD2, IMAGE):
+        if msgtype not in (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE):
             raise BagError(f'topic {topic} has type {msgtype}, not {POINTCLOUD2} or {IMAGE}')
         if topic not in selected:
             selected.append(topic)
@@ -331,6 +344,8 @@ def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
 
 
 def _has_camera_info(bag: InputBag, topic: str) -> bool:
-    """Whether ``topic`` is an Image with a CameraInfo topic beside it."""
+    """Whether ``topic`` is an Image (or an image's compressedDepth topic) with a CameraInfo topic beside it."""
     info = bag.topics.get(camera_info_topic(topic))
-    return bag.topics[topic].msgtype == IMAGE and info is not None and info.msgtype == CAMERA_INFO
+    msgtype = bag.topics[topic].msgtype
+    image = msgtype == IMAGE or (msgtype == COMPRESSED_IMAGE and base_image_topic(topic) != topic)
+    return image and info is not None and info.msgtype == CAMERA_INFO

@@ -33,15 +33,19 @@ from ppe_ros.ros.bag.ray_executor import RayExecutor
 from ppe_ros.ros.bag.report import BagOptions, BagReport, BagsReport, TopicReport, format_report
 from ppe_ros.ros.bag.signals import StopRequests
 from ppe_ros.ros.bag.topics import (
+    COMPRESSED_IMAGE,
     IMAGE,
     OUTPUT_MSGTYPES,
     OUTPUT_SUFFIXES,
     POINTCLOUD2,
+    base_image_topic,
     camera_info_topic,
     output_topics,
 )
 from ppe_ros.ros.processing import OutputSelection
 
+#: Message types of depth image topics (each image goes with the camera info beside it).
+DEPTH_IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 #: Skip reasons logged per input topic and kind before the rest are only counted.
 SKIP_LOG_LIMIT = 5
 #: How often (s) the main process checks for a second Ctrl-C while waiting for a worker.
@@ -315,7 +319,11 @@ def _plan(report: BagReport, bag: InputBag, log: Callable[[str], None], warn: Ca
     selected = select_topics(bag, options.topics)
     selection = OutputSelection.from_params(options.params)
     kinds = [kind for kind in OUTPUT_SUFFIXES if getattr(selection, kind)]
-    names = output_topics(selected, kinds=kinds, reserved=selected if options.copy_input else ())
+    # a compressedDepth topic's outputs go where its image's would: beside the image topic
+    bases = [base_image_topic(topic) for topic in selected]
+    named = [base if bases.count(base) == 1 else topic for topic, base in zip(selected, bases, strict=True)]
+    by_name = output_topics(named, kinds=kinds, reserved=selected if options.copy_input else ())
+    names = {topic: by_name[name] for topic, name in zip(selected, named, strict=True)}
     for topic in selected:
         report.topics[topic] = TopicReport(topic, names[topic], bag.topics[topic].count, bag.topics[topic].msgtype)
     if bag.damage and all(entry.expected == 0 for entry in report.topics.values()):
@@ -337,7 +345,7 @@ def _log_plan(
     for topic in report.topics.values():
         expected = '?' if topic.expected is None else topic.expected
         outputs = ', '.join(topic.outputs.values()) or '(no output enabled)'
-        info = f' with {camera_info_topic(topic.input_topic)}' if topic.msgtype == IMAGE else ''
+        info = f' with {camera_info_topic(topic.input_topic)}' if topic.msgtype in DEPTH_IMAGE_TYPES else ''
         log(f'  {topic.input_topic} ({expected} messages{info}) -> {outputs}')
 
 
@@ -387,7 +395,9 @@ def _run(
     logged: Counter[tuple[str, str]] = Counter()
     pending: deque[tuple[str, int, bytes | None, Future]] = deque()
     # depth images: the camera info topics read along, and the last camera info read on each
-    info_topics = {camera_info_topic(topic) for topic, entry in report.topics.items() if entry.msgtype == IMAGE}
+    info_topics = {
+        camera_info_topic(topic) for topic, entry in report.topics.items() if entry.msgtype in DEPTH_IMAGE_TYPES
+    }
     latest_info: dict[str, bytes] = {}
     stream = bag.messages([*report.topics, *sorted(info_topics)])
     abandon = False
@@ -414,9 +424,9 @@ def _run(
                     continue
                 report.topics[topic].read += 1
                 frame: FrameInput = raw
-                if report.topics[topic].msgtype == IMAGE:
+                if report.topics[topic].msgtype in DEPTH_IMAGE_TYPES:
                     info = camera_info_topic(topic)
-                    frame = DepthMessages(raw, latest_info.get(info), info)
+                    frame = DepthMessages(raw, latest_info.get(info), info, report.topics[topic].msgtype)
                 future = executor.submit(frame, bag.encoding, convert_copy)
                 pending.append((topic, timestamp, raw if options.copy_input and not convert_copy else None, future))
             executor.flush()

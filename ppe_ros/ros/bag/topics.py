@@ -9,7 +9,10 @@ from ppe_ros.ros.bag.errors import BagError
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 IMAGE = 'sensor_msgs/msg/Image'
+COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+#: The last name of image_transport's compressedDepth topic of an image topic.
+COMPRESSED_DEPTH = 'compressedDepth'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 
 #: Output kinds in writing order: topic suffix (relative to the namespace) and message type.
@@ -25,10 +28,17 @@ OUTPUT_MSGTYPES: dict[str, str] = {
 }
 
 
+def base_image_topic(topic: str) -> str:
+    """The image topic of an image_transport topic: ``/camera/depth/image_rect_raw/compressedDepth`` ->
+    ``/camera/depth/image_rect_raw``; any other topic is its own."""
+    base, _, last = topic.rpartition('/')
+    return base if last == COMPRESSED_DEPTH and base else topic
+
+
 def camera_info_topic(image_topic: str) -> str:
     """The camera info topic beside an image topic (image_transport's convention):
-    ``/camera/depth/image_rect_raw`` -> ``/camera/depth/camera_info``."""
-    return f'{image_topic.rsplit("/", 1)[0]}/camera_info'
+    ``/camera/depth/image_rect_raw`` (and its ``/compressedDepth``) -> ``/camera/depth/camera_info``."""
+    return f'{base_image_topic(image_topic).rsplit("/", 1)[0]}/camera_info'
 
 
 def output_topics(
