@@ -29,8 +29,9 @@ import numpy as np
 HEADER_BYTES = 12
 #: Codecs of the format string's "compressedDepth <codec>".
 CODECS = ('png', 'rvl')
-#: An RVL code holds at least one nibble per run, so a frame claims at most this many pixels per byte.
-RVL_MAX_PIXELS_PER_BYTE = 2 * 65535
+#: Pixels an RVL frame may claim per byte of its code: an all-zero 4K frame takes a handful of bytes, so the
+#: bound is loose; callers check a frame's size (max_points) from its header before decoding it.
+RVL_MAX_PIXELS_PER_BYTE = 2**20
 
 
 class CompressedDepthError(ValueError):
@@ -86,7 +87,8 @@ def compressed_depth_size(msg: Any) -> tuple[int, int]:
 
 def decode_compressed_depth(msg: Any) -> tuple[np.ndarray, float]:
     """The ``(H, W)`` depth values of a compressedDepth message and metres per value: uint16 millimetres
-    (0 = no depth) for 16UC1, float64 metres (NaN = no depth) for 32FC1.
+    (0 = no depth) for 16UC1, float64 metres (NaN = no depth) for 32FC1. Check the size it claims
+    (:func:`compressed_depth_size`) first: the values are allocated at that size.
 
     Raises:
         CompressedDepthError: see :func:`parse_format`; an encoding other than 16UC1 / 32FC1, a PNG that is not
