@@ -146,8 +146,11 @@ def test_a_requested_image_needs_its_camera_info_and_copy_input_copies_it(tmp_pa
     )
     assert report.frames_read == 4 and report.frames_skipped == 4  # rgb8: not a depth encoding
     assert "image encoding 'rgb8' is not a depth encoding" in report.topics[COLOR].reasons['invalid_image']
-    copied = read_bag(tmp_path / 'out')[COLOR]
-    assert [msg.encoding for _, msg in copied] == ['rgb8'] * 4
+    out = read_bag(tmp_path / 'out')
+    assert [msg.encoding for _, msg in out[COLOR]] == ['rgb8'] * 4
+    # the image's camera info is copied along, at its own times
+    assert [t for t, _ in out[COLOR_INFO]] == [t for t, topic, _ in messages(TYPES) if topic == COLOR_INFO]
+    assert sorted(out) == sorted([COLOR, COLOR_INFO])  # every colour frame skipped: no outputs
     writer = Writer(tmp_path / 'lonely', version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()
     connection = writer.add_connection(DEPTH, IMAGE, typestore=JAZZY)
@@ -194,3 +197,14 @@ def test_compressed_depth_topics_go_beside_their_image_and_the_raw_image_is_pref
         assert len(labeled) == 3  # the first image had no camera info yet
         for (_, msg), (_, frame) in zip(labeled, expected[1:], strict=True):
             np.testing.assert_array_equal(np.array(pointcloud2_to_structured(msg)['label']), frame.planes.labels)
+
+
+def test_copy_input_of_a_ros1_bag_converts_the_camera_info_too(tmp_path):
+    source = write_ros1(tmp_path / 'in.bag')
+    report = process_bag(BagOptions(source, tmp_path / 'out', copy_input=True, progress=False, params=PARAMS))
+    assert report.frames_processed == 3
+    out = read_bag(tmp_path / 'out')
+    infos = [msg for _, msg in out[DEPTH_INFO]]
+    assert len(infos) == 3 and all(msg.__msgtype__ == CAMERA_INFO for msg in infos)
+    np.testing.assert_array_equal(infos[0].k, camera_info(TYPES).k)  # ROS 1's K is ROS 2's k
+    assert [msg.encoding for _, msg in out[DEPTH]] == ['16UC1'] * 4

@@ -14,7 +14,9 @@ back-projects every pixel as depth_image_proc's ``point_cloud_xyz`` does:
   not applied; with ``rectified=False`` (the node's ``depth_image_rectified: false``) the image is
   raw instead: the camera matrix K and the coefficients D (``plumb_bob`` or
   ``rational_polynomial``) give each pixel its undistorted ray, and the point is z times it;
-* the image's size must be the one the camera info describes (its ROI's, or its own, over the binning).
+* the image's size must be the one the camera info describes (its ROI's, or its own, over the binning);
+* a ``sensor_msgs/CompressedImage`` of image_transport's compressedDepth transport is decoded first
+  (:mod:`ppe_ros.ros.compressed_depth`).
 
 Nothing here imports rclpy: messages of either flavour (rclpy or rosbags) work.
 """

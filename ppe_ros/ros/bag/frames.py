@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -72,6 +73,21 @@ def ros1_as_ros2(msg: Any, typestore: Any) -> Any:
             value = [ros1_as_ros2(v, typestore) if hasattr(v, '__msgtype__') else v for v in value]
         values[item.name] = value
     return cls(**values)
+
+
+@functools.lru_cache(maxsize=1)
+def _typestores() -> tuple[Any, Any]:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC), get_typestore(Stores.ROS2_JAZZY)
+
+
+def ros2_cdr(raw: bytes, encoding: str, msgtype: str) -> bytes:
+    """A raw message of a bag as ROS 2 CDR bytes: as it is (``encoding`` 'cdr'), or converted from ROS 1."""
+    if encoding == 'cdr':
+        return raw
+    ros1, ros2 = _typestores()
+    return bytes(ros2.serialize_cdr(ros1_as_ros2(ros1.deserialize_ros1(raw, msgtype), ros2), msgtype))
 
 
 def ros1_cloud_as_ros2(msg: Any, typestore: Any) -> Any:

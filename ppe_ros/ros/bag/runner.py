@@ -26,13 +26,14 @@ from ppe_ros.ros.bag.executors import (
     default_numba_threads,
     set_numba_threads,
 )
-from ppe_ros.ros.bag.frames import DepthMessages, FrameInput, FrameProcessor, FrameResult
+from ppe_ros.ros.bag.frames import DepthMessages, FrameInput, FrameProcessor, FrameResult, ros2_cdr
 from ppe_ros.ros.bag.inputs import InputBag, open_input_bag, select_topics
 from ppe_ros.ros.bag.output import STORAGES, OutputBag, check_paths
 from ppe_ros.ros.bag.ray_executor import RayExecutor
 from ppe_ros.ros.bag.report import BagOptions, BagReport, BagsReport, TopicReport, format_report
 from ppe_ros.ros.bag.signals import StopRequests
 from ppe_ros.ros.bag.topics import (
+    CAMERA_INFO,
     COMPRESSED_IMAGE,
     IMAGE,
     OUTPUT_MSGTYPES,
@@ -44,6 +45,9 @@ from ppe_ros.ros.bag.topics import (
 )
 from ppe_ros.ros.processing import OutputSelection
 
+#: The pending entry of a copied camera info: nothing to wait for.
+_COPIED: Future = Future()
+_COPIED.set_result(FrameResult())
 #: Message types of depth image topics (each image goes with the camera info beside it).
 DEPTH_IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 #: Skip reasons logged per input topic and kind before the rest are only counted.
@@ -349,8 +353,11 @@ def _log_plan(
         log(f'  {topic.input_topic} ({expected} messages{info}) -> {outputs}')
 
 
-def _set_up_output(output: OutputBag, report: BagReport, options: BagOptions) -> tuple[dict, dict]:
-    """The output's connections (copies, then outputs per input topic) and its custom data."""
+def _set_up_output(
+    output: OutputBag, report: BagReport, options: BagOptions, info_topics: set[str]
+) -> tuple[dict, dict]:
+    """The output's connections (copies of the inputs and their camera infos, then outputs per input topic)
+    and its custom data."""
     from rosbags.typesys import Stores, get_typestore
 
     typestore = get_typestore(Stores.ROS2_JAZZY)
@@ -358,6 +365,8 @@ def _set_up_output(output: OutputBag, report: BagReport, options: BagOptions) ->
     if options.copy_input:
         for topic, entry in report.topics.items():
             copy_connections[topic] = output.add_connection(topic, entry.msgtype, typestore)
+        for topic in sorted(info_topics):
+            copy_connections[topic] = output.add_connection(topic, CAMERA_INFO, typestore)
     connections = {
         topic: {
             kind: output.add_connection(name, OUTPUT_MSGTYPES[kind], typestore) for kind, name in entry.outputs.items()
@@ -390,14 +399,14 @@ def _run(
     bar: Any,
 ) -> None:
     """Read, process (inline, in workers or on Ray) and write in input order until done, damaged or stopped."""
-    copy_connections, connections = _set_up_output(output, report, options)
-    convert_copy = options.copy_input and bag.encoding == 'ros1'
-    logged: Counter[tuple[str, str]] = Counter()
-    pending: deque[tuple[str, int, bytes | None, Future]] = deque()
     # depth images: the camera info topics read along, and the last camera info read on each
     info_topics = {
         camera_info_topic(topic) for topic, entry in report.topics.items() if entry.msgtype in DEPTH_IMAGE_TYPES
-    }
+    } - set(report.topics)
+    copy_connections, connections = _set_up_output(output, report, options, info_topics)
+    convert_copy = options.copy_input and bag.encoding == 'ros1'
+    logged: Counter[tuple[str, str]] = Counter()
+    pending: deque[tuple[str, int, bytes | None, Future]] = deque()
     latest_info: dict[str, bytes] = {}
     stream = bag.messages([*report.topics, *sorted(info_topics)])
     abandon = False
@@ -419,8 +428,10 @@ def _run(
                     reading = False
                     break
                 raw = bytes(raw)
-                if topic in info_topics and topic not in report.topics:  # goes with the images after it
+                if topic in info_topics:  # goes with the images after it (and, copied, in input order)
                     latest_info[topic] = raw
+                    if options.copy_input:
+                        pending.append((topic, timestamp, ros2_cdr(raw, bag.encoding, CAMERA_INFO), _COPIED))
                     continue
                 report.topics[topic].read += 1
                 frame: FrameInput = raw
@@ -447,6 +458,9 @@ def _run(
                 abandon = True
                 break
             pending.popleft()
+            if topic in info_topics:
+                output.write(copy_connections[topic], timestamp, raw)
+                continue
             _write_frame(output, report, topic, timestamp, raw, result, copy_connections, connections[topic])
             _log_skip(result, topic, timestamp, logged, warn)
             bar.update(1)
@@ -457,7 +471,7 @@ def _run(
             report.input_error = f'{bag.path} is damaged ({bag.damage}); {read} frame{"s" * (read != 1)} read'
     finally:
         stream.close()
-        report.dropped_in_flight = len(pending)
+        report.dropped_in_flight = sum(1 for topic, *_ in pending if topic not in info_topics)
         if abandon or pending:
             executor.abandon()
 
