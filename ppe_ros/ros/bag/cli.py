@@ -86,7 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar='T',
         default=[],
         help='PointCloud2 or depth image topic(s) to process (default: every PointCloud2 topic, and every '
-        'sensor_msgs/Image topic with a camera_info topic beside it and "depth" in its name)',
+        'sensor_msgs/Image topic, or its image_transport compressedDepth topic, with a camera_info topic beside '
+        'it and "depth" in its name)',
     )
     parser.add_argument(
         '--params',
