@@ -25,6 +25,8 @@ from typing import Any
 import numba as nb
 import numpy as np
 
+from ppe_ros.ros.pointcloud2 import message_bytes
+
 #: Bytes of the header in front of the compressed data (compressionFormat int32, depthParam float32[2]).
 HEADER_BYTES = 12
 #: Codecs of the format string's "compressedDepth <codec>".
@@ -56,9 +58,10 @@ def parse_format(text: str) -> tuple[str, str]:
     return encoding.strip(), codec
 
 
-def _payload(msg: Any) -> tuple[str, str, float, float, bytes]:
+def _payload(msg: Any) -> tuple[str, str, float, float, np.ndarray]:
+    """(encoding, codec, A, B, the bytes after the header, a uint8 view of the message's data: no copy)."""
     encoding, codec = parse_format(msg.format)
-    data = bytes(msg.data)
+    data = message_bytes(msg.data)
     if len(data) <= HEADER_BYTES:
         raise CompressedDepthError(f'{len(data)} data bytes: no room for the {HEADER_BYTES}-byte header and an image')
     _, quant_a, quant_b = struct.unpack_from('<iff', data)

@@ -31,6 +31,7 @@ import numpy as np
 
 from ppe_ros.io.depth import PinholeIntrinsics, backproject_depth
 from ppe_ros.ros.compressed_depth import CompressedDepthError, compressed_depth_size, decode_compressed_depth
+from ppe_ros.ros.pointcloud2 import message_bytes
 
 #: Image encodings read as depth (REP 118), with their numpy type and metres per count.
 DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
@@ -300,7 +301,7 @@ def depth_values(image: Any) -> tuple[np.ndarray, float]:
         raise DepthImageError(
             'invalid_image', f'row step {step} bytes is shorter than a row of {width} x {dtype.itemsize} bytes'
         )
-    buffer = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8)
+    buffer = message_bytes(data)
     if buffer.size != step * height:
         raise DepthImageError(
             'invalid_image', f'{buffer.size} data bytes, not step x height = {step} x {height} = {step * height}'

@@ -54,8 +54,9 @@ class PointCloudError(ValueError):
 # --------------------------------------------------------------------------------------------
 
 
-def _byte_view(data: Any) -> np.ndarray:
-    """The message's ``data`` as a 1-D uint8 array without copying when possible."""
+def message_bytes(data: Any) -> np.ndarray:
+    """A message's ``data`` (bytes, ``array.array``, numpy array or list) as a 1-D uint8 array without copying
+    when possible."""
     if isinstance(data, np.ndarray):
         return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
     try:
@@ -133,7 +134,7 @@ def pointcloud2_to_structured(msg: Any, *, allow_empty: bool = False) -> np.ndar
         raise PointCloudError(f'empty cloud: height {height}, width {width}')
     dtype = pointcloud2_dtype(msg)
     if height == 0 or width == 0:
-        size = _byte_view(msg.data).size
+        size = message_bytes(msg.data).size
         if size != 0:
             raise PointCloudError(f'data has {size} bytes, expected 0 for a cloud of height {height}, width {width}')
         return np.zeros((height, width), dtype=dtype)
@@ -143,7 +144,7 @@ def pointcloud2_to_structured(msg: Any, *, allow_empty: bool = False) -> np.ndar
         raise PointCloudError(
             f'row_step {row_step} is smaller than width × point_step = {width} × {point_step} = {width * point_step}'
         )
-    raw = _byte_view(msg.data)
+    raw = message_bytes(msg.data)
     expected = row_step * height
     if raw.size != expected:
         raise PointCloudError(
