@@ -17,9 +17,11 @@ runs past either end is an error, never a read outside the buffers.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import struct
 import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import numba as nb
@@ -72,20 +74,35 @@ def compressed_depth_size(msg: Any) -> tuple[int, int]:
     """``(height, width)`` a compressedDepth message says it holds, read from its header (nothing decoded)."""
     _, codec, _, _, body = _payload(msg)
     if codec == 'rvl':
-        if len(body) < 8:
-            raise CompressedDepthError(f'RVL data of {len(body)} bytes has no size')
-        width, height = struct.unpack_from('<II', body)
-        return height, width
+        width, height = _rvl_size(body)
+    else:
+        with _opened_png(body, 'open') as image:
+            width, height = image.size
+    return height, width
+
+
+def _rvl_size(body: np.ndarray) -> tuple[int, int]:
+    """(width, height) at the start of RVL data."""
+    if len(body) < 8:
+        raise CompressedDepthError(f'RVL data of {len(body)} bytes has no size')
+    return struct.unpack_from('<II', body)
+
+
+@contextlib.contextmanager
+def _opened_png(body: np.ndarray, doing: str) -> Iterator[Any]:
+    """The Pillow image of PNG bytes; Pillow's errors of a corrupt file (OSError, SyntaxError, zlib.error, ...),
+    also while the caller reads it, become a CompressedDepthError saying what it does not ``doing``."""
     from PIL import Image
 
     try:
         with warnings.catch_warnings():  # a huge size is the caller's to refuse (max_points), not a warning
             warnings.simplefilter('ignore', Image.DecompressionBombWarning)
             with Image.open(io.BytesIO(body)) as image:
-                width, height = image.size
-    except Exception as exc:  # Pillow's errors of a corrupt file: OSError, SyntaxError, zlib.error, ...
-        raise CompressedDepthError(f'the PNG does not open: {type(exc).__name__}: {exc}') from None
-    return height, width
+                yield image
+    except CompressedDepthError:
+        raise
+    except Exception as exc:
+        raise CompressedDepthError(f'the PNG does not {doing}: {type(exc).__name__}: {exc}') from None
 
 
 def decode_compressed_depth(msg: Any) -> tuple[np.ndarray, float]:
@@ -122,26 +139,18 @@ def warm_up_rvl() -> float:
     return time.perf_counter() - start
 
 
-def _png_values(body: bytes) -> np.ndarray:
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(body)) as image:
-            mode = image.mode
-            values = np.asarray(image) if mode in ('I;16', 'I;16B', 'I;16L', 'I') else None
-    except Exception as exc:  # Pillow's errors of a corrupt file: OSError, SyntaxError, zlib.error, ...
-        raise CompressedDepthError(f'the PNG does not decode: {type(exc).__name__}: {exc}') from None
-    if values is None:
-        raise CompressedDepthError(f'the PNG is {mode!r}, not 16-bit grayscale')
+def _png_values(body: np.ndarray) -> np.ndarray:
+    with _opened_png(body, 'decode') as image:
+        if image.mode not in ('I;16', 'I;16B', 'I;16L', 'I'):
+            raise CompressedDepthError(f'the PNG is {image.mode!r}, not 16-bit grayscale')
+        values = np.asarray(image)
     if values.ndim != 2 or values.min(initial=0) < 0 or values.max(initial=0) > 65535:
         raise CompressedDepthError('the PNG does not hold 16-bit depth values')
     return values.astype(np.uint16)
 
 
-def _rvl_values(body: bytes) -> np.ndarray:
-    if len(body) < 8:
-        raise CompressedDepthError(f'RVL data of {len(body)} bytes has no size')
-    width, height = struct.unpack_from('<II', body)
+def _rvl_values(body: np.ndarray) -> np.ndarray:
+    width, height = _rvl_size(body)
     code = body[8:]
     pixels = width * height
     if pixels == 0 or pixels > RVL_MAX_PIXELS_PER_BYTE * max(len(code), 1):
