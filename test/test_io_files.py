@@ -486,6 +486,19 @@ def test_backproject_depth_validates() -> None:
         backproject_depth(np.ones((2, 2)), camera, 0.0)
     with pytest.raises(ValueError, match=r'\(H, W\) image'):
         backproject_depth(np.ones(4), camera, 0.001)
+    with pytest.raises(ValueError, match=r'rays must be \(2, 2, 2\) for this depth image; got \(2, 3, 2\)'):
+        backproject_depth(np.ones((2, 2)), camera, 0.001, rays=np.zeros((2, 3, 2)))
+
+
+def test_backproject_depth_along_given_rays() -> None:
+    """Each point is z times its pixel's ray (x / z, y / z, 1); a NaN ray is no return."""
+    rays = np.array([[[0.5, -0.25], [np.nan, np.nan]], [[0.0, 0.0], [-1.0, 2.0]]])
+    cloud = backproject_depth(
+        np.array([[2000, 1000], [0, 500]]), PinholeIntrinsics(1.0, 1.0, 0.0, 0.0), 0.001, rays=rays
+    )
+    np.testing.assert_array_equal(cloud[0, 0], [1.0, -0.5, 2.0])
+    np.testing.assert_array_equal(cloud[1, 1], [-0.5, 1.0, 0.5])
+    assert np.isnan(cloud[0, 1]).all() and np.isnan(cloud[1, 0]).all()  # no ray; no depth
 
 
 # --------------------------------------------------------------------------------------------

@@ -225,13 +225,17 @@ def find_depth_calibration(png_path: str | os.PathLike[str]) -> DepthCalibration
     return None
 
 
-def backproject_depth(depth: np.ndarray, intrinsics: PinholeIntrinsics, depth_scale: float) -> np.ndarray:
+def backproject_depth(
+    depth: np.ndarray, intrinsics: PinholeIntrinsics, depth_scale: float, *, rays: np.ndarray | None = None
+) -> np.ndarray:
     """Organized ``(H, W, 3)`` float64 cloud (camera frame, metres) from raw depth counts.
 
     Args:
         depth: ``(H, W)`` non-negative depth counts; 0 = no measurement (NaN in the output).
         intrinsics: pinhole parameters in pixels.
         depth_scale: metres per count (> 0).
+        rays: ``(H, W, 2)`` each pixel's ray as (x / z, y / z) instead of the pinhole's ((u - cx) / fx,
+            (v - cy) / fy), e.g. a distorted camera's undistorted rays; NaN = no ray (no return).
     """
     counts = np.asarray(depth)
     if counts.ndim != 2:
@@ -241,10 +245,16 @@ def backproject_depth(depth: np.ndarray, intrinsics: PinholeIntrinsics, depth_sc
     height, width = counts.shape
     z = counts.astype(np.float64) * float(depth_scale)
     z[~(z > 0)] = np.nan
-    cols = (np.arange(width, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
-    rows = (np.arange(height, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
+    if rays is None:
+        x_per_z = ((np.arange(width, dtype=np.float64) - intrinsics.cx) / intrinsics.fx)[None, :]
+        y_per_z = ((np.arange(height, dtype=np.float64) - intrinsics.cy) / intrinsics.fy)[:, None]
+    else:
+        if rays.shape != (height, width, 2):
+            raise ValueError(f'rays must be ({height}, {width}, 2) for this depth image; got {rays.shape}')
+        x_per_z, y_per_z = rays[..., 0], rays[..., 1]
+        z[np.isnan(x_per_z)] = np.nan
     cloud = np.empty((height, width, 3), dtype=np.float64)
-    cloud[..., 0] = z * cols[None, :]
-    cloud[..., 1] = z * rows[:, None]
+    cloud[..., 0] = z * x_per_z
+    cloud[..., 1] = z * y_per_z
     cloud[..., 2] = z
     return cloud

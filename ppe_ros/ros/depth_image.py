@@ -330,14 +330,4 @@ def depth_image_points(image: Any, camera_info: Any, *, rectified: bool = True) 
         )
     if counts.dtype.kind == 'f':  # NaN and +-inf: no return (backproject_depth: a depth <= 0 is none)
         counts = np.where(np.isfinite(counts), counts, 0.0)
-    if not camera.distortion:
-        return backproject_depth(counts, camera.intrinsics, scale)
-    z = counts.astype(np.float64) * scale
-    z[~(z > 0)] = np.nan
-    rays = pixel_rays(camera)
-    points = np.empty((*z.shape, 3))
-    points[..., 0] = z * rays[..., 0]
-    points[..., 1] = z * rays[..., 1]
-    points[..., 2] = z
-    points[np.isnan(rays[..., 0])] = np.nan
-    return points
+    return backproject_depth(counts, camera.intrinsics, scale, rays=pixel_rays(camera) if camera.distortion else None)
