@@ -156,6 +156,16 @@ def spin_until(executor, predicate, timeout: float) -> bool:
     return True
 
 
+def plane_table_probe(client_factory, domain_id: int, depth: int = 5) -> tuple[Any, Any, list]:
+    """(executor, probe node, the plane tables it receives on /planes, reliable with ``depth``) on ``domain_id``."""
+    executor, probe = client_factory(domain_id)
+    tables: list = []
+    probe.create_subscription(
+        PointCloud2, '/planes', tables.append, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    return executor, probe, tables
+
+
 def publish_until_a_table(executor, tables: list, publish, extractor: ExtractorProcess, timeout: float = 60.0) -> None:
     """Call ``publish`` about once a second until a plane table arrives in ``tables`` (the node builds /planes
     only once it sees the subscription); fail with the extractor's output after ``timeout`` s."""
@@ -179,11 +189,7 @@ def test_console_script_answers_over_dds_and_exits_cleanly(client_factory, stop_
     extractor = ExtractorProcess(domain_id)
     try:
         assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
-        executor, probe = client_factory(domain_id)
-        tables = []
-        probe.create_subscription(
-            PointCloud2, '/planes', tables.append, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        )
+        executor, probe, tables = plane_table_probe(client_factory, domain_id)
         publisher = probe.create_publisher(PointCloud2, '/points', qos_profile_sensor_data)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
         # the node builds /planes only once it sees our subscription; resend until a table arrives
@@ -207,11 +213,7 @@ def test_two_workers_publish_in_order_and_stop_cleanly_while_busy(client_factory
     try:
         assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
         assert '2 worker(s)' in extractor.output
-        executor, probe = client_factory(domain_id)
-        tables = []
-        probe.create_subscription(
-            PointCloud2, '/planes', tables.append, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-        )
+        executor, probe, tables = plane_table_probe(client_factory, domain_id, depth=50)
         reliable = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
         publisher = probe.create_publisher(PointCloud2, '/points', reliable)
         assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, 30.0), extractor.output
@@ -592,11 +594,7 @@ def test_a_depth_camera_with_its_params_file_and_remapped_topics(client_factory)
     try:
         assert extractor.ready.wait(READY_TIMEOUT_S), f'not ready in time:\n{extractor.output}'
         assert 'depth images on /camera/depth/image_rect_raw' in extractor.output
-        executor, probe = client_factory(domain_id)
-        tables = []
-        probe.create_subscription(
-            PointCloud2, '/planes', tables.append, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        )
+        executor, probe, tables = plane_table_probe(client_factory, domain_id)
         reliable = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         images = probe.create_publisher(Image, '/camera/depth/image_rect_raw', reliable)
         infos = probe.create_publisher(CameraInfo, '/camera/depth/camera_info', reliable)
