@@ -14,10 +14,13 @@ about a thousand small ones, the worst case for the number of markers); or ``dep
 the node finds; or ``depth_image``: the same frame as the depth camera publishes it (a 16UC1
 ``sensor_msgs/Image`` in millimetres with its ``CameraInfo``), converted by the node's depth image path;
 ``depth_rvl`` / ``depth_png``: the same image as image_transport's compressedDepth transport sends it (RVL, or
-PNG at OpenCV's default level 3 here: Pillow's ``compress_level=3``), decoded and converted by the node.
+PNG at OpenCV's default level 3 here: Pillow's ``compress_level=3``), decoded and converted by the node;
+``depth_raw_lens``: the 16UC1 image as a raw, distorted camera publishes it (an Azure Kinect-like
+rational_polynomial D), converted with ``depth_image_rectified: false`` (the rays are undistorted on the first
+frame, whose conversion time the header line gives; the table's repeats use the cached rays).
 
     .venv/bin/python benchmarks/bench_node_overhead.py [--repeats 30]
-        [--cloud synthetic|ouster|depth|depth_image|depth_rvl|depth_png]
+        [--cloud synthetic|ouster|depth|depth_image|depth_rvl|depth_png|depth_raw_lens]
         [--params FILE.yaml]
 
 ``--params`` takes the node's params file (default: the node defaults, as in config/extractor.yaml);
@@ -117,14 +120,21 @@ def depth_camera_message(scan, types, kind: str = 'depth_image'):
     header = driver_message(scan.points[:2, :2], types).header
     image = Image(header=header, height=height, width=width, encoding='16UC1', step=2 * width)
     image.data = millimetres.tobytes()
-    if kind != 'depth_image':
+    if kind in ('depth_rvl', 'depth_png'):
         image = CompressedImage(header=header, format=f'16UC1; compressedDepth {kind[6:]}')
         image.data = compressed_depth_payload(millimetres, kind[6:])
     fx, fy, cx, cy = scan.intrinsics
     info = CameraInfo(header=header, height=height, width=width, distortion_model='plumb_bob')
     info.k = [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
     info.p = [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    if kind == 'depth_raw_lens':
+        info.distortion_model = 'rational_polynomial'
+        info.d = list(AZURE_KINECT_LIKE_D)
     return DepthFrame(image, info)
+
+
+#: k1 k2 p1 p2 k3 k4 k5 k6 of a wide depth lens with large rational coefficients that nearly cancel.
+AZURE_KINECT_LIKE_D = (5.0, 3.3, -6e-5, 1e-5, 0.17, 5.3, 5.1, 0.86)
 
 
 def compressed_depth_payload(millimetres: np.ndarray, codec: str) -> bytes:
@@ -192,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--repeats', type=int, default=30)
     parser.add_argument(
         '--cloud',
-        choices=('synthetic', 'ouster', 'depth', 'depth_image', 'depth_rvl', 'depth_png'),
+        choices=('synthetic', 'ouster', 'depth', 'depth_image', 'depth_rvl', 'depth_png', 'depth_raw_lens'),
         default='synthetic',
     )
     parser.add_argument(
@@ -208,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--rate', type=float, default=10.0, help='input clouds per second for --idle')
     args = parser.parse_args(argv)
     params = ExtractorParams.from_yaml(args.params) if args.params else ExtractorParams()
+    if args.cloud == 'depth_raw_lens':
+        params = params.replace(depth_image_rectified=False)
     types = rclpy_message_types()
     start = time.perf_counter()
     if args.cloud == 'ouster':
@@ -233,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
             'depth_image': 'depth image (16UC1 + CameraInfo)',
             'depth_rvl': 'compressedDepth RVL image + CameraInfo',
             'depth_png': 'compressedDepth PNG image + CameraInfo',
+            'depth_raw_lens': 'raw, distorted depth image (16UC1 + rational_polynomial CameraInfo)',
         }[args.cloud]
         if args.cloud != 'depth':
             what += f', {len(msg.image.data) / 1e3:.0f} kB'
@@ -283,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
         total = time.perf_counter() - start
         cpu_total = time.thread_time() - cpu_start
         if repeat == 0:
-            marker_bytes, marker_stride = len(frame.markers), frame.marker_stride
+            marker_bytes, marker_stride, first_convert = len(frame.markers), frame.marker_stride, convert
             continue
         for key in rows:
             rows[key].append(frame.timings[key] * 1e3)
@@ -297,7 +310,8 @@ def main(argv: list[str] | None = None) -> int:
         f'({100 * np.mean(planes.labels > 0):.0f} % of pixels on a plane), markers {marker_bytes / 1e6:.1f} MB; '
         f'finding the planes (not part of the overhead) {planes_s:.2f} s. {args.repeats} repeats; '
         f'params: {args.params or "node defaults"} (marker_mesh_stride {params.marker_mesh_stride}, '
-        f'marker_max_triangles {params.marker_max_triangles}: mesh stride used {marker_stride}).\n'
+        f'marker_max_triangles {params.marker_max_triangles}: mesh stride used {marker_stride}); '
+        f'conversion of the first frame (untimed in the table) {first_convert * 1e3:.1f} ms.\n'
     )
     print('| step | median ms | max ms |')
     print('|---|---|---|')
