@@ -307,7 +307,7 @@ def select_topics(bag: InputBag, requested: Sequence[str] | None) -> list[str]:
             Image without its camera info; nothing to process.
     """
     clouds = [name for name, topic in bag.topics.items() if topic.msgtype == POINTCLOUD2]
-    depth = [name for name, topic in bag.topics.items() if _has_camera_info(bag, name) and 'depth' in name.lower()]
+    depth = [name for name in bag.topics if _has_camera_info(bag, name) and 'depth' in name.lower()]
     depth = [name for name in depth if base_image_topic(name) == name or base_image_topic(name) not in depth]
     listing = ', '.join(f'{name} ({topic.msgtype})' for name, topic in bag.topics.items()) or 'none'
     if not requested:
