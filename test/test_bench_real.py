@@ -27,7 +27,10 @@ from ppe_ros.benchmark.real import (
     resweep,
     rigid_fit_from_planes,
     share_in_large_planes,
+    smooth_surfaces,
     summarize_matches,
+    surface_shape,
+    touching_pairs,
     transform_planes,
     truth_mahalanobis,
 )
@@ -500,6 +503,31 @@ def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
         assert planes > 0 and 0 <= found <= planes
 
 
+def test_bench_surface_shape_finds_the_kinect_frames_curved_surface(capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_surface_shape.py'
+    spec = importlib.util.spec_from_file_location('bench_surface_shape_under_test', path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main(['--scans', 'no-such-scan']) == 2
+    assert 'no-such-scan' in capsys.readouterr().err
+    if not bench.SHARED.is_dir():
+        pytest.skip(f'the shared data folder {bench.SHARED} is not here (a fresh clone)')
+    assert bench.main(['--scans', 'Kinect']) == 0
+    rows = [line.split('|')[1:-1] for line in capsys.readouterr().out.splitlines() if line.startswith('| Kinect')]
+    groups = [row for row in rows if '+' in row[1]]
+    # the surface left of the floor is one smooth surface that the depth camera profile cuts into flat strips:
+    # a cylinder of radius about 1.4 m, its strips' normals tens of degrees apart
+    assert len(groups) == 1
+    _, members, _, plane_rms, quadric_rms, radii, angle = groups[0]
+    assert len(members.split('+')) >= 3
+    assert float(plane_rms) > 4 * float(quadric_rms)
+    assert 1.0 < float(radii.split(',')[0]) < 2.5
+    assert float(angle) > 20.0
+
+
 def test_profile_with_settings_changes_the_named_fields_only():
     import dataclasses
 
@@ -587,3 +615,83 @@ def test_peac_driver_protocol(tmp_path, monkeypatch):
     failing.chmod(0o755)
     with pytest.raises(RuntimeError, match='no luck'):
         bench.run_peac(str(failing), points, {})
+
+
+# ------------------------------------------------------------------------------------------ surface shape
+
+
+def _cylinder_wall_and_floor(radius=1.4, arc_deg=40.0, rows=60, cols=90, noise=0.0, seed=0):
+    """An organized grid: the left 2/3 of the columns a vertical cylinder arc (axis z, 1.2 m tall) labelled
+    1, 2, 3 in three bands of columns; the right 1/3 a flat floor patch (z = 0) labelled 4 that touches
+    band 3 along one column."""
+    rng = np.random.default_rng(seed)
+    points = np.zeros((rows, cols, 3))
+    labels = np.zeros((rows, cols), np.int32)
+    wall = 2 * cols // 3
+    angles = np.radians(np.linspace(-arc_deg / 2, arc_deg / 2, wall))
+    heights = np.linspace(0.05, 1.25, rows)
+    for j, a in enumerate(angles):
+        points[:, j] = np.stack([radius * np.cos(a) * np.ones(rows), radius * np.sin(a) * np.ones(rows), heights], 1)
+        labels[:, j] = 1 + 3 * j // wall
+    x = np.linspace(radius - 1.2, radius - 0.05, rows)
+    y = np.linspace(points[0, wall - 1, 1], points[0, wall - 1, 1] + 1.0, cols - wall)
+    points[:, wall:] = np.stack([*np.meshgrid(x, y, indexing='ij'), np.zeros((rows, cols - wall))], -1)
+    labels[:, wall:] = 4
+    points += rng.normal(0.0, noise, points.shape)
+    return points, labels
+
+
+def test_surface_shape_of_a_noisy_plane_is_flat():
+    rng = np.random.default_rng(3)
+    u, v = rng.uniform(-2, 2, (2, 5000))
+    normal = np.array([0.2, -0.3, 0.93]) / np.linalg.norm([0.2, -0.3, 0.93])
+    e1 = np.cross(normal, [1.0, 0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    points = np.outer(u, e1) + np.outer(v, e2) + np.outer(rng.normal(0, 0.004, 5000), normal) + [1, 2, 3]
+    shape = surface_shape(points)
+    assert shape.points == 5000
+    assert shape.plane_rms == pytest.approx(0.004, rel=0.05)
+    assert shape.quadric_rms == pytest.approx(shape.plane_rms, rel=0.01)
+    assert min(shape.radii) > 100.0
+
+
+def test_surface_shape_finds_the_radius_of_a_cylinder():
+    points, labels = _cylinder_wall_and_floor(radius=1.4)
+    wall = points[labels < 4]
+    shape = surface_shape(wall)
+    assert shape.radii[0] == pytest.approx(1.4, rel=0.05)
+    assert shape.radii[1] > 1000.0
+    # a 40 deg arc of radius 1.4 m: sagitta 8.4 cm, far from flat; the quadric follows it within a millimetre
+    assert shape.plane_rms > 0.02
+    assert shape.quadric_rms < 0.001
+
+
+def test_surface_shape_refuses_too_few_points():
+    with pytest.raises(ValueError, match='at least 6 points'):
+        surface_shape(np.zeros((5, 3)))
+
+
+def test_touching_pairs_counts_four_neighbour_pixel_pairs():
+    labels = np.array([[1, 1, 2], [1, 0, 2], [3, 3, 2]])
+    assert touching_pairs(labels) == {(1, 2): 1, (1, 3): 1, (2, 3): 1}
+    assert touching_pairs(np.array([[1, 2], [2, 2]])) == {(1, 2): 2}
+    assert touching_pairs(np.array([[1, 2], [2, 2]]), min_pairs=3) == {}
+
+
+def test_smooth_surfaces_joins_the_strips_of_a_cylinder_but_not_the_floor():
+    points, labels = _cylinder_wall_and_floor(noise=0.002)
+    groups = smooth_surfaces(points, labels, min_points=100, max_quadric_rms=0.01, min_touching=10)
+    assert [members for members, _ in groups] == [[1, 2, 3], [4]]
+    wall = groups[0][1]
+    assert wall.plane_rms > 0.02 and wall.quadric_rms < 0.003
+    assert wall.radii[0] == pytest.approx(1.4, rel=0.1)
+
+
+def test_smooth_surfaces_keeps_strips_apart_below_the_noise_or_without_contact():
+    points, labels = _cylinder_wall_and_floor(noise=0.002)
+    groups = smooth_surfaces(points, labels, min_points=100, max_quadric_rms=0.001, min_touching=10)
+    assert sorted(members for members, _ in groups) == [[1], [2], [3], [4]]
+    # strips 1 and 3 do not touch: without strip 2 (too small to count) nothing joins
+    groups = smooth_surfaces(points, np.where(labels == 2, 0, labels), min_points=100, min_touching=10)
+    assert sorted(members for members, _ in groups) == [[1], [3], [4]]

@@ -14,6 +14,8 @@ scan, a Kinect frame, ICL-NUIM frames) and measures what a mapping user needs fr
 * covariance calibration: the Mahalanobis² of the difference of matched planes' closest points
   ``d n`` under the sum of their reported covariances (:func:`mahalanobis_squared`); a calibrated
   covariance gives the chi²(3) median :data:`CHI2_3_MEDIAN`.
+* whether neighbouring large planes are flat strips of one curved surface: plane and quadric fits of
+  their union (:func:`surface_shape`, :func:`smooth_surfaces`; ``benchmarks/bench_surface_shape.py``).
 
 Frames: every point is in its scan's sensor frame (metres); a registration maps A's frame into B's.
 The scans themselves and which of them were used to choose defaults are :data:`REAL_SCANS` and
@@ -857,3 +859,109 @@ def motion_difference(
     relative = np.asarray(rotation_a, float).T @ np.asarray(rotation_b, float)
     cos_angle = np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)
     return math.degrees(math.acos(cos_angle)), float(np.linalg.norm(np.asarray(translation_a) - translation_b))
+
+
+# ------------------------------------------------------------------------------------------ surface shape
+
+
+@dataclass(frozen=True)
+class SurfaceShape:
+    """How far a set of points (metres, any frame) is from a plane, and how well a smooth bend explains them.
+
+    Attributes:
+        points: number of points.
+        plane_rms: RMS distance (m) of the points from their least-squares plane.
+        quadric_rms: RMS residual (m) of the least-squares quadric height field
+            ``w = a + b u + c v + d u^2 + e u v + f v^2`` over that plane (u, v along the two largest axes of
+            the points' scatter, w along its normal, origin at the centroid).
+        radii: the quadric's principal radii of curvature (m) at the centroid, smaller first (1 / the
+            eigenvalues' magnitudes of its Hessian; inf where it is flat).
+    """
+
+    points: int
+    plane_rms: float
+    quadric_rms: float
+    radii: tuple[float, float]
+
+
+def surface_shape(points: np.ndarray) -> SurfaceShape:
+    """:class:`SurfaceShape` of ``(N, 3)`` points (N >= 6, not all on one line)."""
+    cloud = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(cloud) < 6:
+        raise ValueError(f'surface_shape needs at least 6 points; got {len(cloud)}')
+    centred = cloud - cloud.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    u, v, w = (centred @ axes.T).T
+    design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+    coefficients, *_ = np.linalg.lstsq(design, w, rcond=None)
+    d, e, f = coefficients[3:]
+    curvatures = np.abs(np.linalg.eigvalsh(np.array([[2.0 * d, e], [e, 2.0 * f]])))
+    radii = sorted(1.0 / c if c > 0.0 else math.inf for c in curvatures)
+    return SurfaceShape(
+        points=len(cloud),
+        plane_rms=float(np.sqrt(np.mean(w * w))),
+        quadric_rms=float(np.sqrt(np.mean((w - design @ coefficients) ** 2))),
+        radii=(float(radii[0]), float(radii[1])),
+    )
+
+
+def touching_pairs(labels: np.ndarray, min_pairs: int = 1) -> dict[tuple[int, int], int]:
+    """``{(a, b): n}`` with a < b: labels a, b > 0 of an ``(H, W)`` grid that are 4-neighbours in n pixel pairs
+    (n >= min_pairs)."""
+    grid = np.asarray(labels)
+    left, right = grid[:, :-1].ravel(), grid[:, 1:].ravel()
+    up, down = grid[:-1].ravel(), grid[1:].ravel()
+    first = np.concatenate([left, up])
+    second = np.concatenate([right, down])
+    keep = (first > 0) & (second > 0) & (first != second)
+    low = np.minimum(first[keep], second[keep])
+    high = np.maximum(first[keep], second[keep])
+    pairs, counts = np.unique(np.stack([low, high], axis=1), axis=0, return_counts=True)
+    return {(int(a), int(b)): int(n) for (a, b), n in zip(pairs, counts, strict=True) if n >= min_pairs}
+
+
+def smooth_surfaces(
+    points: np.ndarray,
+    labels: np.ndarray,
+    *,
+    min_points: int = 10000,
+    max_quadric_rms: float = 0.01,
+    min_touching: int = 50,
+) -> list[tuple[list[int], SurfaceShape]]:
+    """Groups of large planes that together are one smooth surface, each with its :class:`SurfaceShape`.
+
+    The planes of at least ``min_points`` points of an organized scan (``points`` (H, W, 3) metres,
+    ``labels`` (H, W), 0 = no plane) start as groups of one; two groups are joined while their planes
+    touch in at least ``min_touching`` pixel pairs and their union's ``quadric_rms`` is at most
+    ``max_quadric_rms`` (m), the cheapest union first. A curved surface cut into flat planes (a cylinder
+    into strips) comes out as one group whose ``plane_rms`` is far above its ``quadric_rms``; flat
+    planes meeting at an edge do not join (no quadric height field follows a fold). Largest group first.
+    """
+    cloud = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    flat = np.asarray(labels).ravel()
+    values, counts = np.unique(flat[flat > 0], return_counts=True)
+    large = [int(p) for p, n in zip(values, counts, strict=True) if n >= min_points]
+    touching = {
+        pair for pair, n in touching_pairs(labels, min_touching).items() if pair[0] in large and pair[1] in large
+    }
+    groups = [[p] for p in large]
+
+    def shape(members):
+        return surface_shape(cloud[np.isin(flat, members)])
+
+    while True:
+        best = None
+        for i, a in enumerate(groups):
+            for j in range(i + 1, len(groups)):
+                b = groups[j]
+                if not any((min(p, q), max(p, q)) in touching for p in a for q in b):
+                    continue
+                rms = shape(a + b).quadric_rms
+                if rms <= max_quadric_rms and (best is None or rms < best[0]):
+                    best = (rms, i, j)
+        if best is None:
+            break
+        _, i, j = best
+        groups[i] = sorted(groups[i] + groups.pop(j))
+    result = [(members, shape(members)) for members in groups]
+    return sorted(result, key=lambda item: -item[1].points)
