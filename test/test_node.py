@@ -1126,6 +1126,30 @@ def test_the_node_uses_the_metadata_ray_starts_unless_ray_origin_is_set(
 # ------------------------------------------------------------------ the JIT warm-up (issue 19 item 7)
 
 
+def test_warm_up_lines_stay_off_rosout_and_the_ready_line_goes_there(ros_context, executor, namespace):
+    """The warm-up's lines go to the console only: a SIGINT during the start-up shuts the context down from
+    rclpy's signal thread, and a line then on its way to /rosout made rcl print "Failed to publish log message
+    to rosout" (test_node_process's SIGINT timings). The ready line still reaches /rosout."""
+    from rcl_interfaces.msg import Log
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy
+
+    listener = rclpy.create_node('rosout_listener', context=ros_context, namespace=namespace)
+    executor.add_node(listener)
+    lines = []
+    rosout_qos = QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1000,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    listener.create_subscription(Log, '/rosout', lambda msg: lines.append((msg.name, msg.msg)), rosout_qos)
+    harness = Harness(ros_context, executor, namespace)
+    name = harness.node.get_logger().name
+    assert spin_until(executor, lambda: any(n == name and m.startswith('ready: ') for n, m in lines), 20.0), lines
+    ours = [m for n, m in lines if n.startswith(name)]
+    assert not [m for m in ours if 'JIT warm-up' in m], ours
+
+
 def test_warm_up_runs_each_profile_with_both_kinds_of_ray_starts_and_logs_progress(monkeypatch):
     from ppe_ros.ros import warmup as warmup_module
     from ppe_ros.ros.messages import rosbags_message_types

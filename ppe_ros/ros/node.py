@@ -375,15 +375,19 @@ class ExtractorNode(Node):
         )
 
     def _start_up_info(self, message: str) -> None:
-        """An info line of the start-up: through the node's logger, or, once a signal has shut the context
-        down (the warm-up goes on), through one without /rosout (rcl printed "Failed to publish log message
-        to rosout: publisher's context is invalid" for each line)."""
-        (self.get_logger() if self.context.ok() else self.console_logger()).info(message)
+        """An info line of the JIT warm-up, on the console only (``<node>.start_up``, not /rosout).
 
-    def console_logger(self) -> Any:
-        """A child of the node's logger that does not publish to /rosout (console only): for the lines after
-        a signal shut the context down, when the node's /rosout publisher is gone."""
-        return rclpy.logging.get_logger(f'{self.get_logger().name}.shutdown')
+        A SIGINT or SIGTERM during the start-up shuts the context down from rclpy's signal thread while the
+        warm-up goes on in a worker thread; a line that went to /rosout at that moment made rcl print
+        "Failed to publish log message to rosout: publisher's context is invalid" (checking the context
+        first still left the moment between the check and the publish)."""
+        self.console_logger('start_up').info(message)
+
+    def console_logger(self, part: str = 'shutdown') -> Any:
+        """A child ``<node>.<part>`` of the node's logger that does not publish to /rosout (console only): for
+        the warm-up's lines and for those after a signal shut the context down, when the node's /rosout
+        publisher is gone."""
+        return rclpy.logging.get_logger(f'{self.get_logger().name}.{part}')
 
     def _active(self, index: int) -> bool:
         """Whether worker ``index`` takes frames under the current ``workers`` value."""
