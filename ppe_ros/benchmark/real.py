@@ -934,8 +934,9 @@ def smooth_surfaces(
     ``labels`` (H, W), 0 = no plane) start as groups of one; two groups are joined while their planes
     touch in at least ``min_touching`` pixel pairs and their union's ``quadric_rms`` is at most
     ``max_quadric_rms`` (m), the cheapest union first. A curved surface cut into flat planes (a cylinder
-    into strips) comes out as one group whose ``plane_rms`` is far above its ``quadric_rms``; flat
-    planes meeting at an edge do not join (no quadric height field follows a fold). Largest group first.
+    into strips) comes out as one group whose ``plane_rms`` is far above its ``quadric_rms``; planes that
+    meet at an edge (a wall and the floor) join only where the fold is shallow enough for a quadric to
+    follow it within ``max_quadric_rms``. Largest group first.
     """
     cloud = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     flat = np.asarray(labels).ravel()
