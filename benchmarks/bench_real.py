@@ -2,15 +2,17 @@
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_real.py [--sensor none|auto|paper|lidar|depth_camera]
         [--paper] [--methods ppe,ransac,peac] [--scans NAME ...] [--png-dir docs/real] [--json OUT.json]
+        [--set NAME=VALUE ...]
 
 Scans: the 7 Ouster sweeps (with their beam origins), the TLS scan (cm), the Kinect frame and ICL-NUIM 0-2;
 each is marked 'training' (may be used to choose defaults) or 'reported' (ppe_ros.benchmark.real.SCAN_SPLIT).
 Methods: ``ppe`` (this project: ``--sensor none`` = the node's defaults e 0.01, lmax inf, min 20 points;
 ``--paper`` = e 0.0484, lmax 0.18; ``--sensor auto`` = the sensor profile of each scan, 'lidar' or
-'depth_camera', when extract_planes has the ``sensor`` argument), ``ransac`` (Open3D segment_plane in a loop,
-each plane split into 4-connected parts of >= 20 pixels; skipped when Open3D is absent) and ``peac`` (only when
-the environment variable PEAC_BIN names a driver that reads a scan and writes labels; docs/benchmarks.md,
-Real scans, Methods).
+'depth_camera', when extract_planes has the ``sensor`` argument; ``--set surface_tolerance=0.065`` changes
+fields of the profiles for a variant, ppe_ros.benchmark.real.profile_with_settings), ``ransac`` (Open3D
+segment_plane in a loop, each plane split into 4-connected parts of >= 20 pixels; skipped when Open3D is
+absent) and ``peac`` (only when the environment variable PEAC_BIN names a driver that reads a scan and writes
+labels; docs/benchmarks.md, Real scans, Methods).
 Tables: per scan and method the plane counts, the share of valid points in planes of >= 1000 points, the
 time, the ground cover of the Ouster sweeps and ICL-NUIM's f and k; then the repeatability and covariance
 calibration over the consecutive sweeps OS-1-128 1795 -> 1796 -> 1797, and the registration they use.
@@ -28,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -137,8 +140,9 @@ def has_sensor_argument() -> bool:
     return 'sensor' in inspect.signature(extract_planes).parameters
 
 
-def ppe_settings(sensor: str, paper: bool, kind: str) -> tuple[dict, str]:
-    """Keyword arguments of extract_planes for a scan kind, and the method's name in the tables."""
+def ppe_settings(sensor: str, paper: bool, kind: str, settings: Sequence[str] = ()) -> tuple[dict, str]:
+    """Keyword arguments of extract_planes for a scan kind, and the method's name in the tables; ``settings``
+    (``NAME=VALUE``, JSON values) change fields of a sensor profile."""
     if paper:
         return (
             {
@@ -158,6 +162,10 @@ def ppe_settings(sensor: str, paper: bool, kind: str) -> tuple[dict, str]:
             'PPE node defaults (e 0.01, lmax inf)',
         )
     profile = kind if sensor == 'auto' else sensor
+    if settings:
+        from ppe_ros.benchmark.real import profile_with_settings
+
+        return {'sensor': profile_with_settings(profile, settings)}, f'PPE sensor={profile} ({" ".join(settings)})'
     return {'sensor': profile}, f'PPE sensor={profile}'
 
 
@@ -236,7 +244,7 @@ def run_peac(binary, points, settings):
     return labels.reshape(height, width).astype(np.int64), seconds
 
 
-def warm_up(specs, data, sensor, paper):
+def warm_up(specs, data, sensor, paper, settings=()):
     """Compile the numba kernels before anything is timed.
 
     Runs PPE once per scan kind on the first scan of that kind, subsampled to a quarter of its rows and
@@ -254,7 +262,8 @@ def warm_up(specs, data, sensor, paper):
         origins = scan.origins
         if origins is not None and np.ndim(origins) == 3:
             origins = np.ascontiguousarray(origins[::4, ::4])
-        run_ppe(np.ascontiguousarray(scan.points[::4, ::4]), origins, ppe_settings(sensor, paper, spec.kind)[0])
+        kwargs = ppe_settings(sensor, paper, spec.kind, settings)[0]
+        run_ppe(np.ascontiguousarray(scan.points[::4, ::4]), origins, kwargs)
     connected_parts(np.ones((4, 4), np.int64))
 
 
@@ -555,6 +564,13 @@ def parse_args(argv):
         help='registration of consecutive sweeps: icp = Open3D point-to-plane ICP, planes = rigid fit '
         "from the first method's matched planes; auto (default) = icp when Open3D is installed",
     )
+    parser.add_argument(
+        '--set',
+        nargs='+',
+        default=[],
+        metavar='NAME=VALUE',
+        help='fields of the sensor profile(s) to change (JSON values), e.g. surface_tolerance=0.065',
+    )
     args = parser.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
     unknown = sorted(set(methods) - set(METHOD_CHOICES))
@@ -565,6 +581,16 @@ def parse_args(argv):
     args.methods = methods
     if args.paper and args.sensor != 'none':
         raise BenchmarkError('--paper sets e and lmax itself; it cannot be combined with --sensor')
+    if args.set:
+        if args.paper or args.sensor == 'none':
+            raise BenchmarkError('--set changes a sensor profile: give --sensor auto, lidar, depth_camera or paper')
+        from ppe_ros.benchmark.real import profile_with_settings
+
+        for profile in {s.kind for s in REAL_SCANS} if args.sensor == 'auto' else {args.sensor}:
+            try:
+                profile_with_settings(profile, args.set)
+            except ValueError as exc:
+                raise BenchmarkError(f'--set: {exc}') from None
     if args.sensor != 'none' and not has_sensor_argument():
         raise BenchmarkError(
             f"--sensor {args.sensor}: this ppe_ros's extract_planes has no sensor argument yet; "
@@ -622,7 +648,7 @@ def run(args) -> int:
     for note in notes:
         print(f'note: {note}', file=sys.stderr)
     if 'ppe' in handles:
-        warm_up(args.specs, args.data, args.sensor, args.paper)
+        warm_up(args.specs, args.data, args.sensor, args.paper, args.set)
     sequence_names = {name for pair in SEQUENCE_PAIRS for name in pair}
     chosen_names = {s.name for s in args.specs}
     keep_sequence = not args.no_repeat and any(all(n in chosen_names for n in pair) for pair in SEQUENCE_PAIRS)
@@ -633,7 +659,7 @@ def run(args) -> int:
         for method in handles:
             try:
                 if method == 'ppe':
-                    kwargs, label = ppe_settings(args.sensor, args.paper, spec.kind)
+                    kwargs, label = ppe_settings(args.sensor, args.paper, spec.kind, args.set)
                     planes, seconds = run_ppe(scan.points, scan.origins, kwargs)
                     labels = planes.labels
                 else:

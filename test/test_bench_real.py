@@ -481,6 +481,28 @@ def test_bench_real_ppe_settings_and_bad_arguments(capsys):
         assert 'no sensor argument' in capsys.readouterr().err
 
 
+def test_bench_real_set_changes_the_profile_of_each_scan_kind(capsys):
+    import dataclasses
+
+    from ppe_ros.core.sensor import PROFILES
+
+    bench = _bench_real_module()
+    kwargs, label = bench.ppe_settings('auto', False, 'lidar', ['surface_tolerance=0.065'])
+    assert kwargs == {'sensor': dataclasses.replace(PROFILES['lidar'], surface_tolerance=0.065)}
+    assert label == 'PPE sensor=lidar (surface_tolerance=0.065)'
+    kwargs, _ = bench.ppe_settings('auto', False, 'depth_camera', ['min_plane_points=150'])
+    assert kwargs['sensor'] == dataclasses.replace(PROFILES['depth_camera'], min_plane_points=150)
+    capsys.readouterr()
+    for argv, message in (
+        (['--set', 'surface_tolerance=0.065'], 'give --sensor auto'),  # --sensor none: no profile to change
+        (['--paper', '--set', 'surface_tolerance=0.065'], 'give --sensor auto'),
+        (['--sensor', 'auto', '--set', 'no_such_field=1'], 'no_such_field'),
+        (['--sensor', 'lidar', '--set', 'surface_tolerance'], 'name=value'),
+    ):
+        assert bench.main([*argv, '--data', '/nonexistent']) == 2, argv
+        assert message in capsys.readouterr().err, argv
+
+
 def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
     import importlib.util
     from pathlib import Path
