@@ -9,7 +9,7 @@ subprocesses. What must hold:
   message starts with the offending file's name; never another exception;
 * in process, no load allocates more than :data:`IN_PROCESS_PEAK_BYTES` (tracemalloc);
 * a ``ppe`` subprocess exits 0, or 2 with exactly one line ``ppe CMD: error: ...`` on stderr; never a
-  traceback; its peak resident memory (``os.wait4`` rusage of that child) stays under
+  traceback; its peak resident memory (its own, measured by test/child_memory.py's launcher) stays under
   :data:`SUBPROCESS_MAX_RSS_KB`: the bombs declare 9 GB and more, an interpreter with numpy and numba
   needs about 120-300 MB (seen up to 770 MB on a loaded machine while other processes rewrote the
   numba cache);
@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from child_memory import measured, peak_kib
 
 from ppe_ros.io import ScanFileError, load_scan, save_pcd
 
@@ -336,7 +337,8 @@ def _run_ppe(runs: list[list[str]], cwd: Path, parallel: int = 3) -> list[tuple[
     """Run ``python -m ppe_ros.cli ARGS`` for each ARGS, ``parallel`` at a time.
 
     Returns:
-        (exit code, stderr, peak resident memory in KB of that very child, from ``os.wait4``) per run.
+        (exit code, stderr, peak resident memory in KB of that very command) per run: measured by the
+        launcher of test/child_memory.py (a child's own ``os.wait4`` figure would include this process's memory).
     """
     results = []
     env = {**os.environ, 'PYTHONPATH': os.pathsep.join(sys.path)}
@@ -344,20 +346,21 @@ def _run_ppe(runs: list[list[str]], cwd: Path, parallel: int = 3) -> list[tuple[
         started = []
         for index, args in enumerate(runs[first : first + parallel], start=first):
             err_path = cwd / f'.stderr_{index}.txt'
+            report = cwd / f'.peak_kib_{index}.txt'
             with open(err_path, 'wb') as err:
                 process = subprocess.Popen(
-                    [sys.executable, '-m', 'ppe_ros.cli', *args],
+                    measured([sys.executable, '-m', 'ppe_ros.cli', *args], report),
                     cwd=cwd,
                     stdout=subprocess.DEVNULL,
                     stderr=err,
                     env=env,
                 )
-            started.append((process, err_path))
-        for process, err_path in started:
-            _, status, usage = os.wait4(process.pid, 0)
-            process.returncode = os.waitstatus_to_exitcode(status)
-            results.append((process.returncode, err_path.read_text(), usage.ru_maxrss))
+            started.append((process, err_path, report))
+        for process, err_path, report in started:
+            process.wait()
+            results.append((process.returncode, err_path.read_text(), peak_kib(report)))
             err_path.unlink()
+            report.unlink()
     return results
 
 
