@@ -586,7 +586,7 @@ def parse_args(argv):
             raise BenchmarkError('--set changes a sensor profile: give --sensor auto, lidar, depth_camera or paper')
         from ppe_ros.benchmark.real import profile_with_settings
 
-        for profile in {s.kind for s in REAL_SCANS} if args.sensor == 'auto' else {args.sensor}:
+        for profile in sorted({s.kind for s in REAL_SCANS}) if args.sensor == 'auto' else [args.sensor]:
             try:
                 profile_with_settings(profile, args.set)
             except ValueError as exc:
