@@ -11,8 +11,8 @@ subprocesses. What must hold:
 * a ``ppe`` subprocess exits 0, or 2 with exactly one line ``ppe CMD: error: ...`` on stderr; never a
   traceback; its peak resident memory (its own, measured by test/child_memory.py's launcher) stays under
   :data:`SUBPROCESS_MAX_RSS_KB`: the bombs declare 9 GB and more, an interpreter with numpy and numba
-  needs about 120-300 MB (seen up to 770 MB on a loaded machine while other processes rewrote the
-  numba cache);
+  needs about 120-300 MB (figures of up to 1 GB seen before were the test process's own memory, which a
+  child's ru_maxrss includes);
 * every output ``ppe extract`` writes is a valid file (npz with the labels, PNG), no temporary file
   is left behind.
 """
