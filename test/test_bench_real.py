@@ -453,19 +453,20 @@ def test_every_real_scan_has_a_split():
     ]
 
 
-def _bench_real_module():
+def _benchmark_module(name: str):
+    """The script benchmarks/<name>.py as a module."""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_real.py'
-    spec = importlib.util.spec_from_file_location('bench_real', path)
+    path = Path(__file__).resolve().parents[1] / 'benchmarks' / f'{name}.py'
+    spec = importlib.util.spec_from_file_location(f'{name}_under_test', path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
 def test_bench_real_ppe_settings_and_bad_arguments(capsys):
-    bench = _bench_real_module()
+    bench = _benchmark_module('bench_real')
     kwargs, _ = bench.ppe_settings('none', False, 'lidar')
     assert kwargs == {'max_error_increment': 0.01, 'max_neighbor_distance': math.inf, 'min_plane_points': 20}
     kwargs, _ = bench.ppe_settings('none', True, 'depth_camera')
@@ -486,7 +487,7 @@ def test_bench_real_set_changes_the_profile_of_each_scan_kind(capsys):
 
     from ppe_ros.core.sensor import PROFILES
 
-    bench = _bench_real_module()
+    bench = _benchmark_module('bench_real')
     kwargs, label = bench.ppe_settings('auto', False, 'lidar', ['surface_tolerance=0.065'])
     assert kwargs == {'sensor': dataclasses.replace(PROFILES['lidar'], surface_tolerance=0.065)}
     assert label == 'PPE sensor=lidar (surface_tolerance=0.065)'
@@ -504,13 +505,7 @@ def test_bench_real_set_changes_the_profile_of_each_scan_kind(capsys):
 
 
 def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_resweep.py'
-    spec = importlib.util.spec_from_file_location('bench_resweep_under_test', path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _benchmark_module('bench_resweep')
     assert bench.main(['--scans', 'no-such-scan']) == 2
     assert 'no-such-scan' in capsys.readouterr().err
     assert bench._default_scans() == ['OS-0-128 1491', 'OS-2-128 1259', 'OS-2-32 5424', 'OS-1-32 638']
@@ -526,13 +521,7 @@ def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
 
 
 def test_bench_surface_shape_finds_the_kinect_frames_curved_surface(capsys):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / 'benchmarks' / 'bench_surface_shape.py'
-    spec = importlib.util.spec_from_file_location('bench_surface_shape_under_test', path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _benchmark_module('bench_surface_shape')
     assert bench.main(['--scans', 'no-such-scan']) == 2
     assert 'no-such-scan' in capsys.readouterr().err
     if not bench.SHARED.is_dir():
@@ -600,7 +589,7 @@ def test_peac_driver_protocol(tmp_path, monkeypatch):
     names why PEAC is skipped without a usable PEAC_BIN."""
     import sys
 
-    bench = _bench_real_module()
+    bench = _benchmark_module('bench_real')
     monkeypatch.delenv('PEAC_BIN', raising=False)
     assert bench.peac_binary()[0] is None and 'set PEAC_BIN' in bench.peac_binary()[1]
     not_executable = tmp_path / 'plain.txt'
