@@ -636,6 +636,18 @@ def available_methods(methods):
     return handles, notes
 
 
+def png_tag(method: str, kwargs: dict, paper: bool, settings: Sequence[str] = ()) -> str:
+    """The method's part of a PNG's name: ppe_paper, ppe_node, ppe_<profile> (a changed profile: its name and
+    the --set settings, never the profile's whole repr), or the method's key."""
+    if method != 'ppe':
+        return method
+    if 'sensor' not in kwargs:
+        return 'ppe_paper' if paper else 'ppe_node'
+    sensor = kwargs['sensor']
+    name = getattr(sensor, 'name', sensor)
+    return '_'.join([f'ppe_{name}', *settings]) if settings else f'ppe_{name}'
+
+
 def png_path(directory, scan_name, method):
     slug = lambda text: ''.join(c if c.isalnum() else '_' for c in text).strip('_')  # noqa: E731
     return Path(directory) / f'{slug(scan_name)}_{slug(method)}.png'
@@ -689,12 +701,8 @@ def run(args) -> int:
 
                 height, width = labels.shape
                 scale = max(1, min(math.ceil(400 / height), max(1, 4096 // width)))
-                tag = method
-                if method == 'ppe':
-                    tag = 'ppe_paper' if args.paper else 'ppe_node'
-                    tag = f'ppe_{kwargs["sensor"]}' if 'sensor' in kwargs else tag
                 save_segmentation_png(
-                    png_path(args.png_dir, spec.name, tag),
+                    png_path(args.png_dir, spec.name, png_tag(method, kwargs, args.paper, args.set)),
                     labels,
                     ground_truth=scan.labels if spec.labelled else None,
                     gt_min_label=int(scan.meta.get('min_plane_label', 1)),

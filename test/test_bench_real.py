@@ -504,6 +504,18 @@ def test_bench_real_set_changes_the_profile_of_each_scan_kind(capsys):
         assert message in capsys.readouterr().err, argv
 
 
+def test_bench_real_png_names_are_short_with_a_changed_profile(tmp_path):
+    bench = _benchmark_module('bench_real')
+    kwargs, _ = bench.ppe_settings('auto', False, 'lidar', ['min_plane_points=20', 'surface_tolerance=0.065'])
+    tag = bench.png_tag('ppe', kwargs, False, ['min_plane_points=20', 'surface_tolerance=0.065'])
+    path = bench.png_path(tmp_path, 'OS-0-128 1491', tag)
+    assert path.name == 'OS_0_128_1491_ppe_lidar_min_plane_points_20_surface_tolerance_0_065.png'
+    assert bench.png_tag('ppe', {'sensor': 'lidar'}, False) == 'ppe_lidar'
+    assert bench.png_tag('ppe', {'max_error_increment': 0.0484}, True) == 'ppe_paper'
+    assert bench.png_tag('ppe', {'max_error_increment': 0.01}, False) == 'ppe_node'
+    assert bench.png_tag('ransac', {}, False) == 'ransac'
+
+
 def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
     bench = _benchmark_module('bench_resweep')
     assert bench.main(['--scans', 'no-such-scan']) == 2
