@@ -2,6 +2,7 @@
 against PPE at the node's settings without a profile, Open3D's RANSAC loop and PEAC, on held-out scene seeds.
 
     .venv/bin/python benchmarks/bench_sensor_scans.py [--seeds 1000 1001 1002] [--kinds lidar depth_camera]
+                                                       [--lidar-models os1-128 os1-32 vlp16 hdl32]
                                                        [--no-ransac] [--no-peac] [--set NAME=VALUE ...]
 
 PEAC runs through the external driver named by PEAC_BIN, as in bench_real.py (docs/benchmarks.md: Methods),
@@ -39,7 +40,7 @@ from ppe_ros import extract_planes
 from ppe_ros.benchmark.real import CHI2_3_MEDIAN, profile_with_settings, truth_mahalanobis
 from ppe_ros.benchmark.report import machine_description
 from ppe_ros.core.evaluation import score_segmentation
-from ppe_ros.core.synthetic_real import CLUTTER_LABEL, generate_depth_scan, generate_lidar_scan
+from ppe_ros.core.synthetic_real import CLUTTER_LABEL, LIDAR_MODELS, generate_depth_scan, generate_lidar_scan
 
 GENERATORS = {'lidar': generate_lidar_scan, 'depth_camera': generate_depth_scan}
 
@@ -94,14 +95,19 @@ def methods(kind: str, with_ransac: bool, peac: str | None = None, settings: Seq
 
 
 def run(
-    kinds: list[str], seeds: list[int], with_ransac: bool, with_peac: bool = True, settings: Sequence[str] = ()
+    kinds: list[str],
+    seeds: list[int],
+    with_ransac: bool,
+    with_peac: bool = True,
+    settings: Sequence[str] = (),
+    lidar_models: Sequence[str] = ('os1-128',),
 ) -> None:
     print(f'machine: {machine_description()}; seeds {seeds}')
     peac, note = bench_real.peac_binary() if with_peac else (None, '')
     if note:
         print(note)
-    for kind in kinds:
-        scans = [GENERATORS[kind](seed=seed) for seed in seeds]
+    for kind, model in [(k, m) for k in kinds for m in (lidar_models if k == 'lidar' else [None])]:
+        scans = [GENERATORS[kind](seed=seed, **({} if model is None else {'model': model})) for seed in seeds]
         rows = []
         for name, method in methods(kind, with_ransac, peac, settings):
             scores, seconds, calibration, clutter = [], [], [], [0, 0]
@@ -126,8 +132,9 @@ def run(
             in_planes = f'{100 * clutter[0] / clutter[1]:.1f} %' if clutter[1] else ''
             cells = (f'{100 * f:.1f} %', f'{100 * k:.1f} %', in_planes, mahalanobis, f'{np.median(seconds):.2f}')
             rows.append(f'| {name} | ' + ' | '.join(cells) + ' |')
+        title = kind if model is None else f'{kind} {model}'
         print(
-            f'\n### {kind} ({len(seeds)} scans)\n\n| method | f | k | clutter points in planes | median Mahalanobis² '
+            f'\n### {title} ({len(seeds)} scans)\n\n| method | f | k | clutter points in planes | median Mahalanobis² '
             f'vs the true planes (planes >= 1000 points; calibrated {CHI2_3_MEDIAN:.2f}) | median s per scan |'
             '\n|---|---|---|---|---|---|'
         )
@@ -138,6 +145,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1000, 1001, 1002], help='scene seeds (test split)')
     parser.add_argument('--kinds', nargs='+', choices=tuple(GENERATORS), default=list(GENERATORS))
+    parser.add_argument(
+        '--lidar-models',
+        nargs='+',
+        choices=tuple(LIDAR_MODELS),
+        default=['os1-128'],
+        help='beam layouts of the generated lidar sweeps, one table each (default os1-128)',
+    )
     parser.add_argument('--no-ransac', action='store_true', help='skip Open3D (also skipped when it is absent)')
     parser.add_argument('--no-peac', action='store_true', help='skip PEAC (also skipped without PEAC_BIN)')
     parser.add_argument(
@@ -150,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f'bench_sensor_scans: error: {exc}', file=sys.stderr)
         return 2
-    run(args.kinds, args.seeds, not args.no_ransac, not args.no_peac, args.set)
+    run(args.kinds, args.seeds, not args.no_ransac, not args.no_peac, args.set, args.lidar_models)
     return 0
 
 

@@ -516,6 +516,22 @@ def test_bench_real_png_names_are_short_with_a_changed_profile(tmp_path):
     assert bench.png_tag('ransac', {}, False) == 'ransac'
 
 
+def test_bench_sensor_scans_makes_one_lidar_table_per_beam_layout(capsys):
+    bench = _benchmark_module('bench_sensor_scans')
+    with pytest.raises(SystemExit):
+        bench.main(['--lidar-models', 'no-such-lidar'])
+    capsys.readouterr()
+    argv = ['--kinds', 'lidar', '--lidar-models', 'vlp16', 'hdl32', '--seeds', '0', '--no-ransac', '--no-peac']
+    assert bench.main(argv) == 0
+    out = capsys.readouterr().out
+    assert '### lidar vlp16 (1 scans)' in out and '### lidar hdl32 (1 scans)' in out
+    rows = [line for line in out.splitlines() if line.startswith('| PPE sensor=lidar |')]
+    assert len(rows) == 2
+    for row in rows:
+        f, k = (float(cell.strip().rstrip(' %')) for cell in row.split('|')[2:4])
+        assert 0.0 < f <= 100.0 and 0.0 < k <= 100.0
+
+
 def test_bench_resweep_bad_arguments_and_a_training_sweep(capsys):
     bench = _benchmark_module('bench_resweep')
     assert bench.main(['--scans', 'no-such-scan']) == 2

@@ -294,7 +294,7 @@ def test_extract_with_a_sensor_profile_uses_its_defaults_and_the_python_api_agre
     saved = np.load(out)
     expected = extract_planes(load_scan(path).points, sensor='lidar')
     np.testing.assert_array_equal(saved['labels'], expected.labels)
-    assert saved['point_counts'].min() >= PROFILES['lidar'].min_plane_points
+    assert saved['point_counts'].min() >= PROFILES['lidar'].min_plane_points_for(load_scan(path).points)
 
 
 def test_surface_tolerance_needs_a_sensor(small_scan, tmp_path, capsys):

@@ -584,7 +584,7 @@ def test_profiles_and_overrides():
         sensor_profile('sonar')
     scan_data = _wall_behind_a_post(noise=0.01, seed=1)
     lidar = extract_planes(scan_data.points, origins=scan_data.origins, sensor='lidar')
-    assert lidar.point_counts.min() >= PROFILES['lidar'].min_plane_points
+    assert lidar.point_counts.min() >= PROFILES['lidar'].min_plane_points_for(scan_data.points, scan_data.origins)
     small = extract_planes(scan_data.points, origins=scan_data.origins, sensor='lidar', min_plane_points=5)
     assert small.point_counts.min() >= 5 and small.num_planes >= lidar.num_planes
 

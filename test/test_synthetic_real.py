@@ -139,6 +139,23 @@ def test_lidar_grid_and_beam_origins_are_ouster_like():
         lidar_grid('vlp-16')
 
 
+def test_velodyne_like_models_have_their_beams():
+    vlp16, hdl32 = lidar_grid('vlp16'), lidar_grid('hdl32')
+    assert vlp16.shape == (16, 1024) and hdl32.shape == (32, 1024)
+    np.testing.assert_allclose(np.diff(vlp16.elevation_deg), -2.0, atol=1e-12)
+    np.testing.assert_allclose(vlp16.elevation_deg[[0, -1]], [15.0, -15.0])
+    np.testing.assert_allclose(np.diff(hdl32.elevation_deg), -(10.67 + 30.67) / 31, atol=1e-12)  # 1.33 deg
+    np.testing.assert_allclose(hdl32.elevation_deg[[0, -1]], [10.67, -30.67])
+    scan = generate_lidar_scan(
+        wall_scene(), seed=0, model='vlp16', cols=64, sensor_pose=ORIGIN_POSE, errors=LidarErrorModel.exact()
+    )
+    assert scan.points.shape == (16, 64, 3)
+    rays = scan.points - scan.origins
+    hit = np.isfinite(rays[..., 0])
+    elevation = np.degrees(np.arcsin(rays[..., 2] / np.linalg.norm(rays, axis=-1)))
+    np.testing.assert_allclose(elevation[hit], np.broadcast_to(vlp16.elevation_deg[:, None], hit.shape)[hit], atol=1e-9)
+
+
 def test_per_beam_range_bias_is_the_mean_residual_per_beam_on_a_flat_wall():
     errors = LidarErrorModel.exact(range_sigma=0.015, beam_range_bias_sigma=0.015)
     scan = generate_lidar_scan(wall_scene(), seed=3, model='os1-32', cols=256, sensor_pose=ORIGIN_POSE, errors=errors)

@@ -102,7 +102,10 @@ def add_ppe_options(parser: argparse.ArgumentParser) -> None:
         '--min-plane-points',
         type=int,
         default=None,
-        help="planes with fewer rays are reported as no plane (default 4; with --sensor the profile's)",
+        help=(
+            "planes with fewer rays are reported as no plane (default 4; with --sensor the profile's, "
+            'fewer on a scan whose rays are spaced wider than those it was chosen on: docs/parameters.md)'
+        ),
     )
     parser.add_argument(
         '--sensor',

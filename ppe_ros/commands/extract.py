@@ -170,9 +170,10 @@ def extract_snapshots(
     e_list: list[float] | None,
     n_list: list[int] | None,
     lmax: float,
-    min_points: int,
+    min_points,
 ) -> list[PlaneSet]:
-    """One PlaneSet per requested snapshot (e values, then n values) of ``scan``.
+    """One PlaneSet per requested snapshot (e values, then n values) of ``scan``; ``min_points``: the smallest
+    plane (rays), or PROFILE_DEFAULT (the profile's for this scan: SensorProfile.min_plane_points_for).
 
     An unorganized scan goes through :func:`ppe_ros.core.projection.extract_planes_unorganized`
     (labels ``(N,)``); an organized one with ``--layout columns_are_beams`` is transposed and back.
@@ -256,10 +257,10 @@ def run(args: argparse.Namespace) -> int:
     if args.surface_tolerance is not None and profile is None:
         raise ValueError('--surface-tolerance needs --sensor (a sensor profile)')
     min_points = args.min_plane_points
-    if min_points is None:
-        min_points = (DEFAULT_PROFILE if profile is None else profile).min_plane_points
-    if min_points < 1:
+    if min_points is not None and min_points < 1:
         raise ValueError(f'--min-plane-points must be >= 1; got {min_points}')
+    if min_points is None:  # a profile's own: fewer rays on a coarser grid (SensorProfile.min_plane_points_for)
+        min_points = DEFAULT_PROFILE.min_plane_points if profile is None else PROFILE_DEFAULT
     e_list = args.max_error_increment
     n_list = args.max_planes
     if n_list is not None and any(n < 1 for n in n_list):

@@ -31,6 +31,8 @@ from dataclasses import dataclass, replace
 import numba as nb
 import numpy as np
 
+from ppe_ros.core.scan import ray_spacing_deg
+
 #: The depth cameras' optical axis in their optical frame (x right, y down, z forward).
 OPTICAL_AXIS = (0.0, 0.0, 1.0)
 
@@ -316,7 +318,12 @@ class SensorProfile:
             show (flatness, the sensor's systematic errors); None = no consolidation (the paper).
         noise_factor: lambda: the tolerance of a piece is sqrt(tau^2 + lambda^2 mean sigma_k^2).
         connected_only: consolidate only pieces that touch in the grid (no merge across occluders).
-        min_plane_points: smaller planes are reported as no plane.
+        min_plane_points: smaller planes are reported as no plane (with reference_ray_spacing_deg: at that
+            spacing; :meth:`min_plane_points_for`).
+        reference_ray_spacing_deg: (along rows, along columns) angular spacing (degrees) of the rays at which
+            min_plane_points holds, as :func:`ppe_ros.core.scan.ray_spacing_deg` measures it (the grid the
+            value was chosen on); a coarser scan needs as many rays as cover the same solid angle, at least
+            MIN_PLANE_POINTS_FLOOR; None = min_plane_points on every scan.
         max_plane_rmse_factor: a consolidated plane whose RMS point-to-plane distance exceeds this
             multiple of sqrt(tau^2 + its sensor noise^2) is not planar (trees, bushes, curved
             bodies) and is reported as no plane; inf = keep every plane.
@@ -373,6 +380,7 @@ class SensorProfile:
     noise_factor: float = 0.0
     connected_only: bool = False
     min_plane_points: int = 4
+    reference_ray_spacing_deg: tuple[float, float] | None = None
     max_plane_rmse_factor: float = np.inf
     max_plane_curvature_factor: float = np.inf
     correlation_length: float | None = None
@@ -397,6 +405,13 @@ class SensorProfile:
             low, high = (float(x) for x in self.noise_scale_bounds)
             if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
                 raise ValueError(f'noise_scale_bounds must be 0 < low <= high; got {self.noise_scale_bounds!r}')
+        if self.reference_ray_spacing_deg is not None:
+            spacing = np.asarray(self.reference_ray_spacing_deg, dtype=np.float64)
+            if spacing.shape != (2,) or not np.all(np.isfinite(spacing) & (spacing > 0.0)):
+                raise ValueError(
+                    'reference_ray_spacing_deg must be None or two angles > 0 (degrees, along rows and '
+                    f'columns); got {self.reference_ray_spacing_deg!r}'
+                )
         check_seed_shapes(self.seed_shapes)
         check_candidate_fits(self.candidate_fits)
         if self.fit_tolerance is not None:
@@ -426,6 +441,29 @@ class SensorProfile:
             return self.noise
         low, high = self.noise_scale_bounds
         return self.noise.scaled(min(max(scale, float(low)), float(high)))
+
+    def min_plane_points_for(self, points: np.ndarray, origins: np.ndarray | None = None) -> int:
+        """The smallest plane (rays) on one organized scan ``points`` (H, W, 3) with ray starts ``origins``.
+
+        With reference_ray_spacing_deg, a plane must cover the solid angle of min_plane_points rays at that
+        spacing: on a scan whose rays are spaced (a, b) degrees (:func:`ppe_ros.core.scan.ray_spacing_deg`),
+        ``round(min_plane_points * reference area / (a b))`` rays, never more than min_plane_points (a finer
+        scan keeps the count) and never fewer than MIN_PLANE_POINTS_FLOOR. Without a reference, or on a scan
+        whose spacing cannot be measured (not organized, too few valid neighbours), min_plane_points.
+        """
+        count = int(self.min_plane_points)
+        if self.reference_ray_spacing_deg is None or np.ndim(points) != 3 or np.shape(points)[-1] != 3:
+            return count
+        try:
+            along_rows, along_columns = ray_spacing_deg(points, origins)
+        except ValueError:
+            return count  # origins of another shape: the extractor's own checks report it
+        area = along_rows * along_columns
+        if not (np.isfinite(area) and area > 0.0):
+            return count
+        reference = float(self.reference_ray_spacing_deg[0]) * float(self.reference_ray_spacing_deg[1])
+        scaled = round(count * reference / area)
+        return min(count, max(scaled, min(MIN_PLANE_POINTS_FLOOR, count)))
 
     def with_overrides(self, **overrides) -> SensorProfile:
         """A copy with the given (non-None) settings replaced."""
@@ -468,6 +506,13 @@ def check_seed_shapes(seed_shapes: str) -> None:
 
 
 #: Spinning lidars (Ouster OS-0/1/2, Velodyne, Hesai): 2 cm range noise, plus 0.1 % of the range.
+#: The fewest rays a profile's min_plane_points_for asks of a coarse scan: on generated 16-beam sweeps
+#: (training seeds 0-3) 10 and 7 rays keep f and k, 5 loses half of k.
+MIN_PLANE_POINTS_FLOOR = 10
+#: The ray spacing (degrees, along rows and columns) of the generated OS-1-128 training sweeps (1024
+#: columns), on which the lidar profile's min_plane_points was chosen.
+OS1_128_RAY_SPACING_DEG = (0.3456, 0.3400)
+
 LIDAR_NOISE = NoiseModel(constant=0.02, proportional=0.001)
 #: Kinect v1 (Khoshelham and Elberink 2012): axial sigma_z = 1.43e-3 z^2, a 1 mm floor.
 KINECT_V1_NOISE = NoiseModel(constant=0.001, depth_quadratic=1.43e-3)
@@ -490,6 +535,7 @@ PROFILES: dict[str, SensorProfile] = {
         max_error_increment=16.0,
         surface_tolerance=0.05,
         min_plane_points=40,
+        reference_ray_spacing_deg=OS1_128_RAY_SPACING_DEG,
         max_plane_rmse_factor=1.3,
         max_plane_curvature_factor=1.3,
         correlation_length=1.0,

@@ -242,8 +242,20 @@ OS1_32_ALTITUDES_DEG = (
 """Beam elevations (degrees) of an OS-1-32 gradient unit (OS-1-32-G_v2.1.1_1024x10.json): dense near the
 horizon (0.33-0.37 deg), 1.4-2.8 deg apart at the top and bottom."""
 
-LIDAR_MODELS: dict[str, tuple[float, ...]] = {'os1-128': OS1_128_ALTITUDES_DEG, 'os1-32': OS1_32_ALTITUDES_DEG}
-"""Lidar models known to :func:`lidar_grid`: name -> beam elevations in degrees."""
+VLP16_ALTITUDES_DEG = tuple(float(x) for x in np.linspace(15.0, -15.0, 16))
+"""Beam elevations (degrees) of a Velodyne VLP-16 (Puck), top first: 16 beams 2 deg apart from +15 to -15 deg."""
+
+HDL32_ALTITUDES_DEG = tuple(float(x) for x in np.linspace(10.67, -30.67, 32))
+"""Beam elevations (degrees) of a Velodyne HDL-32E, top first: 32 beams 1.33 deg apart from +10.67 to -30.67 deg."""
+
+LIDAR_MODELS: dict[str, tuple[float, ...]] = {
+    'os1-128': OS1_128_ALTITUDES_DEG,
+    'os1-32': OS1_32_ALTITUDES_DEG,
+    'vlp16': VLP16_ALTITUDES_DEG,
+    'hdl32': HDL32_ALTITUDES_DEG,
+}
+"""Lidar models known to :func:`lidar_grid`: name -> beam elevations in degrees (columns: ``cols``, 1024 by
+default: 0.35 deg, an Ouster at 10 Hz or a Velodyne at about 20 Hz)."""
 
 OUSTER_BEAM_ORIGIN_RADIUS = 0.015806
 """Metres from the lidar's z axis to the beam origins (``lidar_origin_to_beam_origin_mm`` of the OS-1)."""
@@ -1764,8 +1776,8 @@ def generate_lidar_scan(
     Args:
         scene: the surfaces (world frame); None builds :func:`make_street_scene` from ``seed``.
         seed: non-negative integer; the scene (if built), pose (if not given) and noise are deterministic in it.
-        model: beam layout of :data:`LIDAR_MODELS` (``'os1-128'``, ``'os1-32'``), with ``cols`` columns;
-            ignored when ``grid`` is given.
+        model: beam layout of :data:`LIDAR_MODELS` (``'os1-128'``, ``'os1-32'``, ``'vlp16'``, ``'hdl32'``), with
+            ``cols`` columns; ignored when ``grid`` is given.
         grid: any spherical grid instead (rows = beams).
         sensor_pose: pose in the world frame; default :func:`street_sensor_pose` (``seed``).
         errors: the error model; default :class:`LidarErrorModel` (realistic); ``LidarErrorModel.exact()``

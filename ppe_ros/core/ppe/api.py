@@ -405,7 +405,9 @@ def extract_planes(
         max_planes: the paper's J_max (atomic rays and regular planes counted), one value or a list.
         max_neighbor_distance: largest distance (m) between neighbouring endpoints that may be
             joined (the paper's d / lmax).
-        min_plane_points: planes with fewer rays are reported as no plane.
+        min_plane_points: planes with fewer rays are reported as no plane (a profile's default: as many rays
+            as cover the solid angle of its min_plane_points at its reference spacing, on a coarser grid
+            fewer: :meth:`~ppe_ros.core.sensor.SensorProfile.min_plane_points_for`).
         surface_tolerance: tau (m): after the greedy, pieces of one physical surface (deviating from
             their common plane by at most tau RMS) are merged (ppe_ros.core.consolidation); None:
             no consolidation.
@@ -450,6 +452,8 @@ def extract_planes(
             'connected_only',
         )
     )
+    if options['min_plane_points'] is PROFILE_DEFAULT and profile is not None:
+        min_plane_points = profile.min_plane_points_for(points, origins)  # a coarser grid: fewer rays
     connected_only = _checked_settings(connected_only, min_plane_points, surface_tolerance)
     e_list = _as_threshold_list(max_error_increment, 'max_error_increment', float)
     n_list = _as_threshold_list(max_planes, 'max_planes', int)
