@@ -92,9 +92,10 @@ def test_bad_input_is_a_clear_error():
 
 
 def test_profile_covariance_counts_the_spread_of_a_bent_surface():
-    """A wall bowed by 5 cm over its width: with the jackknife the lidar profile's covariance is much wider
-    (the fitted tilt depends on which part of the bow is seen) than the independent-patch model's alone,
-    and the same labels come out."""
+    """A wall bowed by 5 cm over its width: with the quadrant jackknife a lidar profile's covariance is much
+    wider (the fitted tilt depends on which part of the bow is seen) than the independent-patch model's
+    alone, and the same labels come out. (The lidar profile's own choice is the row jackknife, whose beams
+    each see the whole bow: test_row_jackknife.)"""
     from ppe_ros import extract_planes
     from ppe_ros.core.sensor import PROFILES
 
@@ -108,8 +109,9 @@ def test_profile_covariance_counts_the_spread_of_a_bent_surface():
     depth = 6.0 + 0.05 * (y / 5.0) ** 2  # a wall 6 m ahead, bowed 5 cm over +-5 m
     ranges = depth / directions[..., 0] + np.random.default_rng(0).normal(0, 0.005, depth.shape)
     points = directions * ranges[..., None]
-    with_spread = extract_planes(points, sensor='lidar')
-    model_only = extract_planes(points, sensor=dataclasses.replace(PROFILES['lidar'], quadrant_jackknife=False))
+    model_only = dataclasses.replace(PROFILES['lidar'], quadrant_jackknife=False, row_jackknife=False)
+    with_spread = extract_planes(points, sensor=dataclasses.replace(model_only, quadrant_jackknife=True))
+    model_only = extract_planes(points, sensor=model_only)
     np.testing.assert_array_equal(with_spread.labels, model_only.labels)
     big = int(np.argmax(with_spread.point_counts))
     assert np.trace(with_spread.covariances[big]) > 10 * np.trace(model_only.covariances[big])

@@ -337,6 +337,11 @@ class SensorProfile:
         quadrant_jackknife: with correlation_length, also count the spread of each plane's fit over
             its four quadrants (errors correlated over the whole plane: what moves the plane when
             another part of the surface is seen; ppe_ros.core.quadrants).
+        row_jackknife: with correlation_length, also count the spread of each plane's fit over the grid
+            rows it spans, one left out at a time (a spinning lidar's beams: each beam's range bias and
+            angle error is shared by all its points, and a plane seen by few beams moves with them;
+            ppe_ros.core.quadrants.jackknife_of_members with row_width); with quadrant_jackknife, per plane
+            the one of larger trace.
         flatness_length: D0 (m): the planarity test's tolerance of a plane of size D is
             tau min(1, D / D0) (a small patch must be flat to the noise; surfaces.whole_surfaces);
             None = tau for every plane.
@@ -387,6 +392,7 @@ class SensorProfile:
     noise_scale_bounds: tuple[float, float] | None = None
     flatness_length: float | None = None
     quadrant_jackknife: bool = False
+    row_jackknife: bool = False
     seed_shapes: str = 'all'
     candidate_fits: str = 'exact'
     fit_tolerance: float | None = None
@@ -541,6 +547,7 @@ PROFILES: dict[str, SensorProfile] = {
         correlation_length=1.0,
         flatness_length=4.0,
         quadrant_jackknife=True,
+        row_jackknife=True,
         seed_shapes='square',
         candidate_fits='one_step',
         fit_tolerance=LIDAR_FIT_TOLERANCE,

@@ -97,6 +97,7 @@ def whole_surfaces(
                 independent,
                 profile.correlation_length,
                 quadrant_jackknife=profile.quadrant_jackknife,
+                row_jackknife=profile.row_jackknife,
                 sums=sums if independent is ray_sigmas else None,
                 members=members,
             ),
@@ -294,6 +295,7 @@ def systematic_covariances(
     correlation_length: float,
     quadrant_jackknife: bool = False,
     *,
+    row_jackknife: bool = False,
     sums: tuple | None = None,
     members: tuple | None = None,
 ) -> np.ndarray:
@@ -309,14 +311,17 @@ def systematic_covariances(
     s_sys^2 / (N_eff lambda_i) (lambda_i: the points' variance along e_i; A = 12 sqrt(lambda_1 lambda_2),
     a rectangle's). With ``quadrant_jackknife`` the spread of the plane's fit over its four
     quadrants (ppe_ros.core.quadrants: errors correlated over the whole plane, which move the plane
-    when a different part of the surface is seen) is used too: its covariance of offset and tilts,
-    with each variance raised to the independent-patch model's where that is larger. The result is
+    when a different part of the surface is seen) is used too, with ``row_jackknife`` its spread over
+    the grid rows it spans (a spinning lidar's beams, each with its own range bias and angle error),
+    with both the one of larger trace (each jackknife sees only the errors that differ between the
+    parts of its partition): a covariance of offset and tilts whose variances are raised to the
+    independent-patch model's where that is larger. The result is
     mapped to d n to first order. ``sums``: the planes' :func:`_plane_sums` with these ``ray_sigmas``, if
     already computed; ``members``: their :func:`_members`, if already computed.
     """
     count = planes.point_counts.astype(np.float64)
     n_planes = planes.num_planes
-    if members is None and (sums is None or quadrant_jackknife):
+    if members is None and (sums is None or quadrant_jackknife or row_jackknife):
         members = _members(planes)
     if sums is None:
         sums = _plane_sums(scan, planes, ray_sigmas, count, members)
@@ -331,9 +336,14 @@ def systematic_covariances(
     model = np.stack([systematic2 / n_eff, systematic2 / (n_eff * lam1), systematic2 / (n_eff * lam2)], axis=1)
     u_axis, v_axis = vectors[:, :, 2], vectors[:, :, 1]
     local = np.zeros((n_planes, 3, 3))
+    axes = np.stack([u_axis, v_axis, normals], axis=1)
     if quadrant_jackknife:
-        axes = np.stack([u_axis, v_axis, normals], axis=1)
         local = jackknife_of_members(scan.endpoints, scan.center, *members, centroid, axes)
+    if row_jackknife:
+        rows = jackknife_of_members(scan.endpoints, scan.center, *members, centroid, axes, row_width=scan.width)
+        # with both, each plane takes the partition that moves it more (larger trace)
+        wider = np.trace(rows, axis1=1, axis2=2) > np.trace(local, axis1=1, axis2=2)
+        local = np.where(wider[:, None, None], rows, local)
     diagonal = np.arange(3)
     local[:, diagonal, diagonal] = np.maximum(local[:, diagonal, diagonal], model)
     # d n of the plane w = a + b u + c v (w along the normal from the centroid), to first order
