@@ -297,6 +297,33 @@ def test_extract_with_a_sensor_profile_uses_its_defaults_and_the_python_api_agre
     assert saved['point_counts'].min() >= PROFILES['lidar'].min_plane_points_for(load_scan(path).points)
 
 
+def test_range_noise_changes_the_profiles_noise_model_and_needs_one(small_scan, tmp_path, capsys):
+    import dataclasses
+
+    from ppe_ros import extract_planes
+    from ppe_ros.core.sensor import PROFILES
+
+    path, _ = small_scan
+    out = tmp_path / 'noisy.npz'
+    assert main(['extract', str(path), '-o', str(out), '--sensor', 'lidar', '--range-noise', '0.05', '--json']) == 0
+    assert json.loads(capsys.readouterr().out)['range_noise'] == 0.05
+    lidar = PROFILES['lidar']
+    noisy = dataclasses.replace(lidar, noise=dataclasses.replace(lidar.noise, constant=0.05))
+    expected = extract_planes(load_scan(path).points, sensor=noisy)
+    saved = np.load(out)
+    np.testing.assert_array_equal(saved['labels'], expected.labels)
+    np.testing.assert_allclose(saved['covariances'], expected.covariances, rtol=1e-12)
+    default = extract_planes(load_scan(path).points, sensor='lidar')
+    assert not np.array_equal(saved['covariances'], default.covariances)  # the noise reached the fit
+    for extra in ([], ['--sensor', 'paper']):
+        assert main(['extract', str(path), '-o', str(tmp_path / 'x.npz'), '--range-noise', '0.03', *extra]) == 2
+        assert '--range-noise needs --sensor lidar or depth_camera' in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exited:  # argparse's own error
+        main(['extract', str(path), '-o', str(tmp_path / 'x.npz'), '--sensor', 'lidar', '--range-noise', '0'])
+    assert exited.value.code == 2
+    assert 'must be > 0' in capsys.readouterr().err
+
+
 def test_surface_tolerance_needs_a_sensor(small_scan, tmp_path, capsys):
     path, _ = small_scan
     assert main(['extract', str(path), '-o', str(tmp_path / 'x.npz'), '--surface-tolerance', '0.03']) == 2

@@ -549,3 +549,26 @@ def test_the_sensor_parameter_selects_the_profile(types, scan):
     np.testing.assert_array_equal(frame.planes.labels, expected.labels)
     with pytest.raises(ValueError, match='sensor must be one of'):
         ExtractorParams(sensor='sonar')
+
+
+def test_range_noise_sets_the_profiles_noise_and_needs_a_noise_model(types, scan):
+    import dataclasses
+
+    from ppe_ros.core.extraction import extract_planes
+    from ppe_ros.core.sensor import PROFILES
+
+    params = ExtractorParams(sensor='lidar', range_noise=0.04)
+    frame = process_cloud(cloud(types, scan), params, types)
+    lidar = PROFILES['lidar']
+    noisier = dataclasses.replace(lidar, noise=dataclasses.replace(lidar.noise, constant=0.04))
+    expected = extract_planes(frame.points, sensor=noisier)
+    np.testing.assert_array_equal(frame.planes.labels, expected.labels)
+    np.testing.assert_allclose(frame.planes.covariances, expected.covariances)
+    default = process_cloud(cloud(types, scan), ExtractorParams(sensor='lidar'), types)
+    assert not np.array_equal(default.planes.covariances, frame.planes.covariances)  # the noise reached the fit
+    for sensor in ('none', 'paper'):
+        with pytest.raises(ValueError, match='range_noise needs a sensor profile with a noise model'):
+            ExtractorParams(sensor=sensor, range_noise=0.03)
+    with pytest.raises(ValueError, match='range_noise must be in'):
+        ExtractorParams(sensor='lidar', range_noise=-0.01)
+    assert ExtractorParams(sensor='none', range_noise=0.0).range_noise == 0.0

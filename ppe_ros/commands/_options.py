@@ -122,3 +122,11 @@ def add_ppe_options(parser: argparse.ArgumentParser) -> None:
         metavar='M',
         help="with --sensor: RMS deviation (m) one physical surface may show from its plane (default: the profile's)",
     )
+    parser.add_argument(
+        '--range-noise',
+        type=positive_float,
+        default=None,
+        metavar='M',
+        help="with --sensor lidar or depth_camera: the sensor's range noise (m) at short range, the constant term "
+        "of the profile's noise model (default: the profile's, lidar 0.02)",
+    )

@@ -256,6 +256,10 @@ def run(args: argparse.Namespace) -> int:
     profile = None if args.sensor is None else sensor_profile(args.sensor)
     if args.surface_tolerance is not None and profile is None:
         raise ValueError('--surface-tolerance needs --sensor (a sensor profile)')
+    if args.range_noise is not None:
+        if profile is None or profile.noise is None:
+            raise ValueError('--range-noise needs --sensor lidar or depth_camera (a profile with a noise model)')
+        profile = dataclasses.replace(profile, noise=dataclasses.replace(profile.noise, constant=args.range_noise))
     min_points = args.min_plane_points
     if min_points is not None and min_points < 1:
         raise ValueError(f'--min-plane-points must be >= 1; got {min_points}')
@@ -286,6 +290,7 @@ def run(args: argparse.Namespace) -> int:
         'valid_fraction': scan.valid_fraction,
         'max_neighbor_distance': lmax,
         'sensor': args.sensor,
+        'range_noise': args.range_noise,
         'seconds': seconds,
         'snapshots': [],
     }

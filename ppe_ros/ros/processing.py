@@ -182,6 +182,15 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
         high=10.0,
     ),
     ParamSpec(
+        'range_noise',
+        'double',
+        0.0,
+        "with a sensor profile: its noise model's range noise (m) at short range, the model's constant term "
+        "(lidar 0.02, depth_camera 0.001: its floor); 0 = the profile's",
+        low=0.0,
+        high=1.0,
+    ),
+    ParamSpec(
         'ray_origin',
         'double_array',
         (0.0, 0.0, 0.0),
@@ -346,6 +355,7 @@ class ExtractorParams:
     min_plane_points: int = 0
     sensor: str = 'none'
     surface_tolerance: float = 0.0
+    range_noise: float = 0.0
     ray_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     max_points: int = 2_000_000
     input_reliability: str = 'best_effort'
@@ -371,6 +381,11 @@ class ExtractorParams:
     def __post_init__(self) -> None:
         for spec in PARAM_SPECS:
             object.__setattr__(self, spec.name, spec.validate(getattr(self, spec.name)))
+        if self.range_noise > 0.0 and self.sensor in ('none', 'paper'):
+            raise ValueError(
+                f'range_noise needs a sensor profile with a noise model (sensor lidar or depth_camera); sensor is '
+                f'{self.sensor}, whose model has none (set range_noise 0)'
+            )
 
     def replace(self, **changes: Any) -> ExtractorParams:
         """A validated copy with some values changed."""
@@ -751,12 +766,22 @@ def _extraction_settings(params: ExtractorParams) -> dict[str, Any]:
         for name in ('max_error_increment', 'max_neighbor_distance', 'min_plane_points')
     }
     if params.sensor != 'none':
-        settings.update(sensor=params.sensor, surface_tolerance=params.surface_tolerance or PROFILE_DEFAULT)
+        settings.update(sensor=_profile(params), surface_tolerance=params.surface_tolerance or PROFILE_DEFAULT)
     return {
         **settings,
         'origins': np.asarray(params.ray_origin, dtype=np.float64),
         'max_planes': params.max_planes or None,
     }
+
+
+def _profile(params: ExtractorParams):
+    """The sensor profile of the params: its name, or with range_noise the profile with that constant term."""
+    if not params.range_noise:
+        return params.sensor
+    from ppe_ros.core.sensor import sensor_profile
+
+    profile = sensor_profile(params.sensor)
+    return dataclasses.replace(profile, noise=dataclasses.replace(profile.noise, constant=params.range_noise))
 
 
 def _extract_grid(points: np.ndarray, settings: dict[str, Any]) -> PlaneSet:
