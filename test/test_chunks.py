@@ -151,7 +151,10 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
                 _quadric_reduction_kernel(
                     members, starts, bounds, scan.endpoints, scan.center, centroid, vectors, scales
                 ),
-                _jackknife_kernel(scan.endpoints, scan.center, members, starts, bounds, centroid, vectors),
+                _jackknife_kernel(scan.endpoints, scan.center, 0, members, starts, bounds, centroid, vectors),
+                _jackknife_kernel(  # the row jackknife
+                    scan.endpoints, scan.center, scan.width, members, starts, bounds, centroid, vectors
+                ),
                 w.copy(),
                 sse.copy(),
                 info.copy(),
@@ -162,4 +165,4 @@ def test_the_per_plane_kernels_give_the_same_bits_for_any_runs(seed):
         for got, want in zip(other, results[0], strict=True):
             np.testing.assert_array_equal(got, want)
     assert np.isfinite(results[0][1]).all() and results[0][1].max() > 0.0
-    assert np.isfinite(results[0][3]).all() and (results[0][2] != 0.0).any()
+    assert np.isfinite(results[0][4]).all() and (results[0][2] != 0.0).any() and (results[0][3] != 0.0).any()

@@ -12,11 +12,11 @@ relative to the centroid along the two in-plane axes and the normal (metres, the
 a is the offset at the centroid (m), b and c the tilts about the two in-plane axes (rad, to first
 order). ppe_ros.core.surfaces.systematic_covariances maps them to the closest point d n.
 
-The row jackknife (:func:`jackknife_of_members` with ``row_width``) leaves out one grid row at a time instead: the
-rows of a spinning lidar's sweep are its beams, and each beam's range bias and angle error is one
-error shared by all the beam's points on the plane, so a plane seen by few beams moves with them.
-Its groups are the rows holding at least MIN_QUADRANT_POINTS of the plane's points (points of
-sparser rows stay in every refit); K is their number (at least 3, else the spread is 0).
+The row jackknife (:func:`jackknife_of_members` with ``row_width``) leaves out one grid row at a time
+instead: the rows of a spinning lidar's sweep are its beams, and each beam's range bias and angle
+error is one error shared by all the beam's points on the plane, so a plane seen by few beams moves
+with them. Its groups are the rows holding at least MIN_QUADRANT_POINTS of the plane's points (points
+of sparser rows stay in every refit); K is their number (at least MIN_ROWS, else the spread is 0).
 """
 
 from __future__ import annotations

@@ -511,7 +511,6 @@ def check_seed_shapes(seed_shapes: str) -> None:
         raise ValueError(f'seed_shapes must be {choices}; got {seed_shapes!r}')
 
 
-#: Spinning lidars (Ouster OS-0/1/2, Velodyne, Hesai): 2 cm range noise, plus 0.1 % of the range.
 #: The fewest rays a profile's min_plane_points_for asks of a coarse scan: on generated 16-beam sweeps
 #: (training seeds 0-3) 10 and 7 rays keep f and k, 5 loses half of k.
 MIN_PLANE_POINTS_FLOOR = 10
@@ -519,6 +518,7 @@ MIN_PLANE_POINTS_FLOOR = 10
 #: columns), on which the lidar profile's min_plane_points was chosen.
 OS1_128_RAY_SPACING_DEG = (0.3456, 0.3400)
 
+#: Spinning lidars (Ouster OS-0/1/2, Velodyne, Hesai): 2 cm range noise, plus 0.1 % of the range.
 LIDAR_NOISE = NoiseModel(constant=0.02, proportional=0.001)
 #: Kinect v1 (Khoshelham and Elberink 2012): axial sigma_z = 1.43e-3 z^2, a 1 mm floor.
 KINECT_V1_NOISE = NoiseModel(constant=0.001, depth_quadratic=1.43e-3)
