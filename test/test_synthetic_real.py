@@ -592,6 +592,34 @@ def test_dataset_command_and_eval_on_a_lidar_dataset(tmp_path, capsys, lidar_dat
     assert '--kind lidar' in text and 'clutter unlabelled' in text
 
 
+def test_eval_runs_the_sensor_profile_of_a_lidar_dataset_first(tmp_path, capsys, lidar_dataset):
+    from ppe_ros import extract_planes
+    from ppe_ros.benchmark.dataset import iter_scans
+    from ppe_ros.benchmark.methods import make_method
+    from ppe_ros.cli import main
+    from ppe_ros.commands.eval import DEFAULT_METHODS, default_methods
+    from ppe_ros.io import load_scan
+
+    assert default_methods('lidar') == ('ppe-lidar', *DEFAULT_METHODS)
+    assert default_methods('depth_camera') == ('ppe-depth-camera', *DEFAULT_METHODS)
+    assert default_methods('synpeb') == DEFAULT_METHODS
+    entry = next(iter(iter_scans(lidar_dataset, split='test')))
+    scan = load_scan(entry.path)
+    method = make_method('ppe-lidar')
+    assert method.parameters() == {'sensor': 'lidar'}
+    labels = method.segment(scan.points, scan.origins).labels
+    np.testing.assert_array_equal(labels, extract_planes(scan.points, origins=scan.origins, sensor='lidar').labels)
+    report = tmp_path / 'eval.md'
+    argv = ['eval', str(lidar_dataset), '--no-sweep', '--quiet', '--out', str(report), '--max-scans', '1']
+    assert main([*argv, '--methods', 'ppe-lidar', 'ppe']) == 0
+    text = report.read_text()
+    assert '| ppe-lidar |' in text and '| ppe |' in text and '--methods ppe-lidar ppe' in text
+    capsys.readouterr()
+    assert main(argv) == 0  # without --methods: the lidar profile first, then the usual ones
+    text = report.read_text()
+    assert '--methods ppe-lidar ppe msac' in text and '| ppe-lidar |' in text and '| msac |' in text
+
+
 def test_builder_fast_path_accepts_and_rejects_like_validate_polygon():
     from ppe_ros.core.synthetic import _validate_polygon
 

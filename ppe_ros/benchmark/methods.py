@@ -235,6 +235,56 @@ class PpePaperMethod(PpeMethod):
         )
 
 
+class PpeSensorMethod(PlaneMethod):
+    """PPE with a sensor profile (``extract_planes(points, origins=..., sensor=...)``): its noise model, whole
+    surfaces, planarity test and defaults, as the node and ``ppe extract --sensor`` run it; no threshold sweep
+    (the profile's e is in units of its noise variance, not the paper's m^2)."""
+
+    profile: ClassVar[str] = ''
+
+    def parameters(self) -> dict[str, Any]:
+        return {'sensor': self.profile}
+
+    def warm_up(self) -> None:
+        from ppe_ros.core.synthetic import plane_scan
+
+        self.segment(plane_scan(3, rows=24, cols=48, radial_sigma=0.005).points)
+
+    def segment(self, points: np.ndarray, origins: np.ndarray | None = None) -> Segmentation:
+        from ppe_ros.core.extraction import extract_planes
+
+        start = time.perf_counter()
+        planes = extract_planes(points, origins=origins, sensor=self.profile)
+        return Segmentation(
+            labels=planes.labels.astype(np.int64),
+            seconds=time.perf_counter() - start,
+            info={'planes': planes.num_planes, 'actions': planes.actions},
+        )
+
+
+class PpeLidarMethod(PpeSensorMethod):
+    """PPE with the lidar profile."""
+
+    name = 'ppe-lidar'
+    description = "PPE with the lidar profile (sensor='lidar')"
+    profile = 'lidar'
+
+
+class PpeDepthCameraMethod(PpeSensorMethod):
+    """PPE with the depth camera profile."""
+
+    name = 'ppe-depth-camera'
+    description = "PPE with the depth camera profile (sensor='depth_camera')"
+    profile = 'depth_camera'
+
+
+#: The methods of PPE with a sensor profile, by name.
+SENSOR_METHODS: dict[str, type[PpeSensorMethod]] = {
+    PpeLidarMethod.name: PpeLidarMethod,
+    PpeDepthCameraMethod.name: PpeDepthCameraMethod,
+}
+
+
 class MsacMethod(PlaneMethod):
     """The paper's baseline: sequential MSAC (:func:`ppe_ros.core.msac.extract_planes_msac`).
 
@@ -281,7 +331,7 @@ def method_names() -> tuple[str, ...]:
     """Every known method name (available or not)."""
     from ppe_ros.benchmark.peers import PEERS
 
-    return ('ppe', 'ppe-paper', 'msac', *PEERS)
+    return ('ppe', 'ppe-paper', *SENSOR_METHODS, 'msac', *PEERS)
 
 
 def make_method(name: str, **params) -> PlaneMethod:
@@ -292,7 +342,13 @@ def make_method(name: str, **params) -> PlaneMethod:
     """
     from ppe_ros.benchmark.peers import PEERS
 
-    classes: dict[str, type[PlaneMethod]] = {'ppe': PpeMethod, 'ppe-paper': PpePaperMethod, 'msac': MsacMethod, **PEERS}
+    classes: dict[str, type[PlaneMethod]] = {
+        'ppe': PpeMethod,
+        'ppe-paper': PpePaperMethod,
+        **SENSOR_METHODS,
+        'msac': MsacMethod,
+        **PEERS,
+    }
     if name not in classes:
         raise ValueError(f'unknown method {name!r}; known: {", ".join(classes)}')
     return classes[name](**params)

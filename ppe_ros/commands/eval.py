@@ -38,9 +38,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         '--methods',
         nargs='+',
-        default=list(DEFAULT_METHODS),
+        default=None,
         metavar='NAME',
-        help=f'methods to run (default: {" ".join(DEFAULT_METHODS)}; known: {" ".join(method_names())})',
+        help=f'methods to run (default: {" ".join(DEFAULT_METHODS)}, after ppe-lidar on a lidar data set and '
+        f'ppe-depth-camera on a depth camera one; known: {" ".join(method_names())})',
     )
     parser.add_argument('--split', choices=('train', 'test'), default='test', help='split to evaluate (default test)')
     parser.add_argument(
@@ -192,6 +193,13 @@ def canonical_command(args: argparse.Namespace) -> str:
     return shlex.join(parts)
 
 
+def default_methods(kind: str) -> tuple[str, ...]:
+    """The methods ``ppe eval`` runs on a data set of this kind (its manifest's ``kind``) without --methods: the
+    sensor profile of generated lidar sweeps or depth frames first, then DEFAULT_METHODS."""
+    profile = {'lidar': ('ppe-lidar',), 'depth_camera': ('ppe-depth-camera',)}.get(kind, ())
+    return (*profile, *DEFAULT_METHODS)
+
+
 def build_methods(
     args: argparse.Namespace, lmax: float, error: float, levels: dict[float, tuple[float, float]] | None = None
 ) -> list:
@@ -328,9 +336,11 @@ def run(args: argparse.Namespace) -> int:
         load_previous_results,
     )
 
+    manifest = read_manifest(args.dataset)
+    if args.methods is None:
+        args.methods = list(default_methods(manifest.get('kind', 'synpeb')))
     out, plot = _check_run_arguments(args)
     previous = load_previous_results(args.reuse) if args.reuse else None
-    manifest = read_manifest(args.dataset)
     lmax, error, levels = ppe_parameters(args)
     methods = build_methods(args, lmax, error, levels)
 
