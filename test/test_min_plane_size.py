@@ -70,7 +70,7 @@ def test_ray_spacing_of_a_sweep_is_its_azimuth_step_and_beam_spacing():
 
 def test_ray_spacing_is_nan_without_enough_valid_neighbours_and_checks_its_input():
     points = 5.0 * spherical_grid(8, 64, 1.0, 1.0)
-    points[:, ::2] = np.nan  # no two valid neighbours along a row; columns keep 32 x 7 pairs, sampled
+    points[:, ::2] = np.nan  # no two valid neighbours along a row; the columns keep 31 x 7 pairs
     along_rows, along_columns = ray_spacing_deg(points)
     assert math.isnan(along_rows)
     assert along_columns == pytest.approx(1.0, rel=1e-9)
