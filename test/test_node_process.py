@@ -382,6 +382,45 @@ def test_a_signal_inside_the_node_constructor_exits_0_without_a_traceback(child_
     assert 'JIT warm-up' not in output  # stopped inside the constructor, before the worker started
 
 
+#: A process whose main thread forgets a running node (what a SIGINT between ExtractorNode() and the name
+#: that would hold it does to the extractor's main): it must still exit.
+FORGOTTEN_NODE_SCRIPT = """
+import rclpy
+from ppe_ros.ros.node import ExtractorNode
+
+rclpy.init()
+node = ExtractorNode()
+assert node.ready.wait(600), 'no warm-up'
+print('ready, leaving the node running', flush=True)
+"""
+
+
+def test_a_node_nobody_stopped_does_not_keep_the_process_alive():
+    """The workers end once the main thread has ended without stopping them (before, the interpreter waited
+    for them at exit forever: a SIGINT in that window hung test_sigint_during_start_up... once in CI)."""
+    env = dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(unique_domain_id(95)),
+        ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+        PYTHONFAULTHANDLER='1',
+    )
+    child = subprocess.Popen(
+        [sys.executable, '-c', FORGOTTEN_NODE_SCRIPT],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        output, _ = child.communicate(timeout=READY_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        child.send_signal(signal.SIGABRT)  # the threads' stacks, then fail
+        output, _ = child.communicate(timeout=30)
+        pytest.fail(f'the process did not exit once its main thread had ended:\n{output}')
+    assert 'ready, leaving the node running' in output, output
+    assert child.returncode == 0, output
+
+
 @pytest.mark.parametrize('delay_s', [0.0, 0.3, 1.5])
 def test_sigint_during_start_up_exits_0_without_a_traceback(client_factory, delay_s):
     """A SIGINT as soon as the node shows up in the ROS graph (inside ExtractorNode.__init__ or just after it),

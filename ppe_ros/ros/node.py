@@ -393,9 +393,16 @@ class ExtractorNode(Node):
         """Whether worker ``index`` takes frames under the current ``workers`` value."""
         return index == 0 or (index < self._params.workers and self._parallel_workers_safe)
 
+    def _running(self) -> bool:
+        """True until :meth:`stop`, or until the main thread has ended without it: a SIGINT that reaches the
+        main thread between the node's construction and its owner's name for it leaves nobody to stop the
+        workers, and the interpreter would wait for them at exit forever."""
+        return not self._stop_requested.is_set() and threading.main_thread().is_alive()
+
     def _work(self, index: int) -> None:
-        """Worker ``index``'s thread: it ends only on :meth:`stop` (any exception is a failed frame)."""
-        while not self._stop_requested.is_set():
+        """Worker ``index``'s thread: it ends on :meth:`stop` or once the main thread has ended (any exception
+        is a failed frame)."""
+        while self._running():
             try:
                 self._serve(index)
             except Exception as exc:  # outside any frame (a defect): report it, wait a little, go on
@@ -421,7 +428,7 @@ class ExtractorNode(Node):
                     f'ready: waiting for PointCloud2 on {self.input_topic} or depth images on {self.depth_image_topic} '
                     f'({self._params.input_reliability}, {self._params.workers} worker(s))'
                 )
-        while not self._stop_requested.is_set():
+        while self._running():
             if not self.ready.is_set() or not self._active(index):
                 self._stop_requested.wait(WORKER_POLL_S)  # warming up, or parked by a lower workers value
                 continue
