@@ -561,6 +561,9 @@ def test_range_noise_sets_the_profiles_noise_and_needs_a_noise_model(types, scan
     frame = process_cloud(cloud(types, scan), params, types)
     lidar = PROFILES['lidar']
     noisier = dataclasses.replace(lidar, noise=dataclasses.replace(lidar.noise, constant=0.04))
+    assert lidar.with_range_noise(0.04) == noisier
+    with pytest.raises(ValueError, match="'paper' has no noise model"):
+        PROFILES['paper'].with_range_noise(0.04)
     expected = extract_planes(frame.points, sensor=noisier)
     np.testing.assert_array_equal(frame.planes.labels, expected.labels)
     np.testing.assert_allclose(frame.planes.covariances, expected.covariances)

@@ -259,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
     if args.range_noise is not None:
         if profile is None or profile.noise is None:
             raise ValueError('--range-noise needs --sensor lidar or depth_camera (a profile with a noise model)')
-        profile = dataclasses.replace(profile, noise=dataclasses.replace(profile.noise, constant=args.range_noise))
+        profile = profile.with_range_noise(args.range_noise)
     min_points = args.min_plane_points
     if min_points is not None and min_points < 1:
         raise ValueError(f'--min-plane-points must be >= 1; got {min_points}')

@@ -475,6 +475,17 @@ class SensorProfile:
         """A copy with the given (non-None) settings replaced."""
         return replace(self, **{k: v for k, v in overrides.items() if v is not None})
 
+    def with_range_noise(self, range_noise: float) -> SensorProfile:
+        """A copy whose noise model has ``range_noise`` (m) as its constant term (the sensor's range noise at
+        short range), what the node's ``range_noise`` and ``ppe extract --range-noise`` set.
+
+        Raises:
+            ValueError: the profile has no noise model (the paper's), or NoiseModel refuses the value.
+        """
+        if self.noise is None:
+            raise ValueError(f'profile {self.name!r} has no noise model whose range noise could be set')
+        return replace(self, noise=replace(self.noise, constant=range_noise))
+
 
 #: The names of the greedy's seed shape sets (ppe_ros.core.ppe.seeds.SEED_SHAPES, keyed by these):
 #: 'all' the paper's 17 tetrominoes, 'square' the 2 x 2 square alone.

@@ -381,11 +381,14 @@ class ExtractorParams:
     def __post_init__(self) -> None:
         for spec in PARAM_SPECS:
             object.__setattr__(self, spec.name, spec.validate(getattr(self, spec.name)))
-        if self.range_noise > 0.0 and self.sensor in ('none', 'paper'):
-            raise ValueError(
-                f'range_noise needs a sensor profile with a noise model (sensor lidar or depth_camera); sensor is '
-                f'{self.sensor}, whose model has none (set range_noise 0)'
-            )
+        if self.range_noise > 0.0:
+            from ppe_ros.core.sensor import sensor_profile
+
+            if sensor_profile(self.sensor).noise is None:
+                raise ValueError(
+                    f'range_noise needs a sensor profile with a noise model (sensor lidar or depth_camera); sensor '
+                    f'is {self.sensor}, whose model has none (set range_noise 0)'
+                )
 
     def replace(self, **changes: Any) -> ExtractorParams:
         """A validated copy with some values changed."""
@@ -780,8 +783,7 @@ def _profile(params: ExtractorParams):
         return params.sensor
     from ppe_ros.core.sensor import sensor_profile
 
-    profile = sensor_profile(params.sensor)
-    return dataclasses.replace(profile, noise=dataclasses.replace(profile.noise, constant=params.range_noise))
+    return sensor_profile(params.sensor).with_range_noise(params.range_noise)
 
 
 def _extract_grid(points: np.ndarray, settings: dict[str, Any]) -> PlaneSet:
