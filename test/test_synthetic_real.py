@@ -606,7 +606,7 @@ def test_eval_runs_the_sensor_profile_of_a_lidar_dataset_first(tmp_path, capsys,
     entry = next(iter(iter_scans(lidar_dataset, split='test')))
     scan = load_scan(entry.path)
     method = make_method('ppe-lidar')
-    assert method.parameters() == {'sensor': 'lidar'}
+    assert method.parameters()['sensor'] == 'lidar'
     labels = method.segment(scan.points, scan.origins).labels
     np.testing.assert_array_equal(labels, extract_planes(scan.points, origins=scan.origins, sensor='lidar').labels)
     report = tmp_path / 'eval.md'
@@ -618,6 +618,24 @@ def test_eval_runs_the_sensor_profile_of_a_lidar_dataset_first(tmp_path, capsys,
     assert main(argv) == 0  # without --methods: the lidar profile first, then the usual ones
     text = report.read_text()
     assert '--methods ppe-lidar ppe msac' in text and '| ppe-lidar |' in text and '| msac |' in text
+
+
+def test_eval_reuses_a_profile_result_only_while_the_profile_is_unchanged(tmp_path, capsys, monkeypatch, lidar_dataset):
+    import dataclasses
+
+    from ppe_ros.cli import main
+    from ppe_ros.core import sensor
+
+    raw = tmp_path / 'raw.json'
+    argv = ['eval', str(lidar_dataset), '--no-sweep', '--quiet', '--max-scans', '1', '--methods', 'ppe-lidar']
+    assert main([*argv, '--out', str(tmp_path / 'a.md'), '--raw', str(raw)]) == 0
+    assert main([*argv, '--out', str(tmp_path / 'b.md'), '--reuse', str(raw)]) == 0
+    assert 'Results of ppe-lidar were taken from the earlier run' in (tmp_path / 'b.md').read_text()
+    changed = dataclasses.replace(sensor.PROFILES['lidar'], surface_tolerance=0.04)  # a default changed since
+    monkeypatch.setitem(sensor.PROFILES, 'lidar', changed)
+    assert main([*argv, '--out', str(tmp_path / 'c.md'), '--reuse', str(raw)]) == 0
+    assert 'taken from the earlier run' not in (tmp_path / 'c.md').read_text()
+    capsys.readouterr()
 
 
 def test_builder_fast_path_accepts_and_rejects_like_validate_polygon():

@@ -8,6 +8,7 @@ optional peer that is not installed), then :meth:`PlaneMethod.segment` per scan.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -86,6 +87,13 @@ class PlaneMethod:
         """``name (key=value, ...)``."""
         params = ', '.join(f'{k}={_format_value(v)}' for k, v in self.parameters().items())
         return f'{self.name} ({params})'
+
+
+def profile_digest(sensor: str) -> str:
+    """12 hex digits of the SHA-256 of the named sensor profile's repr (every field, the noise model's too)."""
+    from ppe_ros.core.sensor import sensor_profile
+
+    return hashlib.sha256(repr(sensor_profile(sensor)).encode()).hexdigest()[:12]
 
 
 def _format_value(value: Any) -> str:
@@ -243,7 +251,9 @@ class PpeSensorMethod(PlaneMethod):
     profile: ClassVar[str] = ''
 
     def parameters(self) -> dict[str, Any]:
-        return {'sensor': self.profile}
+        """The profile's name and a digest of all its settings (:func:`profile_digest`): ``ppe eval --reuse``
+        keys an earlier result by these, so a profile whose defaults changed since then runs again."""
+        return {'sensor': self.profile, 'profile_digest': profile_digest(self.profile)}
 
     def warm_up(self) -> None:
         from ppe_ros.core.synthetic import plane_scan
