@@ -371,6 +371,11 @@ class SensorProfile:
         min_plane_width: w (m): a plane whose points span less than w across (sqrt(12 l2), l2 the
             scatter's second-largest eigenvalue: the width of a uniform strip) is reported as no plane
             (a sliver along a rounded edge, whose curvature across it is too narrow to see); None = off.
+        min_plane_breadth: b (m): a plane narrower than b across in the grid is reported as no plane (a
+            pole, a trunk, a branch, a person: thin things whose one-sided view fits a plane only because
+            it is narrow; :func:`ppe_ros.core.surfaces.plane_breadth`: the smaller of the medians, over the
+            grid rows and over the grid columns the plane spans, of the extent of its points on that row or
+            column); None = off.
         curvature_max_size: the curvature test (max_plane_curvature_factor) judges only planes smaller
             than this size D (m; as flatness_length's): a larger surface's bend is the sensor's own (a
             depth camera's distortion bends a wall by centimetres), a small one's is the object's (a
@@ -401,6 +406,7 @@ class SensorProfile:
     step_factor: float = 1.0
     boundary_join_points: int | None = None
     min_plane_width: float | None = None
+    min_plane_breadth: float | None = None
     curvature_max_size: float | None = None
 
     def __post_init__(self) -> None:
@@ -427,6 +433,7 @@ class SensorProfile:
             raise ValueError(f'max_plane_curvature_factor must be a number > 0 (inf: no test); got {factor!r}')
         check_optional_length('flatness_length', self.flatness_length, 'a length')
         check_optional_length('min_plane_width', self.min_plane_width, 'a width')
+        check_optional_length('min_plane_breadth', self.min_plane_breadth, 'a breadth')
         check_optional_length('curvature_max_size', self.curvature_max_size, 'a size')
         share = self.large_surface_share
         if share is not None and (isinstance(share, bool) or not (isinstance(share, numbers.Real) and 0 < share <= 1)):
@@ -563,6 +570,7 @@ PROFILES: dict[str, SensorProfile] = {
         candidate_fits='one_step',
         fit_tolerance=LIDAR_FIT_TOLERANCE,
         boundary_join_points=300,
+        min_plane_breadth=0.1,
     ),
     'depth_camera': SensorProfile(
         name='depth_camera',

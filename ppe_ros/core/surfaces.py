@@ -71,8 +71,10 @@ def whole_surfaces(
     factor = np.inf if profile is None else profile.max_plane_rmse_factor
     curvature_factor = np.inf if profile is None else profile.max_plane_curvature_factor
     min_width = None if profile is None else profile.min_plane_width
+    min_breadth = None if profile is None else profile.min_plane_breadth
     sums = members = None  # the planes' _plane_sums with ray_sigmas and their _members, when computed
-    if (np.isfinite(factor) or np.isfinite(curvature_factor) or min_width is not None) and planes.num_planes:
+    tested = np.isfinite(factor) or np.isfinite(curvature_factor) or min_width is not None or min_breadth is not None
+    if tested and planes.num_planes:
         planes, sums, members = _drop_non_planar(
             unit_scan,
             planes,
@@ -85,6 +87,7 @@ def whole_surfaces(
             min_width,
             profile.curvature_max_size,
             fitted_members,
+            min_breadth,
         )
     if profile is not None and profile.correlation_length is not None and planes.num_planes:
         independent = _independent_sigmas(unit_scan, ray_sigmas, profile)
@@ -371,6 +374,7 @@ def _drop_non_planar(
     min_width: float | None = None,
     curvature_max_size: float | None = None,
     members: tuple[np.ndarray, np.ndarray] | None = None,
+    min_breadth: float | None = None,
 ) -> tuple[PlaneSet, tuple, tuple]:
     """Report as no plane every plane whose RMS point-to-plane distance exceeds
     factor * sqrt(tau_D^2 + lambda^2 mean sigma_k^2 + mean (sigma_k n . v_k)^2): the surface tolerance
@@ -381,7 +385,8 @@ def _drop_non_planar(
     surface's deviation from flatness grows with its size, so a small patch must be flat to the
     noise, which a tree's or a car's pieces are not; None: tau_D = tau. With ``curvature_max_size`` the
     curvature test judges only planes of a size D below it; ``min_width``: a plane whose points span less
-    than that across (sqrt(12 l2), l2 the scatter's middle eigenvalue) is no plane. scan has unit directions;
+    than that across (sqrt(12 l2), l2 the scatter's middle eigenvalue) is no plane; ``min_breadth``: a plane
+    whose :func:`plane_breadth` is below it is no plane. scan has unit directions;
     ``members``: the planes' :func:`_members`, if already known (the fits group them).
     Returns the kept planes, renumbered (:func:`_kept_planes`: what a refit of their pixels gives), their
     :func:`_plane_sums` with ``ray_sigmas`` (for :func:`systematic_covariances` with the same sigmas) and their
@@ -404,6 +409,8 @@ def _drop_non_planar(
         planar &= ~bent
     if min_width is not None:
         planar &= 12.0 * np.maximum(values[:, 1], 0.0) >= float(min_width) ** 2
+    if min_breadth is not None:
+        planar &= plane_breadth(scan, planes, members=members) >= float(min_breadth)
     if planar.all():
         return planes, sums, members
     return _kept_planes(planes, planar), tuple(column[planar] for column in sums), _kept_members(members, planar)
@@ -417,6 +424,94 @@ def _kept_members(members: tuple, keep: np.ndarray) -> tuple[np.ndarray, np.ndar
     kept_starts = np.zeros(np.count_nonzero(keep) + 1, np.int64)
     np.cumsum(counts[keep], out=kept_starts[1:])
     return pixels[np.repeat(keep, counts)], kept_starts
+
+
+def plane_breadth(scan: RayScan, planes: PlaneSet, *, members=None) -> np.ndarray:
+    """``(J,)`` breadth (m) of each plane across the scan's grid: how wide a strip of points it is.
+
+    On every grid row that holds points of plane j, the row's extent is the largest distance of those
+    points from the one in the row's least column; on every grid column, from the one in the column's
+    least row. The breadth is the smaller of the two medians: over the plane's rows of their extents
+    and over its columns of theirs. A wall, a road or a window is as broad as it is wide or tall (a
+    ring of ground around the sensor: about its diameter); a pole, a trunk or a branch, seen from one
+    side, is a strip of its diameter; a plane of points on one grid row (one beam) has breadth 0
+    across it. Frame-free (distances between ``scan.endpoints``). ``members``: the planes'
+    :func:`_members`, if already computed.
+    """
+    members, starts = _members(planes) if members is None else members
+    return _breadth_kernel(
+        members,
+        starts,
+        group_chunks(planes.point_counts),
+        np.ascontiguousarray(scan.endpoints, dtype=np.float64),
+        planes.labels.shape[0],
+        planes.labels.shape[1],
+    )
+
+
+@nb.njit(cache=True, error_model='numpy', parallel=True)
+def _breadth_kernel(members, starts, bounds, endpoints, height, width):
+    """plane_breadth of each plane g (pixels ``members[starts[g]:starts[g + 1]]`` in pixel order); the planes'
+    runs ``bounds`` (chunks.group_chunks) in parallel, with a row and a column scratch per run."""
+    out = np.zeros(len(starts) - 1)
+    for c in nb.prange(len(bounds) - 1):
+        row_first = np.full(height, -1, np.int64)
+        row_extent = np.zeros(height)
+        column_first = np.full(width, -1, np.int64)
+        column_extent = np.zeros(width)
+        for g in range(bounds[c], bounds[c + 1]):
+            out[g] = _breadth_of(
+                members[starts[g] : starts[g + 1]], endpoints, width, row_first, row_extent, column_first, column_extent
+            )
+    return out
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True)
+def _breadth_of(pixels, endpoints, width, row_first, row_extent, column_first, column_extent):
+    """plane_breadth of one plane's pixels (in pixel order, so a row's first pixel is its least column's and
+    a column's its least row's). The first and extent arrays (a slot per row or column, first -1) are
+    scratch, left as found."""
+    n_rows = 0
+    n_columns = 0
+    for k in pixels:
+        i = k // width
+        j = k - i * width
+        n_rows += _extend_line(endpoints, k, i, row_first, row_extent)
+        n_columns += _extend_line(endpoints, k, j, column_first, column_extent)
+    rows = np.empty(n_rows)
+    columns = np.empty(n_columns)
+    n_rows = 0
+    n_columns = 0
+    for k in pixels:
+        i = k // width
+        j = k - i * width
+        if row_first[i] >= 0:
+            rows[n_rows] = np.sqrt(row_extent[i])
+            n_rows += 1
+            row_first[i] = -1
+        if column_first[j] >= 0:
+            columns[n_columns] = np.sqrt(column_extent[j])
+            n_columns += 1
+            column_first[j] = -1
+    if n_rows == 0:
+        return 0.0
+    return min(np.median(rows), np.median(columns))
+
+
+@nb.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _extend_line(endpoints, k, line, first, extent):
+    """Pixel k on grid line ``line``: its first pixel (returns 1) or the line's squared extent from its first
+    pixel grown to reach k (returns 0)."""
+    f = first[line]
+    if f < 0:
+        first[line] = k
+        extent[line] = 0.0
+        return 1
+    dx = endpoints[k, 0] - endpoints[f, 0]
+    dy = endpoints[k, 1] - endpoints[f, 1]
+    dz = endpoints[k, 2] - endpoints[f, 2]
+    extent[line] = max(extent[line], dx * dx + dy * dy + dz * dz)
+    return 0
 
 
 def curvature_rms(
