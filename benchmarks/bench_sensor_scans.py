@@ -2,7 +2,7 @@
 against PPE at the node's settings without a profile, Open3D's RANSAC loop and PEAC, on held-out scene seeds.
 
     .venv/bin/python benchmarks/bench_sensor_scans.py [--seeds 1000 1001 1002] [--kinds lidar depth_camera]
-                                                       [--lidar-models os1-128 os1-32 vlp16 hdl32]
+                                                       [--lidar-models os1-128 os1-32 vlp16 hdl32 hdl64]
                                                        [--no-ransac] [--no-peac] [--set NAME=VALUE ...]
 
 PEAC runs through the external driver named by PEAC_BIN, as in bench_real.py (docs/benchmarks.md: Methods),

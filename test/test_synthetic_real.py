@@ -146,6 +146,11 @@ def test_velodyne_like_models_have_their_beams():
     np.testing.assert_allclose(vlp16.elevation_deg[[0, -1]], [15.0, -15.0])
     np.testing.assert_allclose(np.diff(hdl32.elevation_deg), -(10.67 + 30.67) / 31, atol=1e-12)  # 1.33 deg
     np.testing.assert_allclose(hdl32.elevation_deg[[0, -1]], [10.67, -30.67])
+    hdl64 = lidar_grid('hdl64', cols=2048)  # KITTI's HDL-64E at 10 Hz: about 0.18 deg between columns
+    assert hdl64.shape == (64, 2048)
+    np.testing.assert_allclose(np.diff(hdl64.elevation_deg[:32]), -1 / 3, atol=1e-3)  # the upper block
+    np.testing.assert_allclose(np.diff(hdl64.elevation_deg[32:]), -0.5, atol=1e-12)  # the lower block
+    np.testing.assert_allclose(hdl64.elevation_deg[[0, 31, 32, -1]], [2.0, -8.333, -8.833, -24.333])
     scan = generate_lidar_scan(
         wall_scene(), seed=0, model='vlp16', cols=64, sensor_pose=ORIGIN_POSE, errors=LidarErrorModel.exact()
     )

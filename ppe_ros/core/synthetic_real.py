@@ -248,11 +248,16 @@ VLP16_ALTITUDES_DEG = tuple(float(x) for x in np.linspace(15.0, -15.0, 16))
 HDL32_ALTITUDES_DEG = tuple(float(x) for x in np.linspace(10.67, -30.67, 32))
 """Beam elevations (degrees) of a Velodyne HDL-32E, top first: 32 beams 1.33 deg apart from +10.67 to -30.67 deg."""
 
+HDL64_ALTITUDES_DEG = tuple(float(x) for x in np.r_[np.linspace(2.0, -8.333, 32), np.linspace(-8.833, -24.333, 32)])
+"""Beam elevations (degrees) of a Velodyne HDL-64E (KITTI's lidar), top first: an upper block of 32 beams 1/3 deg
+apart from +2 to -8.33 deg and a lower block of 32 beams 1/2 deg apart from -8.83 to -24.33 deg."""
+
 LIDAR_MODELS: dict[str, tuple[float, ...]] = {
     'os1-128': OS1_128_ALTITUDES_DEG,
     'os1-32': OS1_32_ALTITUDES_DEG,
     'vlp16': VLP16_ALTITUDES_DEG,
     'hdl32': HDL32_ALTITUDES_DEG,
+    'hdl64': HDL64_ALTITUDES_DEG,
 }
 """Lidar models known to :func:`lidar_grid`: name -> beam elevations in degrees (columns: ``cols``, 1024 by
 default: 0.35 deg, an Ouster at 10 Hz or a Velodyne at about 20 Hz)."""
@@ -1776,7 +1781,8 @@ def generate_lidar_scan(
     Args:
         scene: the surfaces (world frame); None builds :func:`make_street_scene` from ``seed``.
         seed: non-negative integer; the scene (if built), pose (if not given) and noise are deterministic in it.
-        model: beam layout of :data:`LIDAR_MODELS` (``'os1-128'``, ``'os1-32'``, ``'vlp16'``, ``'hdl32'``), with
+        model: beam layout of :data:`LIDAR_MODELS` (``'os1-128'``, ``'os1-32'``, ``'vlp16'``, ``'hdl32'``,
+            ``'hdl64'``), with
             ``cols`` columns; ignored when ``grid`` is given.
         grid: any spherical grid instead (rows = beams).
         sensor_pose: pose in the world frame; default :func:`street_sensor_pose` (``seed``).
