@@ -705,3 +705,15 @@ def test_cast_surface_rays_validates_its_input():
     distances, labels = cast_surface_rays(scene, np.zeros((2, 3)), np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
     np.testing.assert_allclose(distances[0], 10.0)
     assert labels[0] == scene.scene.faces[0].label and np.isnan(distances[1]) and labels[1] == 0
+
+
+def test_dataset_make_help_names_every_lidar_model(capsys):
+    from ppe_ros.cli import main
+    from ppe_ros.core.synthetic_real import LIDAR_MODELS
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(['dataset', 'make', '--help'])
+    assert exit_info.value.code == 0
+    text = ' '.join(capsys.readouterr().out.split())  # argparse wraps the help
+    listed = text.split('one level per lidar model (')[1].split(';')[0]
+    assert [name.strip() for name in listed.split(',')] == list(LIDAR_MODELS)

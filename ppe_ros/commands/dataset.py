@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         nargs='+',
         default=list(DEFAULT_LIDAR_MODELS),
         metavar='MODEL',
-        help='--kind lidar: one level per lidar model (os1-128, os1-32; default os1-128)',
+        help='--kind lidar: one level per lidar model (os1-128, os1-32, vlp16, hdl32, hdl64; default os1-128)',
     )
     make.add_argument('--seed', type=_non_negative_int, default=0, help='random seed (default 0)')
     make.add_argument(
