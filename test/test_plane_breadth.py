@@ -68,6 +68,8 @@ def test_plane_breadth_equals_a_slow_reference():
         assert breadth[label - 1] == pytest.approx(slow_breadth(points, labels, label), rel=1e-12, abs=1e-12)
     assert breadth[5] == 0.0 and breadth[6] == 0.0 and breadth[8] == 0.0
     assert np.all(breadth[:5] > 0.0)
+    with pytest.raises(ValueError, match='grid'):
+        plane_breadth(make_ray_scan(points[:, :80]), planes)
 
 
 def lidar_rays(rows: int = 96, columns: int = 360, step_deg: float = 0.35) -> np.ndarray:

@@ -426,7 +426,9 @@ def _kept_members(members: tuple, keep: np.ndarray) -> tuple[np.ndarray, np.ndar
     return pixels[np.repeat(keep, counts)], kept_starts
 
 
-def plane_breadth(scan: RayScan, planes: PlaneSet, *, members=None) -> np.ndarray:
+def plane_breadth(
+    scan: RayScan, planes: PlaneSet, *, members: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
     """``(J,)`` breadth (m) of each plane across the scan's grid: how wide a strip of points it is.
 
     On every grid row that holds points of plane j, the row's extent is the largest distance of those
@@ -437,15 +439,21 @@ def plane_breadth(scan: RayScan, planes: PlaneSet, *, members=None) -> np.ndarra
     side, is a strip of its diameter; a plane of points on one grid row (one beam) has breadth 0
     across it. Frame-free (distances between ``scan.endpoints``). ``members``: the planes'
     :func:`_members`, if already computed.
+
+    Raises:
+        ValueError: the planes' label grid does not have one pixel per ray of the scan.
     """
+    height, width = planes.labels.shape
+    if height * width != len(scan.endpoints):
+        raise ValueError(f'planes of a {height} x {width} grid for a scan of {len(scan.endpoints)} rays')
     members, starts = _members(planes) if members is None else members
     return _breadth_kernel(
         members,
         starts,
         group_chunks(planes.point_counts),
         np.ascontiguousarray(scan.endpoints, dtype=np.float64),
-        planes.labels.shape[0],
-        planes.labels.shape[1],
+        height,
+        width,
     )
 
 
