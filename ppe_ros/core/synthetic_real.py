@@ -1782,8 +1782,7 @@ def generate_lidar_scan(
         scene: the surfaces (world frame); None builds :func:`make_street_scene` from ``seed``.
         seed: non-negative integer; the scene (if built), pose (if not given) and noise are deterministic in it.
         model: beam layout of :data:`LIDAR_MODELS` (``'os1-128'``, ``'os1-32'``, ``'vlp16'``, ``'hdl32'``,
-            ``'hdl64'``), with
-            ``cols`` columns; ignored when ``grid`` is given.
+            ``'hdl64'``), with ``cols`` columns; ignored when ``grid`` is given.
         grid: any spherical grid instead (rows = beams).
         sensor_pose: pose in the world frame; default :func:`street_sensor_pose` (``seed``).
         errors: the error model; default :class:`LidarErrorModel` (realistic); ``LidarErrorModel.exact()``
